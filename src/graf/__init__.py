@@ -1,0 +1,3 @@
+"""GRaF: an experiment platform for RF spatial-spectrum synthesis."""
+
+__version__ = "0.1.0"
