@@ -1,0 +1,156 @@
+"""What graf-train and graf-eval share: building the run from the config, testing, and writing results.
+
+Every command writes ``results.json`` into its Hydra output folder::
+
+    {"method", "scene", "band_hz", "n_train", "n_test",
+     "metrics": {"test/mse", "test/psnr", "test/ssim", "test/lpips"}, "seconds", "config", ...}
+
+and, with ``save_predictions=true``, ``predictions.npz`` (``pred``, ``target``: float32 [N, 90, 360] in
+[0, 1]; ``ids``: int [N]).  A figure of predicted vs true spectra (``spectra.png``) goes beside them.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import math
+import os
+import platform
+import time
+from pathlib import Path
+
+import hydra
+import lightning as L
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+import graf
+from graf.callbacks import PredictionCollector
+from graf.io import atomic_write_json, atomic_write_npz
+from graf.plotting import plot_spectra_grid
+
+log = logging.getLogger("graf")
+
+REPO_CONF = Path(__file__).resolve().parents[3] / "conf"
+CONF_DIR = os.environ.get("GRAF_CONF_DIR", str(REPO_CONF))
+
+
+def task_wrapper(task):
+    """Run a task; on failure log the exception (and the output folder) before re-raising; always close
+    the loggers (wandb included), so a failed run in a sweep leaves a finished, inspectable record."""
+
+    @functools.wraps(task)
+    def wrapped(cfg: DictConfig):
+        try:
+            return task(cfg)
+        except Exception:
+            log.exception("%s failed; output folder: %s", cfg.get("task_name", "task"), _output_dir(cfg))
+            raise
+        finally:
+            try:
+                import wandb
+
+                if wandb.run is not None:
+                    wandb.finish()
+            except ImportError:  # pragma: no cover
+                pass
+
+    return wrapped
+
+
+def _output_dir(cfg: DictConfig) -> Path:
+    try:
+        return Path(cfg.paths.output_dir)
+    except Exception:  # ${hydra:...} outside a Hydra app
+        return Path.cwd()
+
+
+def build(cfg: DictConfig) -> dict:
+    """Instantiate band, scene, neighbour selector, datamodule, model, loggers and trainer."""
+    if cfg.get("seed") is not None:
+        L.seed_everything(int(cfg.seed), workers=True, verbose=False)
+    out = _output_dir(cfg)
+    out.mkdir(parents=True, exist_ok=True)
+    band = hydra.utils.instantiate(cfg.band)
+    scene = hydra.utils.instantiate(cfg.scene)
+    neighbors = hydra.utils.instantiate(cfg.neighbors)
+    datamodule = hydra.utils.instantiate(cfg.data, scene=scene, band=band, neighbors=neighbors,
+                                         data_root=cfg.get("data_root"))
+    model = hydra.utils.instantiate(cfg.model)
+    loggers = [hydra.utils.instantiate(c) for c in (cfg.get("logger") or {}).values()
+               if isinstance(c, DictConfig) and "_target_" in c]
+    collector = PredictionCollector()
+    callbacks = [collector] + [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()
+                               if isinstance(c, DictConfig) and "_target_" in c]
+    trainer = hydra.utils.instantiate(cfg.trainer, logger=loggers or False, callbacks=callbacks)
+    return {"band": band, "scene": scene, "neighbors": neighbors, "datamodule": datamodule, "model": model,
+            "loggers": loggers, "collector": collector, "trainer": trainer, "output_dir": out}
+
+
+def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str, ckpt_path=None) -> dict:
+    """Test, then write results.json (+ predictions.npz, spectra.png).  Returns the metrics."""
+    trainer, model, dm = objects["trainer"], objects["model"], objects["datamodule"]
+    trainer.test(model=model, datamodule=dm, ckpt_path=ckpt_path, verbose=False)
+    metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")}
+    out: Path = objects["output_dir"]
+    arrays = objects["collector"].arrays()
+    data = dm.data
+    results = {
+        "method": getattr(model, "method", type(model).__name__),
+        "scene": data.name,
+        "band_hz": float(objects["band"].frequency_hz),
+        "n_train": data.n_train,
+        "n_test": int(len(arrays["ids"])),
+        "metrics": {k: metrics.get(k) for k in ("test/mse", "test/psnr", "test/ssim", "test/lpips")},
+        "seconds": round(time.perf_counter() - started, 3),
+        "config": OmegaConf.to_container(cfg, resolve=True),
+        "task": task,
+        "eval_split": dm.eval_split,
+        "split_source": data.split_source,
+        "neighbors": repr(objects["neighbors"]),
+        "trainable_parameters": int(sum(p.numel() for p in model.parameters() if p.requires_grad)),
+        "device": str(model.device),
+        "versions": {"graf": graf.__version__, "torch": torch.__version__, "python": platform.python_version()},
+    }
+    if cfg.get("save_predictions"):
+        atomic_write_npz(out / "predictions.npz", **arrays)
+        results["predictions"] = "predictions.npz"
+    if int(cfg.get("plot_count", 0)) > 0 and len(arrays["ids"]):
+        fig = plot_spectra_grid(arrays["pred"], arrays["target"], arrays["ids"], out / "spectra.png",
+                                title=f"{results['method']} on {data.name}", max_rows=int(cfg.plot_count))
+        results["figure"] = fig.name
+        for lg in objects["loggers"]:
+            if hasattr(lg, "log_image"):
+                lg.log_image(key="test/spectra", images=[str(fig)])
+    atomic_write_json(out / "results.json", results)
+    log.info("results: %s", out / "results.json")
+    print(format_metrics_table([results]))
+    return metrics
+
+
+def format_metrics_table(rows: list[dict]) -> str:
+    """A plain-text table of the four test metrics, one row per results dict."""
+    head = f"{'method':<22}{'scene':<16}{'n_test':>7}{'MSE':>10}{'PSNR':>9}{'SSIM':>8}{'LPIPS':>8}"
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        m = r["metrics"]
+
+        def f(key, spec):
+            v = m.get(key)
+            return format(v, spec) if v is not None and not math.isnan(v) else "n/a"
+
+        lines.append(f"{r['method']:<22}{r['scene']:<16}{r['n_test']:>7}{f('test/mse', '10.4f')}"
+                     f"{f('test/psnr', '9.2f')}{f('test/ssim', '8.3f')}{f('test/lpips', '8.3f')}")
+    return "\n".join(lines)
+
+
+def sweep_value(cfg: DictConfig, metrics: dict) -> float:
+    """The value a sweep optimises: never NaN (a NaN or missing metric counts as the worst value)."""
+    name = cfg.get("optimized_metric")
+    if not name:
+        return 0.0
+    v = metrics.get(name)
+    if v is None or not math.isfinite(v):
+        log.warning("optimized metric %s is %s; reporting -inf", name, v)
+        return float("-inf")
+    return float(v)

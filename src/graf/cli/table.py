@@ -1,0 +1,135 @@
+"""graf-table: collect results.json files (a run, a multirun folder, or several) into one table.
+
+    graf-table runs=multirun/knn_rfid_s23/2026-11-22_16-00-00 [out=sweeps/knn_rfid_s23]
+
+Config keys whose values differ between the runs become columns (so a sweep's axes show up by
+themselves).  Writes ``table.md``, ``table.csv`` and ``results.json`` (``{"rows": [...]}``) into the
+output folder (and into ``out`` when given), and prints the Markdown table.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import math
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig, ListConfig
+
+from graf.cli.common import CONF_DIR, _output_dir, task_wrapper
+from graf.io import atomic_write_bytes, atomic_write_json
+
+log = logging.getLogger("graf")
+
+METRICS = ("test/mse", "test/psnr", "test/ssim", "test/lpips")
+IGNORED_PREFIXES = ("paths.", "hydra.", "data_root", "task_name", "logger.", "trainer.default_root_dir",
+                    "save_predictions", "plot_count", "ckpt_path")
+
+
+def _flatten(d, prefix=""):
+    out = {}
+    if isinstance(d, dict):
+        for k, v in d.items():
+            out.update(_flatten(v, f"{prefix}{k}."))
+    else:
+        out[prefix[:-1]] = json.dumps(d) if isinstance(d, list) else d
+    return out
+
+
+def _natural(path: Path) -> list:
+    """Sort key so that multirun job 10 comes after job 9."""
+    return [int(part) if part.isdigit() else part for part in path.parts]
+
+
+def collect(paths: list[str | Path]) -> list[dict]:
+    files = []
+    for p in paths:
+        p = Path(p)
+        if p.is_file():
+            files.append(p)
+        elif p.is_dir():
+            files.extend(sorted(p.rglob("results.json"), key=_natural))
+        else:
+            raise FileNotFoundError(f"graf-table: {p} does not exist")
+    if not files:
+        raise FileNotFoundError(f"graf-table: no results.json under {', '.join(map(str, paths))}")
+    rows = []
+    for f in files:
+        try:
+            r = json.loads(f.read_text())
+            r["_file"] = str(f)
+            rows.append(r)
+        except (json.JSONDecodeError, OSError) as exc:
+            raise ValueError(f"{f}: not a readable results.json ({exc})") from None
+    return rows
+
+
+def varying_keys(rows: list[dict]) -> list[str]:
+    flats = [_flatten(r.get("config", {})) for r in rows]
+    keys = sorted(set().union(*flats)) if flats else []
+    return [k for k in keys if not k.startswith(IGNORED_PREFIXES)
+            and len({json.dumps(f.get(k), default=str) for f in flats}) > 1]
+
+
+def build_table(rows: list[dict]) -> tuple[list[str], list[list]]:
+    axes = varying_keys(rows)
+    header = ["method", "scene", *axes, "n_test", "MSE", "PSNR", "SSIM", "LPIPS", "seconds"]
+    body = []
+    for r in rows:
+        flat = _flatten(r.get("config", {}))
+        m = r.get("metrics", {})
+        body.append([r.get("method"), r.get("scene"), *[flat.get(k) for k in axes], r.get("n_test"),
+                     *[m.get(k) for k in METRICS], r.get("seconds")])
+    return header, body
+
+
+def _fmt(v, col):
+    if isinstance(v, float):
+        if math.isnan(v):
+            return "nan"
+        return {"MSE": f"{v:.4f}", "PSNR": f"{v:.2f}", "SSIM": f"{v:.3f}", "LPIPS": f"{v:.3f}",
+                "seconds": f"{v:.1f}"}.get(col, f"{v:g}")
+    return "" if v is None else str(v)
+
+
+def to_markdown(header, body) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(_fmt(v, c) for v, c in zip(row, header)) + " |" for row in body]
+    return "\n".join(lines) + "\n"
+
+
+def to_csv(header, body) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(header)
+    w.writerows(body)
+    return buf.getvalue()
+
+
+@task_wrapper
+def make_table(cfg: DictConfig) -> dict:
+    runs = cfg.runs
+    runs = list(runs) if isinstance(runs, (list, ListConfig)) else [runs]
+    rows = collect(runs)
+    header, body = build_table(rows)
+    md, text_csv = to_markdown(header, body), to_csv(header, body)
+    payload = {"rows": [dict(zip(header, row)) | {"results_file": r["_file"]} for row, r in zip(body, rows)],
+               "sources": [str(r) for r in runs]}
+    for folder in [_output_dir(cfg)] + ([Path(cfg.out)] if cfg.get("out") else []):
+        atomic_write_bytes(folder / "table.md", md.encode())
+        atomic_write_bytes(folder / "table.csv", text_csv.encode())
+        atomic_write_json(folder / "results.json", payload)
+    print(md)
+    return payload
+
+
+@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="table")
+def main(cfg: DictConfig) -> None:
+    make_table(cfg)
+
+
+if __name__ == "__main__":
+    main()

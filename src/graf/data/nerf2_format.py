@@ -1,0 +1,331 @@
+"""Reader (and writer) for NeRF2's spatial-spectrum folder format.
+
+Layout of a scene folder (XPengZhao/NeRF2, RFID spectrum datasets)::
+
+    spectrum/NNNNN.png    8-bit grayscale, 90 rows (elevation) x 360 columns (azimuth), label = pixel / 255
+    tx_pos.csv            optional header ``x,y,z``; data row k-1 is the position of spectrum id k (ids start at 1)
+    gateway_info.yml      gateway1.position [x, y, z]; gateway1.orientation quaternion (x, y, z, w)
+    train_index.txt       spectrum ids, one per line (optional, together with test_index.txt)
+    test_index.txt
+
+Ids are parsed as integers, so ``00132.png`` and ``132.png`` are both id 132.  When *both* index files
+are missing, a seeded split is made (``split_seed``, ``train_fraction``; NeRF2 itself uses an unseeded
+80/20 shuffle) and recorded in :attr:`SpectrumSet.split_source`.  Everything else is strict: a problem
+raises :class:`DataFormatError` naming the file and what is wrong with it.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import logging
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+from PIL import Image
+
+from graf.io import atomic_write_bytes
+
+log = logging.getLogger(__name__)
+
+N_ELEVATION = 90
+N_AZIMUTH = 360
+SPECTRUM_SHAPE = (N_ELEVATION, N_AZIMUTH)
+
+
+class DataFormatError(ValueError):
+    """A scene's files are not in the expected format.  The message names the file and the problem."""
+
+    def __init__(self, path: str | os.PathLike, problem: str):
+        self.path = str(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")
+
+
+@dataclass
+class SpectrumSet:
+    """A scene's measurements held once in memory.
+
+    Attributes:
+        spectra: float32 ``[N, 90, 360]`` in [0, 1]; row r is elevation r+1 deg, column c azimuth c+1 deg.
+        positions: float64 ``[N, 3]`` transmitter positions (m).
+        ids: int64 ``[N]`` spectrum ids as in the files.
+        train_idx / test_idx: int64 row indices into the arrays above (disjoint).
+        gateway_position: ``[3]``; gateway_orientation: quaternion ``[4]`` in (x, y, z, w) order.
+    """
+
+    name: str
+    spectra: torch.Tensor
+    positions: np.ndarray
+    ids: np.ndarray
+    train_idx: np.ndarray
+    test_idx: np.ndarray
+    gateway_position: np.ndarray
+    gateway_orientation: np.ndarray
+    frequency_hz: float
+    source: str
+    split_source: str
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def wavelength(self) -> float:
+        return 299_792_458.0 / self.frequency_hz
+
+    @property
+    def n_train(self) -> int:
+        return int(len(self.train_idx))
+
+    @property
+    def n_test(self) -> int:
+        return int(len(self.test_idx))
+
+    def bounds(self) -> np.ndarray:
+        """Axis-aligned box ``[2, 3]`` holding every transmitter and the gateway (a real scene's only
+        known geometry); simulated scenes carry their room bounds instead in ``meta['bounds']``."""
+        if "bounds" in self.meta:
+            return np.asarray(self.meta["bounds"], dtype=np.float64)
+        pts = np.vstack([self.positions, self.gateway_position[None]])
+        return np.stack([pts.min(0), pts.max(0)])
+
+
+def _parse_id(text: str, where: str | Path) -> int:
+    try:
+        value = int(text.strip())
+    except ValueError:
+        raise DataFormatError(where, f"spectrum id {text.strip()!r} is not an integer") from None
+    if value < 1:
+        raise DataFormatError(where, f"spectrum id {value} is invalid: ids start at 1 (id k is tx_pos row k)")
+    return value
+
+
+def _scan_spectra(spectrum_dir: Path) -> dict[int, Path]:
+    if not spectrum_dir.is_dir():
+        raise DataFormatError(spectrum_dir, "folder of spectrum PNGs is missing")
+    files: dict[int, Path] = {}
+    for f in sorted(spectrum_dir.iterdir()):
+        if f.suffix.lower() != ".png":
+            continue
+        k = _parse_id(f.stem, f)
+        if k in files:
+            raise DataFormatError(f, f"duplicate spectrum id {k}: also {files[k].name}")
+        files[k] = f
+    if not files:
+        raise DataFormatError(spectrum_dir, "contains no .png spectra")
+    return files
+
+
+def _read_index(path: Path) -> list[int]:
+    ids: list[int] = []
+    seen: set[int] = set()
+    for line_no, line in enumerate(path.read_text().splitlines(), start=1):
+        if not line.strip():
+            continue
+        k = _parse_id(line, f"{path} line {line_no}")
+        if k in seen:
+            raise DataFormatError(path, f"duplicate id {k} at line {line_no}")
+        seen.add(k)
+        ids.append(k)
+    if not ids:
+        raise DataFormatError(path, "lists no ids")
+    return ids
+
+
+def read_spectrum_png(path: Path) -> np.ndarray:
+    """One spectrum PNG as float32 ``[90, 360]`` in [0, 1] (pixel / 255)."""
+    try:
+        with Image.open(path) as im:
+            mode, size = im.mode, im.size
+            if mode != "L":
+                raise DataFormatError(path, f"spectrum is not 8-bit grayscale (PIL mode {mode!r}, expected 'L')")
+            if size != (N_AZIMUTH, N_ELEVATION):
+                raise DataFormatError(
+                    path, f"spectrum is {size[1]}x{size[0]} (rows x columns), expected {N_ELEVATION}x{N_AZIMUTH}"
+                )
+            arr = np.asarray(im, dtype=np.float32)
+    except DataFormatError:
+        raise
+    except Exception as exc:  # truncated or non-PNG content
+        raise DataFormatError(path, f"cannot be read as a PNG image ({exc})") from None
+    return arr / 255.0
+
+
+def _read_positions(path: Path) -> tuple[np.ndarray, bool]:
+    """Returns (rows [M, 3], had_header).  A first row that does not parse as numbers is a header."""
+    if not path.is_file():
+        raise DataFormatError(path, "transmitter position file is missing")
+    rows = list(csv.reader(io.StringIO(path.read_text())))
+    rows = [r for r in rows if any(c.strip() for c in r)]
+    if not rows:
+        raise DataFormatError(path, "is empty")
+    had_header = False
+    try:
+        [float(c) for c in rows[0]]
+    except ValueError:
+        had_header = True
+        rows = rows[1:]
+    log.info("%s: %s", path, "header row found and skipped" if had_header else "no header row; first row is id 1")
+    out = np.full((len(rows), 3), np.nan)
+    for i, r in enumerate(rows):
+        line_no = i + 1 + int(had_header)
+        if len(r) != 3:
+            raise DataFormatError(path, f"line {line_no} has {len(r)} columns, expected 3 (x,y,z)")
+        try:
+            out[i] = [float(c) for c in r]
+        except ValueError:
+            raise DataFormatError(path, f"line {line_no} is not numeric: {','.join(r)!r}") from None
+    return out, had_header
+
+
+def _read_gateway(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    if not path.is_file():
+        raise DataFormatError(path, "gateway file is missing")
+    try:
+        info = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise DataFormatError(path, f"is not valid YAML ({exc})") from None
+    gw = info.get("gateway1") if isinstance(info, dict) else None
+    if not isinstance(gw, dict):
+        raise DataFormatError(path, "has no 'gateway1' section")
+    values = {}
+    for key, n in (("position", 3), ("orientation", 4)):
+        if key not in gw or gw[key] is None:
+            raise DataFormatError(path, f"gateway1 has no {key}")
+        try:
+            v = np.asarray(gw[key], dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            raise DataFormatError(path, f"gateway1.{key} is not a list of numbers: {gw[key]!r}") from None
+        if v.shape != (n,) or not np.all(np.isfinite(v)):
+            raise DataFormatError(path, f"gateway1.{key} must be {n} finite numbers, got {gw[key]!r}")
+        values[key] = v
+    q = values["orientation"]
+    if not math.isclose(float(np.linalg.norm(q)), 1.0, abs_tol=1e-3):
+        raise DataFormatError(path, f"gateway1.orientation is not a unit quaternion (norm {np.linalg.norm(q):.4f})")
+    return values["position"], q / np.linalg.norm(q)
+
+
+def seeded_split(ids: list[int], seed: int, train_fraction: float) -> tuple[list[int], list[int]]:
+    """Reproducible train/test split of ``ids`` (sorted first, then permuted by ``seed``)."""
+    if not 0.0 < train_fraction < 1.0:
+        raise ValueError(f"train_fraction must be in (0, 1), got {train_fraction}")
+    ordered = sorted(ids)
+    perm = np.random.default_rng(seed).permutation(len(ordered))
+    n_train = int(round(len(ordered) * train_fraction))
+    n_train = min(max(n_train, 1), len(ordered) - 1)
+    train = sorted(ordered[i] for i in perm[:n_train])
+    test = sorted(ordered[i] for i in perm[n_train:])
+    return train, test
+
+
+def read_nerf2_folder(
+    path: str | os.PathLike,
+    *,
+    name: str | None = None,
+    frequency_hz: float = 915e6,
+    split_seed: int = 0,
+    train_fraction: float = 0.8,
+) -> SpectrumSet:
+    """Read a scene in NeRF2's folder format (see the module docstring)."""
+    root = Path(path)
+    if not root.is_dir():
+        raise DataFormatError(root, "scene folder does not exist")
+    files = _scan_spectra(root / "spectrum")
+    train_file, test_file = root / "train_index.txt", root / "test_index.txt"
+    if train_file.is_file() and test_file.is_file():
+        train_ids, test_ids = _read_index(train_file), _read_index(test_file)
+        both = sorted(set(train_ids) & set(test_ids))
+        if both:
+            raise DataFormatError(test_file, f"ids also in {train_file.name}: {both[:10]}")
+        for index_file, ids in ((train_file, train_ids), (test_file, test_ids)):
+            missing = [k for k in ids if k not in files]
+            if missing:
+                raise DataFormatError(index_file, f"lists id {missing[0]} but spectrum/ has no PNG for it"
+                                      + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
+        split_source = f"index files {train_file.name} / {test_file.name}"
+    elif train_file.is_file() or test_file.is_file():
+        present, absent = (train_file, test_file) if train_file.is_file() else (test_file, train_file)
+        raise DataFormatError(absent, f"is missing while {present.name} exists: give both index files or neither")
+    else:
+        train_ids, test_ids = seeded_split(list(files), split_seed, train_fraction)
+        split_source = f"seeded split (no index files): seed={split_seed}, train_fraction={train_fraction}"
+        log.warning("%s: no index files; %s", root, split_source)
+
+    positions_all, had_header = _read_positions(root / "tx_pos.csv")
+    gw_pos, gw_quat = _read_gateway(root / "gateway_info.yml")
+
+    all_ids = np.asarray(train_ids + test_ids, dtype=np.int64)
+    pos_file = root / "tx_pos.csv"
+    rows = all_ids - 1
+    if rows.max() >= len(positions_all):
+        k = int(all_ids[rows.argmax()])
+        raise DataFormatError(pos_file, f"has {len(positions_all)} position rows but spectrum id {k} needs row {k}")
+    positions = positions_all[rows]
+    bad = ~np.isfinite(positions).all(axis=1)
+    if bad.any():
+        k = int(all_ids[np.argmax(bad)])
+        raise DataFormatError(pos_file, f"position of spectrum id {k} (data row {k}) is not finite: {positions[np.argmax(bad)].tolist()}")
+
+    spectra = torch.empty((len(all_ids), *SPECTRUM_SHAPE), dtype=torch.float32)
+    for i, k in enumerate(all_ids.tolist()):
+        spectra[i] = torch.from_numpy(read_spectrum_png(files[k]))
+    n_train = len(train_ids)
+    return SpectrumSet(
+        name=name or root.name,
+        spectra=spectra,
+        positions=positions,
+        ids=all_ids,
+        train_idx=np.arange(n_train, dtype=np.int64),
+        test_idx=np.arange(n_train, len(all_ids), dtype=np.int64),
+        gateway_position=gw_pos,
+        gateway_orientation=gw_quat,
+        frequency_hz=float(frequency_hz),
+        source=str(root),
+        split_source=split_source,
+        meta={"tx_pos_header": had_header, "unused_spectra": len(files) - len(all_ids)},
+    )
+
+
+def write_nerf2_folder(
+    path: str | os.PathLike,
+    spectra: np.ndarray | torch.Tensor,
+    positions: np.ndarray,
+    ids: np.ndarray,
+    gateway_position: np.ndarray,
+    gateway_orientation: np.ndarray,
+    train_ids: np.ndarray | None = None,
+    test_ids: np.ndarray | None = None,
+) -> Path:
+    """Write spectra ``[N, 90, 360]`` in [0, 1] as a NeRF2 folder that :func:`read_nerf2_folder` reads back.
+
+    PNGs are quantised to 8 bits (pixel = round(255 * value)), as NeRF2 stores them.  ``tx_pos.csv`` gets
+    a header and one row per id 1..max(id) (rows of ids not written are NaN-free zeros and never read).
+    """
+    root = Path(path)
+    (root / "spectrum").mkdir(parents=True, exist_ok=True)
+    spectra = torch.as_tensor(spectra).detach().cpu().float().numpy()
+    ids = np.asarray(ids, dtype=np.int64)
+    if spectra.ndim != 3 or spectra.shape[1:] != SPECTRUM_SHAPE or len(spectra) != len(ids):
+        raise ValueError(f"spectra must be [N, 90, 360] with N = len(ids) = {len(ids)}, got {tuple(spectra.shape)}")
+    if not np.isfinite(spectra).all():
+        raise ValueError("spectra contain non-finite values")
+    width = max(5, len(str(int(ids.max()))))
+    for k, s in zip(ids.tolist(), spectra):
+        buf = io.BytesIO()
+        Image.fromarray(np.clip(np.rint(s * 255.0), 0, 255).astype(np.uint8), mode="L").save(buf, format="PNG")
+        atomic_write_bytes(root / "spectrum" / f"{k:0{width}d}.png", buf.getvalue())
+    table = np.zeros((int(ids.max()), 3))
+    table[ids - 1] = np.asarray(positions, dtype=np.float64)
+    lines = ["x,y,z"] + [",".join(f"{v:.6f}" for v in row) for row in table]
+    atomic_write_bytes(root / "tx_pos.csv", ("\n".join(lines) + "\n").encode())
+    gw = {"gateway1": {"position": [float(v) for v in gateway_position],
+                       "orientation": [float(v) for v in gateway_orientation]}}
+    atomic_write_bytes(root / "gateway_info.yml", yaml.safe_dump(gw).encode())
+    if train_ids is not None and test_ids is not None:
+        for fname, sel in (("train_index.txt", train_ids), ("test_index.txt", test_ids)):
+            text = "".join(f"{int(k):0{width}d}\n" for k in sel)
+            atomic_write_bytes(root / fname, text.encode())
+    return root

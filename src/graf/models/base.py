@@ -1,0 +1,40 @@
+"""Shared LightningModule behaviour of every method: the test protocol and its metrics.
+
+A method implements :meth:`predict_spectra` (batch -> ``[B, 90, 360]``) and, if it learns, ``training_step``
+and ``configure_optimizers``.  Test metrics are per-spectrum means over the evaluated split
+(``test/mse``, ``test/psnr``, ``test/ssim``, ``test/lpips``); predictions are clamped to [0, 1] first.
+"""
+
+from __future__ import annotations
+
+import lightning as L
+import torch
+
+from graf.metrics import spectrum_metrics
+
+
+class SpectrumModule(L.LightningModule):
+    def __init__(self):
+        super().__init__()
+        self.test_metrics = spectrum_metrics("test/")
+        self.val_metrics = spectrum_metrics("val/", lpips=False)
+
+    @property
+    def has_trainable_parameters(self) -> bool:
+        return any(p.requires_grad for p in self.parameters())
+
+    def predict_spectra(self, batch: dict) -> torch.Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _eval_step(self, batch: dict, metrics) -> dict:
+        pred = self.predict_spectra(batch).float().clamp(0.0, 1.0)
+        target = batch["tgt_spectrum"].float()
+        metrics.update(pred, target)
+        self.log_dict(metrics, on_step=False, on_epoch=True, batch_size=pred.shape[0])
+        return {"pred": pred.detach(), "ids": batch["tgt_id"].detach()}
+
+    def test_step(self, batch: dict, batch_idx: int) -> dict:
+        return self._eval_step(batch, self.test_metrics)
+
+    def validation_step(self, batch: dict, batch_idx: int) -> dict:
+        return self._eval_step(batch, self.val_metrics)

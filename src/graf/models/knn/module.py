@@ -1,0 +1,37 @@
+"""KNN: a weighted mean of the L neighbours' spectra, with nothing to train.
+
+``weighting: idw`` uses inverse-distance weights 1/d^power; ``weighting: barycentric`` uses the convex
+weights of the interpolation theorem (seed appendix A, see :func:`barycentric_weights`).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from graf.models.base import SpectrumModule
+from graf.models.knn.weights import barycentric_weights, idw_weights
+
+WEIGHTINGS = ("idw", "barycentric")
+
+
+class KNNModule(SpectrumModule):
+    def __init__(self, weighting: str = "idw", power: float = 1.0, ridge: float = 1e-3):
+        super().__init__()
+        if weighting not in WEIGHTINGS:
+            raise ValueError(f"model.weighting must be one of {WEIGHTINGS}, got {weighting!r}")
+        self.save_hyperparameters()
+        self.weighting, self.power, self.ridge = weighting, float(power), float(ridge)
+
+    @property
+    def method(self) -> str:
+        return "knn" if self.weighting == "idw" else f"knn-{self.weighting}"
+
+    def weights(self, batch: dict) -> torch.Tensor:
+        """``[B, L]`` convex weights of the neighbours."""
+        if self.weighting == "idw":
+            return idw_weights(batch["tgt_pos"], batch["src_pos"], batch["src_mask"], power=self.power)
+        return barycentric_weights(batch["tgt_pos"], batch["src_pos"], batch["src_mask"], ridge=self.ridge)
+
+    def predict_spectra(self, batch: dict) -> torch.Tensor:
+        w = self.weights(batch).to(batch["src_spectra"].dtype)
+        return torch.einsum("bl,blhw->bhw", w, batch["src_spectra"])

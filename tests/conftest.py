@@ -1,0 +1,63 @@
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+
+from graf.cli.common import REPO_CONF
+from graf.data.nerf2_format import write_nerf2_folder
+
+os.environ.setdefault("WANDB_MODE", "offline")
+os.environ.setdefault("WANDB_SILENT", "true")
+
+EMBEDDED_S23 = Path(__file__).resolve().parents[1] / "src" / "graf" / "embedded" / "rfid_s23_200"
+
+
+def smooth_spectra(positions: np.ndarray, seed: int = 0) -> np.ndarray:
+    """Spectra that vary smoothly with the transmitter position: a lobe whose direction follows it."""
+    el = np.arange(1, 91)[None, :, None]
+    az = np.arange(1, 361)[None, None, :]
+    p = np.asarray(positions)
+    az0 = (np.degrees(np.arctan2(p[:, 1], p[:, 0])) % 360)[:, None, None]
+    el0 = (20 + 10 * p[:, 2])[:, None, None]
+    daz = (az - az0 + 180) % 360 - 180
+    s = np.exp(-(daz / 25.0) ** 2 - ((el - el0) / 15.0) ** 2)
+    s = (s - s.min(axis=(1, 2), keepdims=True)) / np.ptp(s, axis=(1, 2), keepdims=True)
+    return s.astype(np.float32)
+
+
+@pytest.fixture
+def make_scene(tmp_path):
+    """Write a tiny NeRF2-format scene; returns its folder."""
+
+    def _make(n: int = 16, name: str = "tiny", index: bool = True, seed: int = 0) -> Path:
+        rng = np.random.default_rng(seed)
+        pos = rng.uniform([-1.0, 0.5, 0.0], [1.0, 1.5, 1.0], size=(n, 3))
+        ids = np.arange(1, n + 1)
+        n_train = int(n * 0.75)
+        return write_nerf2_folder(
+            tmp_path / name, smooth_spectra(pos), pos, ids, np.array([0.0, 0.0, 0.5]),
+            np.array([0.0, 0.0, 0.0, 1.0]),
+            train_ids=ids[:n_train] if index else None, test_ids=ids[n_train:] if index else None)
+
+    return _make
+
+
+@pytest.fixture
+def compose_cfg(tmp_path):
+    """Compose the real configs (train or eval) with overrides; output folder in tmp_path."""
+
+    def _compose(config_name: str = "eval", overrides: tuple[str, ...] = ()):
+        GlobalHydra.instance().clear()
+        with initialize_config_dir(config_dir=str(REPO_CONF), version_base="1.3"):
+            cfg = compose(config_name=config_name, overrides=[
+                f"paths.output_dir={tmp_path / 'out'}", "trainer.accelerator=cpu", "logger=none",
+                "trainer.enable_progress_bar=false", f"data_root={tmp_path / 'data'}", *overrides])
+        GlobalHydra.instance().clear()
+        return cfg
+
+    return _compose

@@ -1,0 +1,184 @@
+"""The NeRF2 folder reader: the real s23 slice, format variants, and a clear error for each bad input."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from graf.data.nerf2_format import DataFormatError, read_nerf2_folder, seeded_split, write_nerf2_folder
+from tests.conftest import EMBEDDED_S23, smooth_spectra
+
+
+def test_reads_real_s23_slice():
+    d = read_nerf2_folder(EMBEDDED_S23)
+    assert tuple(d.spectra.shape) == (200, 90, 360)
+    assert (d.n_train, d.n_test) == (160, 40)
+    assert float(d.spectra.min()) == 0.0 and float(d.spectra.max()) == 1.0  # min-max scaled per spectrum
+    assert d.meta["tx_pos_header"] is True
+    np.testing.assert_allclose(d.gateway_position, [5.0, 0.26, 0.0])
+    # id 132 is the first training id; its position is data row 132 of tx_pos.csv
+    rows = (EMBEDDED_S23 / "tx_pos.csv").read_text().splitlines()
+    assert d.ids[0] == 132
+    np.testing.assert_allclose(d.positions[0], [float(v) for v in rows[132].split(",")])
+    # pixel / 255 label convention
+    png = np.asarray(Image.open(EMBEDDED_S23 / "spectrum" / "00132.png"), dtype=np.float32) / 255
+    np.testing.assert_array_equal(d.spectra[0].numpy(), png)
+    assert set(d.ids[d.train_idx]).isdisjoint(d.ids[d.test_idx])
+
+
+def _copy(tmp_path, n_keep=None):
+    dst = tmp_path / "s23"
+    shutil.copytree(EMBEDDED_S23, dst)
+    return dst
+
+
+def test_unpadded_ids_and_headerless_positions(tmp_path):
+    root = _copy(tmp_path)
+    for f in (root / "spectrum").iterdir():
+        f.rename(f.with_name(f"{int(f.stem)}.png"))
+    lines = (root / "tx_pos.csv").read_text().splitlines()[1:]
+    (root / "tx_pos.csv").write_text("\n".join(lines) + "\n")
+    for idx in ("train_index.txt", "test_index.txt"):
+        (root / idx).write_text("\n".join(str(int(x)) for x in (root / idx).read_text().split()) + "\n")
+    a, b = read_nerf2_folder(EMBEDDED_S23), read_nerf2_folder(root)
+    assert b.meta["tx_pos_header"] is False
+    np.testing.assert_array_equal(a.ids, b.ids)
+    np.testing.assert_allclose(a.positions, b.positions)
+    assert bool((a.spectra == b.spectra).all())
+
+
+def test_missing_index_files_give_seeded_documented_split(tmp_path):
+    root = _copy(tmp_path)
+    (root / "train_index.txt").unlink()
+    (root / "test_index.txt").unlink()
+    a = read_nerf2_folder(root, split_seed=7)
+    b = read_nerf2_folder(root, split_seed=7)
+    c = read_nerf2_folder(root, split_seed=8)
+    assert (a.n_train, a.n_test) == (160, 40)
+    assert "seed=7" in a.split_source
+    np.testing.assert_array_equal(a.ids, b.ids)
+    assert not np.array_equal(a.ids, c.ids)
+    assert seeded_split(list(range(1, 11)), 0, 0.8) == seeded_split(list(range(10, 0, -1)), 0, 0.8)
+
+
+def test_write_read_roundtrip(tmp_path):
+    rng = np.random.default_rng(0)
+    pos = rng.normal(size=(6, 3))
+    spectra = smooth_spectra(pos)
+    ids = np.array([3, 1, 2, 6, 5, 4])
+    root = write_nerf2_folder(tmp_path / "rt", spectra, pos, ids, np.zeros(3), np.array([0, 0, 0, 1.0]),
+                              train_ids=ids[:4], test_ids=ids[4:])
+    d = read_nerf2_folder(root)
+    np.testing.assert_array_equal(d.ids, ids)
+    np.testing.assert_allclose(d.positions, pos, atol=1e-6)
+    assert np.abs(d.spectra.numpy() - spectra).max() <= 0.5 / 255 + 1e-6  # 8-bit quantisation
+
+
+# ---------------------------------------------------------------- bad input: one test per problem
+def _expect(root, match, file_name=None, **kw):
+    with pytest.raises(DataFormatError, match=match) as info:
+        read_nerf2_folder(root, **kw)
+    if file_name:
+        assert file_name in str(info.value)
+    return info.value
+
+
+def test_error_listed_id_without_spectrum(tmp_path):
+    root = _copy(tmp_path)
+    (root / "spectrum" / "00132.png").unlink()
+    _expect(root, "lists id 132 but spectrum/ has no PNG", "train_index.txt")
+
+
+def test_error_spectrum_wrong_size(tmp_path):
+    root = _copy(tmp_path)
+    Image.new("L", (360, 89)).save(root / "spectrum" / "00182.png")
+    _expect(root, r"89x360 .*expected 90x360", "00182.png")
+
+
+def test_error_spectrum_not_grayscale(tmp_path):
+    root = _copy(tmp_path)
+    Image.new("RGB", (360, 90)).save(root / "spectrum" / "00023.png")
+    _expect(root, "not 8-bit grayscale.*'RGB'", "00023.png")
+
+
+def test_error_spectrum_not_a_png(tmp_path):
+    root = _copy(tmp_path)
+    (root / "spectrum" / "00023.png").write_bytes(b"not a png")
+    _expect(root, "cannot be read as a PNG", "00023.png")
+
+
+def test_error_position_row_missing(tmp_path):
+    root = _copy(tmp_path)
+    lines = (root / "tx_pos.csv").read_text().splitlines()
+    (root / "tx_pos.csv").write_text("\n".join(lines[:150]) + "\n")  # header + 149 rows
+    _expect(root, r"has 149 position rows but spectrum id \d+ needs row \d+", "tx_pos.csv")
+
+
+def test_error_position_not_finite(tmp_path):
+    root = _copy(tmp_path)
+    lines = (root / "tx_pos.csv").read_text().splitlines()
+    lines[132] = "nan,0.1,1.0"
+    (root / "tx_pos.csv").write_text("\n".join(lines) + "\n")
+    _expect(root, "position of spectrum id 132 .* not finite", "tx_pos.csv")
+
+
+def test_error_position_not_numeric(tmp_path):
+    root = _copy(tmp_path)
+    lines = (root / "tx_pos.csv").read_text().splitlines()
+    lines[5] = "0.1,abc,1.0"
+    (root / "tx_pos.csv").write_text("\n".join(lines) + "\n")
+    _expect(root, "line 6 is not numeric", "tx_pos.csv")
+
+
+def test_error_duplicate_spectrum_ids(tmp_path):
+    root = _copy(tmp_path)
+    shutil.copy(root / "spectrum" / "00023.png", root / "spectrum" / "23.png")
+    _expect(root, "duplicate spectrum id 23", "spectrum")
+
+
+def test_error_duplicate_ids_in_index(tmp_path):
+    root = _copy(tmp_path)
+    with open(root / "test_index.txt", "a") as f:
+        f.write("\n" + (root / "test_index.txt").read_text().split()[0] + "\n")
+    _expect(root, "duplicate id", "test_index.txt")
+
+
+def test_error_id_in_both_splits(tmp_path):
+    root = _copy(tmp_path)
+    with open(root / "test_index.txt", "a") as f:
+        f.write("\n00132\n")
+    _expect(root, r"ids also in train_index.txt: \[132\]", "test_index.txt")
+
+
+@pytest.mark.parametrize("key", ["position", "orientation"])
+def test_error_gateway_without_key(tmp_path, key):
+    root = _copy(tmp_path)
+    other = "orientation" if key == "position" else "position"
+    value = "[0.5, -0.5, -0.5, 0.5]" if other == "orientation" else "[5.0, 0.26, 0]"
+    (root / "gateway_info.yml").write_text(f"gateway1:\n  {other}: {value}\n")
+    _expect(root, f"gateway1 has no {key}", "gateway_info.yml")
+
+
+def test_error_gateway_bad_quaternion(tmp_path):
+    root = _copy(tmp_path)
+    (root / "gateway_info.yml").write_text("gateway1:\n  position: [5, 0, 0]\n  orientation: [1, 1, 0]\n")
+    _expect(root, "orientation must be 4 finite numbers", "gateway_info.yml")
+
+
+def test_error_one_index_file_missing(tmp_path):
+    root = _copy(tmp_path)
+    (root / "test_index.txt").unlink()
+    _expect(root, "missing while train_index.txt exists", "test_index.txt")
+
+
+def test_error_non_integer_id(tmp_path):
+    root = _copy(tmp_path)
+    (root / "spectrum" / "00023.png").rename(root / "spectrum" / "abc.png")
+    _expect(root, "'abc' is not an integer", "abc.png")
+
+
+def test_error_missing_folder(tmp_path):
+    _expect(tmp_path / "nope", "scene folder does not exist", "nope")
