@@ -1,0 +1,1 @@
+"""Ray-traced scenes: geometry from configs, Sionna RT tracing, Bartlett spectra, resumable datasets."""

@@ -1,0 +1,206 @@
+"""Dataset files of simulated scenes: resumable generation and reading.
+
+One HDF5 file per (scene, band): ``<data_root>/sim/<scene>/<band>[-n<N>].h5``.  HDF5 because it is one
+self-describing file with chunked, compressed arrays and attributes that numpy, MATLAB and h5py users
+read without our code; zarr would make thousands of small files and add a format still in flux.
+
+    spectra     uint8 [N, 90, 360]   pixel = round(255 * min-max normalised Bartlett amplitude), as NeRF2's PNGs
+    channels    complex64 [N, 16]    per-antenna channel h (the spectra are an exact function of it)
+    positions   float64 [N, 3]       transmitter positions (m)
+    ids         int64 [N]            1..N (id k = row k-1, as NeRF2)
+    num_paths   int32 [N]            valid traced paths per position
+    train_idx / test_idx  int64      seeded split (row indices)
+    antenna_positions float64 [16,3] in the gateway frame
+    attrs: scene, band, frequency_hz, wavelength, gateway_position, gateway_orientation (x,y,z,w),
+           bounds [2,3], angle_convention, config (JSON of the full generating config), versions
+
+Generation writes chunks of ``chunk_size`` spectra as separate files (atomically) under
+``<file>.parts/``; a killed run, started again with the same command, skips finished chunks, so no
+spectrum is lost or made twice.  When every chunk is there, the HDF5 file is assembled in a temporary
+file and renamed into place.  A changed configuration is refused (the parts carry its fingerprint).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from graf.bands import Band
+from graf.data.nerf2_format import DataFormatError, SpectrumSet
+from graf.io import atomic_write_json, atomic_write_npz
+
+log = logging.getLogger(__name__)
+FORMAT_VERSION = 1
+ANGLE_CONVENTION = ("row r = elevation r+1 deg, column c = azimuth c+1 deg; direction (cos e cos a, cos e sin a, "
+                    "sin e) in the gateway frame (array in z=0, facing +z); rows cover the front hemisphere")
+
+
+def fingerprint(config: dict) -> str:
+    return hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def generate(scene, band: Band, data_root: str | Path, num_tx: int | None = None, chunk_size: int = 256,
+             overwrite: bool = False, device: str = "cpu", progress: bool = True) -> dict:
+    """Trace every transmitter position of ``scene`` at ``band`` and write the dataset file.
+
+    Returns a summary: path, n, seconds, spectra per second (of the spectra made in this call)."""
+    from tqdm.auto import tqdm
+
+    from graf.sim.array import Bartlett, array_positions, to_uint8
+    from graf.sim.tracer import SionnaTracer, spectra_from_paths
+
+    started = time.perf_counter()
+    path = scene.dataset_path(data_root, band, num_tx)
+    parts = path.with_name(path.name + ".parts")
+    positions = scene.positions(num_tx)
+    n = len(positions)
+    arr = scene.array
+    antennas = array_positions(band.wavelength, int(arr.get("rows", 4)), int(arr.get("cols", 4)),
+                               float(arr.get("pitch_wavelengths", 0.5)))
+    config = {"scene": scene.config(), "band": {"name": band.name, "frequency_hz": band.frequency_hz},
+              "num_tx": n, "chunk_size": int(chunk_size), "format_version": FORMAT_VERSION}
+    fp = fingerprint(config)
+    if path.is_file() and not overwrite:
+        log.info("%s exists; nothing to do (overwrite=true makes it again)", path)
+        return {"path": str(path), "n": n, "made": 0, "seconds": 0.0, "spectra_per_second": None, "skipped": True}
+    if overwrite:
+        path.unlink(missing_ok=True)
+        shutil.rmtree(parts, ignore_errors=True)
+    parts.mkdir(parents=True, exist_ok=True)
+    manifest = parts / "manifest.json"
+    if manifest.is_file():
+        old = json.loads(manifest.read_text())
+        if old.get("fingerprint") != fp:
+            raise DataFormatError(parts, "holds chunks of a different configuration; run with sim.overwrite=true "
+                                         "to start again (or restore the configuration that made them)")
+    else:
+        atomic_write_json(manifest, {"fingerprint": fp, "config": config})
+
+    chunks = [(i, s, min(s + chunk_size, n)) for i, s in enumerate(range(0, n, chunk_size))]
+    todo = [c for c in chunks if not (parts / f"chunk_{c[0]:05d}.npz").is_file()]
+    done_before = sum(e - s for i, s, e in chunks if (i, s, e) not in todo)
+    tracer = None
+    made, t_trace = 0, 0.0
+    bar = tqdm(total=n, initial=done_before, unit="spectra", desc=f"{scene.name} {band.name}", disable=not progress,
+               dynamic_ncols=True)
+    if todo:
+        tracer = SionnaTracer(scene.geometry, band.frequency_hz, scene.gateway["position"], scene.rotation,
+                              scene.tracing, int(scene.tracing.get("sources_per_call", 256)))
+        bartlett = Bartlett(antennas, band.wavelength, device=device)
+        pattern = arr.get("pattern", "cos")
+        for i, s, e in todo:
+            t0 = time.perf_counter()
+            gains, dirs, counts = tracer.trace(positions[s:e])
+            h, spectra = spectra_from_paths(bartlett, gains, dirs, pattern)
+            atomic_write_npz(parts / f"chunk_{i:05d}.npz", spectra=to_uint8(spectra),
+                             channels=h.cpu().numpy().astype(np.complex64), num_paths=counts.astype(np.int32))
+            t_trace += time.perf_counter() - t0
+            made += e - s
+            bar.update(e - s)
+            bar.set_postfix(spectra_per_s=f"{made / max(time.perf_counter() - started, 1e-9):.1f}")
+    bar.close()
+    materials = tracer.material_table() if tracer is not None else json.loads(manifest.read_text()).get("materials", [])
+    if tracer is not None:
+        m = json.loads(manifest.read_text())
+        m["materials"] = materials
+        atomic_write_json(manifest, m)
+    _assemble(path, parts, chunks, scene, band, positions, antennas, config, materials)
+    shutil.rmtree(parts, ignore_errors=True)
+    seconds = time.perf_counter() - started
+    return {"path": str(path), "n": n, "made": made, "seconds": round(seconds, 3),
+            "spectra_per_second": round(made / seconds, 2) if made else None,
+            "trace_seconds": round(t_trace, 3), "skipped": False, "materials": materials}
+
+
+def _assemble(path: Path, parts: Path, chunks, scene, band: Band, positions, antennas, config, materials) -> None:
+    import h5py
+
+    import graf
+
+    spectra = np.concatenate([np.load(parts / f"chunk_{i:05d}.npz")["spectra"] for i, _, _ in chunks])
+    channels = np.concatenate([np.load(parts / f"chunk_{i:05d}.npz")["channels"] for i, _, _ in chunks])
+    num_paths = np.concatenate([np.load(parts / f"chunk_{i:05d}.npz")["num_paths"] for i, _, _ in chunks])
+    n = len(positions)
+    if len(spectra) != n:
+        raise DataFormatError(parts, f"chunks hold {len(spectra)} spectra, expected {n}")
+    train_idx, test_idx = scene.split(n)
+    tmp = path.with_name(f".{path.name}.tmp")
+    with h5py.File(tmp, "w", track_order=False) as f:
+        kw = dict(track_times=False)
+        f.create_dataset("spectra", data=spectra, chunks=(min(64, n), 90, 360), compression="gzip",
+                         compression_opts=4, shuffle=True, **kw)
+        f.create_dataset("channels", data=channels, **kw)
+        f.create_dataset("positions", data=positions.astype(np.float64), **kw)
+        f.create_dataset("ids", data=np.arange(1, n + 1, dtype=np.int64), **kw)
+        f.create_dataset("num_paths", data=num_paths, **kw)
+        f.create_dataset("train_idx", data=train_idx.astype(np.int64), **kw)
+        f.create_dataset("test_idx", data=test_idx.astype(np.int64), **kw)
+        f.create_dataset("antenna_positions", data=antennas, **kw)
+        a = f.attrs
+        a["format_version"] = FORMAT_VERSION
+        a["scene"] = scene.name
+        a["band"] = band.name
+        a["frequency_hz"] = band.frequency_hz
+        a["wavelength"] = band.wavelength
+        a["gateway_position"] = np.asarray(scene.gateway["position"], float)
+        a["gateway_orientation"] = scene.rotation.as_quat()  # x, y, z, w
+        a["bounds"] = scene.geometry.bounds
+        a["angle_convention"] = ANGLE_CONVENTION
+        a["config"] = json.dumps(config, sort_keys=True, default=str)
+        a["materials"] = json.dumps(materials, sort_keys=True, default=str)
+        a["graf_version"] = graf.__version__
+    tmp.replace(path)
+
+
+def read_dataset(path: str | Path, name: str | None = None) -> SpectrumSet:
+    """A simulated scene's dataset file as a :class:`SpectrumSet` (spectra = uint8 / 255)."""
+    import h5py
+
+    path = Path(path)
+    try:
+        f = h5py.File(path, "r")
+    except OSError as exc:
+        raise DataFormatError(path, f"cannot be opened as HDF5 ({exc})") from None
+    with f:
+        for key in ("spectra", "positions", "ids", "train_idx", "test_idx"):
+            if key not in f:
+                raise DataFormatError(path, f"has no '{key}' dataset")
+        spectra = f["spectra"][()]
+        if spectra.ndim != 3 or spectra.shape[1:] != (90, 360) or spectra.dtype != np.uint8:
+            raise DataFormatError(path, f"spectra must be uint8 [N, 90, 360], got {spectra.dtype} {spectra.shape}")
+        positions = f["positions"][()]
+        if not np.isfinite(positions).all():
+            raise DataFormatError(path, "positions are not all finite")
+        a = dict(f.attrs)
+        return SpectrumSet(
+            name=name or str(a.get("scene", path.stem)),
+            spectra=torch.from_numpy(spectra).float().div_(255.0),
+            positions=positions,
+            ids=f["ids"][()].astype(np.int64),
+            train_idx=f["train_idx"][()].astype(np.int64),
+            test_idx=f["test_idx"][()].astype(np.int64),
+            gateway_position=np.asarray(a["gateway_position"], float),
+            gateway_orientation=np.asarray(a["gateway_orientation"], float),
+            frequency_hz=float(a["frequency_hz"]),
+            source=str(path),
+            split_source="seeded split stored in the dataset file",
+            meta={"bounds": np.asarray(a["bounds"], float).tolist(), "config": json.loads(a["config"]),
+                  "num_paths": f["num_paths"][()] if "num_paths" in f else None},
+        )
+
+
+def export_nerf2(dataset_path: str | Path, out_dir: str | Path) -> Path:
+    """Write a dataset file as a NeRF2 folder (PNG spectra are the stored uint8 values, so
+    :func:`graf.data.nerf2_format.read_nerf2_folder` reads back the same spectra)."""
+    from graf.data.nerf2_format import write_nerf2_folder
+
+    d = read_dataset(dataset_path)
+    return write_nerf2_folder(out_dir, d.spectra, d.positions, d.ids, d.gateway_position, d.gateway_orientation,
+                              train_ids=d.ids[d.train_idx], test_ids=d.ids[d.test_idx])

@@ -1,0 +1,92 @@
+"""Simulated scenes (``conf/scene/<name>.yaml`` with ``_target_: graf.sim.scene.SimulatedScene``).
+
+The config models only what the scene needs: its geometry (a room or open ground, and box objects with
+ITU materials), the gateway's pose, the region and count of transmitter positions, the array (element
+pattern, pitch) and the tracing settings.  ``graf-simulate`` turns it into a dataset file per band
+(:mod:`graf.sim.dataset`); ``load`` reads that file for training and evaluation.
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import numpy as np
+
+from graf.bands import Band
+from graf.data.nerf2_format import DataFormatError, SpectrumSet
+from graf.sim.array import PATTERNS, rotation_from_axes
+from graf.sim.geometry import SceneGeometry, build_geometry, sample_positions
+
+
+class SimulatedScene:
+    """Args:
+        name: scene name (also the dataset folder under ``<data_root>/sim``).
+        room / ground: the enclosure (see :func:`graf.sim.geometry.build_geometry`).
+        objects: name -> {material, center, size, yaw, thickness}; null removes an inherited object.
+        gateway: {position, normal (the array faces it), x_axis (azimuth 0)}.
+        transmitters: {count, min, max, clearance, seed, train_fraction, split_seed}.
+        array: {rows, cols, pitch_wavelengths, pattern (iso | front | cos), hemisphere}.
+        tracing: Sionna RT PathSolver settings (max_depth, refraction, diffraction, samples_per_src, ...)
+            plus sources_per_call.
+        description: free text for people.
+    """
+
+    kind = "simulated"
+
+    def __init__(self, name: str, gateway: dict, transmitters: dict, tracing: dict, array: dict,
+                 room: dict | None = None, ground: dict | None = None, objects: dict | None = None,
+                 description: str = ""):
+        self.name = name
+        self.room, self.ground, self.objects = room, ground, objects or {}
+        self.gateway, self.transmitters = dict(gateway), dict(transmitters)
+        self.tracing, self.array = dict(tracing), dict(array)
+        self.description = description
+        if self.array.get("pattern", "cos") not in PATTERNS:
+            raise ValueError(f"scene {name}: array.pattern must be one of {PATTERNS}, got {self.array.get('pattern')!r}")
+        self.geometry: SceneGeometry = build_geometry(room, ground, self.objects)
+        self.rotation = rotation_from_axes(gateway["normal"], gateway["x_axis"])
+
+    # ------------------------------------------------------------------ generating config
+    def config(self) -> dict:
+        """The full generating configuration (written into the dataset)."""
+        return copy.deepcopy({"name": self.name, "room": self.room, "ground": self.ground,
+                              "objects": {k: v for k, v in self.objects.items() if v is not None},
+                              "gateway": self.gateway, "transmitters": self.transmitters,
+                              "tracing": self.tracing, "array": self.array, "description": self.description})
+
+    def positions(self, limit: int | None = None) -> np.ndarray:
+        t = self.transmitters
+        pos = sample_positions(self.geometry, int(t["count"]), t["min"], t["max"], int(t.get("seed", 0)),
+                               float(t.get("clearance", 0.05)))
+        return pos if limit is None else pos[: int(limit)]
+
+    def split(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Seeded train/test split of rows 0..n-1 (``transmitters.train_fraction``, ``split_seed``)."""
+        frac = float(self.transmitters.get("train_fraction", 0.8))
+        perm = np.random.default_rng(int(self.transmitters.get("split_seed", 0))).permutation(n)
+        n_train = min(max(int(round(n * frac)), 1), n - 1)
+        return np.sort(perm[:n_train]), np.sort(perm[n_train:])
+
+    # ------------------------------------------------------------------ dataset files
+    def dataset_path(self, data_root: str | Path, band: Band, num_tx: int | None = None) -> Path:
+        suffix = "" if num_tx is None else f"-n{int(num_tx)}"
+        return Path(data_root) / "sim" / self.name / f"{band.name}{suffix}.h5"
+
+    def load(self, data_root: str | Path | None, band: Band, num_tx: int | None = None) -> SpectrumSet:
+        from graf.sim.dataset import read_dataset
+
+        if data_root is None:
+            raise DataFormatError("data_root", "simulated scenes are read from data_root; set data_root=DIR")
+        path = self.dataset_path(data_root, band, num_tx)
+        if not path.is_file():
+            # a limited run (sim.num_tx=N) is used when it is the only one there
+            limited = sorted(path.parent.glob(f"{band.name}-n*.h5")) if num_tx is None else []
+            if len(limited) == 1:
+                path = limited[0]
+            else:
+                raise DataFormatError(path, f"no dataset for scene {self.name} at band {band.name}; make it with "
+                                            f"`graf-simulate scene={self.name} band={band.name} data_root={data_root}`"
+                                      + (f" (found {[p.name for p in limited]}: choose with scene.num_tx)"
+                                         if limited else ""))
+        return read_dataset(path, name=self.name)
