@@ -22,12 +22,17 @@ def _find_libllvm() -> str | None:
     return None
 
 
-def import_sionna_rt():
-    """Return the ``sionna.rt`` module, configuring Dr.Jit's LLVM backend first when needed."""
-    if "sionna.rt" not in sys.modules and not os.environ.get("DRJIT_LIBLLVM_PATH"):
+def configure_llvm() -> None:
+    """Point Dr.Jit at the bundled LLVM unless the user already chose one (done on ``import graf.sim``)."""
+    if "drjit" not in sys.modules and not os.environ.get("DRJIT_LIBLLVM_PATH"):
         lib = _find_libllvm()
         if lib:
             os.environ["DRJIT_LIBLLVM_PATH"] = lib
+
+
+def import_sionna_rt():
+    """Return the ``sionna.rt`` module, configuring Dr.Jit's LLVM backend first when needed."""
+    configure_llvm()
     try:
         import sionna.rt as rt
     except ImportError as exc:
