@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
+from hydra.utils import instantiate
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from graf.cli.common import REPO_CONF
@@ -30,14 +31,20 @@ def _results(cfg) -> dict:
 
 def test_every_config_group_option_composes():
     groups = ["scene", "band", "neighbors", "model", "trainer", "logger", "experiment"]
-    for config_name in ("train", "eval"):
+    for config_name in ("train", "eval", "simulate"):
         for group in groups:
             for f in sorted((REPO_CONF / group).glob("*.yaml")):
+                if config_name == "simulate" and group in ("neighbors", "model", "trainer", "logger"):
+                    continue
+                if group == "experiment" and (config_name == "simulate") != f.stem.startswith("sim_"):
+                    continue  # experiments named sim_* are graf-simulate's
                 GlobalHydra.instance().clear()
                 with initialize_config_dir(config_dir=str(REPO_CONF), version_base="1.3"):
-                    cfg = compose(config_name=config_name, overrides=[f"{group}={f.stem}", "scene.path=x"]
-                                  if group == "scene" else [f"{group}={f.stem}"])
+                    overrides = [f"{group}={f.stem}"] + (["scene.path=x"] if f.stem == "nerf2" else [])
+                    cfg = compose(config_name=config_name, overrides=overrides)
                 assert cfg.scene._target_ and cfg.band.frequency_hz > 0
+                if group in ("scene", "band", "neighbors", "model"):
+                    instantiate(cfg[group])  # every option also builds its object
     GlobalHydra.instance().clear()
 
 

@@ -109,3 +109,17 @@ def test_changed_configuration_is_refused_and_missing_dataset_is_explained(tmp_p
         generate(scene, band, tmp_path, num_tx=16, chunk_size=8, progress=False)
     with pytest.raises(DataFormatError, match="graf-simulate scene=small_room band=2.4ghz"):
         scene.load(tmp_path / "empty", band)
+
+
+def test_show_scenes_and_bench_sim_commands(reference, tmp_path):
+    p = subprocess.run([str(BIN / "graf-show-scenes"), f"data_root={reference}", "scenes=[small_room]", "count=2",
+                        f"hydra.run.dir={tmp_path / 'show'}"], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    r = json.loads((tmp_path / "show" / "results.json").read_text())
+    assert r["scenes"]["small_room"]["spectra"] == 96 and (tmp_path / "show" / "scenes.png").stat().st_size > 5000
+    p = subprocess.run([str(BIN / "graf-bench-sim"), "scene=small_room", "bench.num_tx=16", "bench.convergence_tx=8",
+                        f"hydra.run.dir={tmp_path / 'bench'}"], capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr[-2000:]
+    b = json.loads((tmp_path / "bench" / "results.json").read_text())
+    assert b["positions"] == 16 and b["spectra_per_second"] > 0 and "spectra/s" in p.stdout
+    assert b["convergence"]["positions"] == 8 and b["convergence"]["psnr_min"] > 0
