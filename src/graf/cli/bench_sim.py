@@ -58,9 +58,11 @@ def bench(cfg: DictConfig) -> dict:
     t_first = time.perf_counter() - t0
     steady = positions[spc:spc + n] if len(positions) > spc else positions[:n]
     t_trace = t_bart = t_q = 0.0
+    path_counts = []
     for s in range(0, len(steady), spc):
         t0 = time.perf_counter()
         g, d, c = tracer.trace(steady[s:s + spc])
+        path_counts.append(c)
         t1 = time.perf_counter()
         h, spectra = spectra_from_paths(bart, g, d, scene.array.get("pattern", "cos"))
         if device == "cuda":
@@ -80,6 +82,8 @@ def bench(cfg: DictConfig) -> dict:
         "ms_per_spectrum": {"trace": round(1e3 * t_trace / m, 3), "bartlett": round(1e3 * t_bart / m, 3),
                             "quantise": round(1e3 * t_q / m, 3), "total": round(1e3 * total / m, 3)},
         "speedup_vs_paper_matlab": round(PAPER_SECONDS_PER_SPECTRUM / (total / m), 1),
+        "paths_per_position": {"mean": round(float(np.mean(np.concatenate(path_counts))), 2),
+                               "fraction_without_paths": round(float(np.mean(np.concatenate(path_counts) == 0)), 4)},
         "tracing": dict(scene.tracing),
     }
     k = int(cfg.bench.convergence_tx)
@@ -105,6 +109,8 @@ def bench(cfg: DictConfig) -> dict:
     ms = out["ms_per_spectrum"]
     print(f"  steady state over {m} positions: {out['spectra_per_second']:.1f} spectra/s "
           f"(trace {ms['trace']:.2f} ms + Bartlett {ms['bartlett']:.3f} ms + quantise {ms['quantise']:.3f} ms)")
+    pp = out["paths_per_position"]
+    print(f"  {pp['mean']:.1f} traced paths per position; {100 * pp['fraction_without_paths']:.1f}% of positions without any")
     print(f"  vs the paper's MATLAB ray tracing, 59.5 s per spectrum: {out['speedup_vs_paper_matlab']:.0f}x faster")
     if "convergence" in out:
         c = out["convergence"]
