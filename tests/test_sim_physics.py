@@ -13,9 +13,7 @@ from graf.bands import Band
 from graf.cli.common import REPO_CONF
 from graf.metrics import psnr_per_sample
 from graf.models.knn.weights import barycentric_weights
-from graf.sim.array import Bartlett, array_positions
 from graf.sim.scene import SimulatedScene
-from graf.sim.tracer import SionnaTracer, spectra_from_paths
 
 pytest.importorskip("sionna.rt")  # graf.sim (imported above) has configured the LLVM backend
 
@@ -34,11 +32,7 @@ def _scene(objects=None, max_depth=1) -> SimulatedScene:
 
 
 def _spectra(scene: SimulatedScene, positions: np.ndarray) -> torch.Tensor:
-    tracer = SionnaTracer(scene.geometry, BAND.frequency_hz, scene.gateway["position"], scene.rotation,
-                          scene.tracing, 256)
-    bart = Bartlett(array_positions(BAND.wavelength), BAND.wavelength)
-    g, d, _ = tracer.trace(np.asarray(positions, float))
-    return spectra_from_paths(bart, g, d, scene.array["pattern"])[1]
+    return scene.spectra(scene.tracer(BAND), scene.bartlett(BAND), positions)[1]
 
 
 def _az_el(scene, points):
@@ -122,14 +116,12 @@ def test_default_sample_budget_is_converged_on_a_small_scene():
     GlobalHydra.instance().clear()
     scene, band = instantiate(cfg.scene), instantiate(cfg.band)
     pos = scene.positions(32)
-    bart = Bartlett(array_positions(band.wavelength), band.wavelength)
     runs = []
     for factor in (1, 2):
-        tracing = dict(scene.tracing, samples_per_src=factor * scene.tracing["samples_per_src"],
-                       max_num_paths_per_src=factor * scene.tracing["max_num_paths_per_src"])
-        tracer = SionnaTracer(scene.geometry, band.frequency_hz, scene.gateway["position"], scene.rotation, tracing)
-        g, d, n_paths = tracer.trace(pos)
+        tracer = scene.tracer(band, samples_per_src=factor * scene.tracing["samples_per_src"],
+                              max_num_paths_per_src=factor * scene.tracing["max_num_paths_per_src"])
+        _, spectra, n_paths = scene.spectra(tracer, scene.bartlett(band), pos)
         assert n_paths.min() > 10  # a furnished room at depth 3: many paths per link
-        runs.append(spectra_from_paths(bart, g, d, scene.array["pattern"])[1])
+        runs.append(spectra)
     psnr = psnr_per_sample(runs[0], runs[1])
     assert float(psnr.min()) >= 40.0, psnr

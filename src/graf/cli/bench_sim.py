@@ -38,8 +38,8 @@ def _cpu_name() -> str:
 @task_wrapper
 def bench(cfg: DictConfig) -> dict:
     from graf.metrics import psnr_per_sample
-    from graf.sim.array import Bartlett, array_positions, to_uint8
-    from graf.sim.tracer import SionnaTracer, spectra_from_paths
+    from graf.sim.array import to_uint8
+    from graf.sim.tracer import spectra_from_paths
 
     band = hydra.utils.instantiate(cfg.band)
     scene = hydra.utils.instantiate(cfg.scene)
@@ -48,10 +48,8 @@ def bench(cfg: DictConfig) -> dict:
     spc = int(scene.tracing.get("sources_per_call", 256))
     positions = scene.positions(min(n + spc, int(scene.transmitters["count"])))
     t0 = time.perf_counter()
-    tracer = SionnaTracer(scene.geometry, band.frequency_hz, scene.gateway["position"], scene.rotation,
-                          scene.tracing, spc)
-    bart = Bartlett(array_positions(band.wavelength, pitch_wavelengths=float(scene.array.get("pitch_wavelengths", 0.5))),
-                    band.wavelength, device=device)
+    tracer = scene.tracer(band)
+    bart = scene.bartlett(band, device=device)
     t_build = time.perf_counter() - t0
     t0 = time.perf_counter()
     tracer.trace(positions[:spc])  # first call: JIT compilation
@@ -89,13 +87,10 @@ def bench(cfg: DictConfig) -> dict:
     k = int(cfg.bench.convergence_tx)
     if k > 0:
         pos = positions[:k]
-        g, d, _ = tracer.trace(pos)
-        base = spectra_from_paths(bart, g, d, scene.array.get("pattern", "cos"))[1]
-        doubled = dict(scene.tracing, samples_per_src=2 * int(scene.tracing["samples_per_src"]),
-                       max_num_paths_per_src=2 * int(scene.tracing["max_num_paths_per_src"]))
-        tracer2 = SionnaTracer(scene.geometry, band.frequency_hz, scene.gateway["position"], scene.rotation, doubled, spc)
-        g2, d2, _ = tracer2.trace(pos)
-        ref = spectra_from_paths(bart, g2, d2, scene.array.get("pattern", "cos"))[1]
+        base = scene.spectra(tracer, bart, pos)[1]
+        doubled = {"samples_per_src": 2 * int(scene.tracing["samples_per_src"]),
+                   "max_num_paths_per_src": 2 * int(scene.tracing["max_num_paths_per_src"])}
+        ref = scene.spectra(scene.tracer(band, **doubled), bart, pos)[1]
         p = psnr_per_sample(base.cpu(), ref.cpu())
         out["convergence"] = {"positions": k, "samples_per_src": [int(scene.tracing["samples_per_src"]),
                                                                   doubled["samples_per_src"]],

@@ -53,17 +53,14 @@ def generate(scene, band: Band, data_root: str | Path, num_tx: int | None = None
     Returns a summary: path, n, seconds, spectra per second (of the spectra made in this call)."""
     from tqdm.auto import tqdm
 
-    from graf.sim.array import Bartlett, array_positions, to_uint8
-    from graf.sim.tracer import SionnaTracer, spectra_from_paths
+    from graf.sim.array import to_uint8
 
     started = time.perf_counter()
     path = scene.dataset_path(data_root, band, num_tx)
     parts = path.with_name(path.name + ".parts")
     positions = scene.positions(num_tx)
     n = len(positions)
-    arr = scene.array
-    antennas = array_positions(band.wavelength, int(arr.get("rows", 4)), int(arr.get("cols", 4)),
-                               float(arr.get("pitch_wavelengths", 0.5)))
+    antennas = scene.antenna_positions(band)
     config = {"scene": scene.config(), "band": {"name": band.name, "frequency_hz": band.frequency_hz},
               "num_tx": n, "chunk_size": int(chunk_size), "format_version": FORMAT_VERSION}
     fp = fingerprint(config)
@@ -91,14 +88,11 @@ def generate(scene, band: Band, data_root: str | Path, num_tx: int | None = None
     bar = tqdm(total=n, initial=done_before, unit="spectra", desc=f"{scene.name} {band.name}", disable=not progress,
                dynamic_ncols=True)
     if todo:
-        tracer = SionnaTracer(scene.geometry, band.frequency_hz, scene.gateway["position"], scene.rotation,
-                              scene.tracing, int(scene.tracing.get("sources_per_call", 256)))
-        bartlett = Bartlett(antennas, band.wavelength, device=device)
-        pattern = arr.get("pattern", "cos")
+        tracer = scene.tracer(band)
+        bartlett = scene.bartlett(band, device=device)
         for i, s, e in todo:
             t0 = time.perf_counter()
-            gains, dirs, counts = tracer.trace(positions[s:e])
-            h, spectra = spectra_from_paths(bartlett, gains, dirs, pattern)
+            h, spectra, counts = scene.spectra(tracer, bartlett, positions[s:e])
             atomic_write_npz(parts / f"chunk_{i:05d}.npz", spectra=to_uint8(spectra),
                              channels=h.cpu().numpy().astype(np.complex64), num_paths=counts.astype(np.int32))
             t_trace += time.perf_counter() - t0

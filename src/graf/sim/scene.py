@@ -68,6 +68,36 @@ class SimulatedScene:
         n_train = min(max(int(round(n * frac)), 1), n - 1)
         return np.sort(perm[:n_train]), np.sort(perm[n_train:])
 
+    # ------------------------------------------------------------------ tracing
+    def antenna_positions(self, band: Band) -> np.ndarray:
+        from graf.sim.array import array_positions
+
+        a = self.array
+        return array_positions(band.wavelength, int(a.get("rows", 4)), int(a.get("cols", 4)),
+                               float(a.get("pitch_wavelengths", 0.5)))
+
+    def bartlett(self, band: Band, device="cpu"):
+        """The array's Bartlett beamformer at ``band``."""
+        from graf.sim.array import Bartlett
+
+        return Bartlett(self.antenna_positions(band), band.wavelength, device=device)
+
+    def tracer(self, band: Band, **tracing_overrides):
+        """A Sionna RT tracer of this scene at ``band`` (tracing settings from the config, overridable)."""
+        from graf.sim.tracer import SionnaTracer
+
+        tracing = {**self.tracing, **tracing_overrides}
+        return SionnaTracer(self.geometry, band.frequency_hz, self.gateway["position"], self.rotation, tracing,
+                            int(tracing.get("sources_per_call", 256)))
+
+    def spectra(self, tracer, bartlett, positions):
+        """Trace ``positions``; returns (channels [n, K], float spectra [n, 90, 360], paths per position [n])."""
+        from graf.sim.tracer import spectra_from_paths
+
+        gains, dirs, counts = tracer.trace(np.asarray(positions, float))
+        h, s = spectra_from_paths(bartlett, gains, dirs, self.array.get("pattern", "cos"))
+        return h, s, counts
+
     # ------------------------------------------------------------------ dataset files
     def dataset_path(self, data_root: str | Path, band: Band, num_tx: int | None = None) -> Path:
         suffix = "" if num_tx is None else f"-n{int(num_tx)}"
