@@ -125,3 +125,22 @@ def test_default_sample_budget_is_converged_on_a_small_scene():
         runs.append(spectra)
     psnr = psnr_per_sample(runs[0], runs[1])
     assert float(psnr.min()) >= 40.0, psnr
+
+
+@pytest.mark.parametrize("band_name", ["915mhz", "3ghz"])
+def test_low_and_high_bands_follow_the_wavelength(band_name):
+    """Band extremes: the array pitch follows the wavelength, materials outside their ITU range are
+    extrapolated and flagged, and spectra stay finite and normalised."""
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(REPO_CONF), version_base="1.3"):
+        cfg = compose(config_name="simulate", overrides=["scene=small_room", f"band={band_name}"])
+    GlobalHydra.instance().clear()
+    scene, band = instantiate(cfg.scene), instantiate(cfg.band)
+    pitch = np.diff(np.unique(scene.antenna_positions(band)[:, 0]))
+    np.testing.assert_allclose(pitch, band.wavelength / 2)
+    tracer = scene.tracer(band)
+    _, s, n = scene.spectra(tracer, scene.bartlett(band), scene.positions(8))
+    assert torch.isfinite(s).all() and n.min() > 0
+    torch.testing.assert_close(s.amax(dim=(1, 2)), torch.ones(8))
+    flags = {m["itu_type"]: m["extrapolated"] for m in tracer.material_table()}
+    assert flags["concrete"] is (band_name == "915mhz")  # ITU-R P.2040 tabulates concrete from 1 GHz
