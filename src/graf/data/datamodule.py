@@ -10,6 +10,12 @@ A batch (IBRNet/GNT style: source views on one axis with a mask)::
     src_pos      float [B, L, 3]
     src_spectra  float [B, L, 90, 360]  gathered from the one in-memory tensor, never stored per ray
     src_mask     bool  [B, L]
+    gw_pos       float [B, 3]           gateway (receiver) position
+    gw_rot       float [B, 3, 3]        gateway rotation, local -> world (spectrum grid directions are local)
+    wavelength   float [B]              of the band (m): GRaF's voxel size
+    ray_length   float [B]              farthest corner of the scene's bounds from the gateway (m)
+    bounds       float [B, 2, 3]        the scene's axis-aligned box (min, max), for normalising positions
+    scene_index  long  [B]              which scene (0 unless several scenes are trained together)
 
 Evaluation neighbours are selected once in :meth:`setup` (deterministic); training neighbours are drawn
 per batch with a seeded generator (L uniform in ``L_train``).
@@ -77,6 +83,14 @@ class SpectrumDataModule(L.LightningDataModule):
             log.info("scene %s: %d train / %d test spectra (%s), band %s (%.4f m)", d.name, d.n_train, d.n_test,
                      d.split_source, self.band.name, self.band.wavelength)
             self._eval_rows = self.test_rows if self.eval_split == "test" else self.train_rows
+            from scipy.spatial.transform import Rotation
+
+            self.gw_pos = torch.as_tensor(d.gateway_position, dtype=torch.float32)
+            self.gw_rot = torch.as_tensor(Rotation.from_quat(d.gateway_orientation).as_matrix(), dtype=torch.float32)
+            b = d.bounds()
+            corners = torch.as_tensor([[b[i, 0], b[j, 1], b[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+            self.ray_length = float((corners - self.gw_pos.double()).norm(dim=1).max())
+            self.bounds = torch.as_tensor(b, dtype=torch.float32)
             nb = self._select(self._eval_rows, train=False)
             self._eval_src = (nb.index, nb.mask)
 
@@ -108,6 +122,12 @@ class SpectrumDataModule(L.LightningDataModule):
             "src_pos": self.positions[src_index].float(),
             "src_spectra": d.spectra[src_index],
             "src_mask": src_mask,
+            "gw_pos": self.gw_pos.expand(len(rows), 3),
+            "gw_rot": self.gw_rot.expand(len(rows), 3, 3),
+            "wavelength": torch.full((len(rows),), self.band.wavelength, dtype=torch.float32),
+            "ray_length": torch.full((len(rows),), self.ray_length, dtype=torch.float32),
+            "bounds": self.bounds.expand(len(rows), 2, 3),
+            "scene_index": torch.zeros(len(rows), dtype=torch.long),
         }
 
     def _collate_eval(self, positions: list[int]) -> dict:
