@@ -122,10 +122,31 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str, c
         for lg in objects["loggers"]:
             if hasattr(lg, "log_image"):
                 lg.log_image(key="test/spectra", images=[str(fig)])
+    rows = [results]
+    for name, bcfg in (cfg.get("baselines") or {}).items():
+        if not isinstance(bcfg, DictConfig) or "_target_" not in bcfg or bcfg == cfg.model:
+            continue
+        rows.append(_test_baseline(cfg, name, bcfg, dm, data))
+    if len(rows) > 1:
+        results["baselines"] = {r["method"]: {"metrics": r["metrics"], "seconds": r["seconds"]} for r in rows[1:]}
     atomic_write_json(out / "results.json", results)
     log.info("results: %s", out / "results.json")
-    print(format_metrics_table([results]))
+    print(format_metrics_table(rows))
     return metrics
+
+
+def _test_baseline(cfg: DictConfig, name: str, bcfg: DictConfig, dm, data) -> dict:
+    """Test a baseline (nothing trained) on the same datamodule, neighbours and split, for a side-by-side table."""
+    started = time.perf_counter()
+    model = hydra.utils.instantiate(bcfg)
+    collector = PredictionCollector()
+    trainer = L.Trainer(accelerator=cfg.trainer.get("accelerator", "auto"), devices=1, logger=False,
+                        callbacks=[collector], enable_progress_bar=False, enable_model_summary=False)
+    trainer.test(model=model, datamodule=dm, verbose=False)
+    m = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")}
+    return {"method": getattr(model, "method", name), "scene": data.name, "n_test": int(len(collector.arrays()["ids"])),
+            "metrics": {k: m.get(k) for k in ("test/mse", "test/psnr", "test/ssim", "test/lpips")},
+            "seconds": round(time.perf_counter() - started, 3)}
 
 
 def format_metrics_table(rows: list[dict]) -> str:

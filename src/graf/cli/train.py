@@ -18,14 +18,13 @@ def train(cfg: DictConfig) -> tuple[dict, dict]:
     started = time.perf_counter()
     objects = build(cfg)
     model, trainer = objects["model"], objects["trainer"]
-    ckpt = None
     if getattr(model, "has_trainable_parameters", True):
+        # resumes from ckpt_path (e.g. <old run>/checkpoints/last.ckpt) when given
         trainer.fit(model=model, datamodule=objects["datamodule"], ckpt_path=cfg.get("ckpt_path"))
-        cb = trainer.checkpoint_callback
-        ckpt = cb.best_model_path if cb is not None and cb.best_model_path else None
     else:
         log.info("%s has no trainable parameters: nothing to fit, testing directly", type(model).__name__)
-    metrics = test_and_report(cfg, objects, started, task="train", ckpt_path=ckpt)
+    # the final weights are tested: there is no validation split to choose a checkpoint on
+    metrics = test_and_report(cfg, objects, started, task="train")
     return metrics, objects
 
 

@@ -149,5 +149,20 @@ class SpectrumDataModule(L.LightningDataModule):
         return DataLoader(_Rows(torch.arange(len(self._eval_rows))), batch_size=self.batch_size, shuffle=False,
                           collate_fn=self._collate_eval, num_workers=self.num_workers)
 
-    def val_dataloader(self) -> DataLoader:
-        return self.test_dataloader()
+    # No val_dataloader: the only held-out spectra are the test split, and choosing checkpoints on them
+    # would leak.  Training runs test the final weights.
+
+    def query_batches(self, positions, batch_size: int | None = None):
+        """Batches for new transmitter positions ``[N, 3]`` (no measured spectrum: ``tgt_spectrum`` is zeros),
+        with neighbours from the training split as at evaluation.  Used by graf-synthesize."""
+        pos = torch.as_tensor(positions, dtype=torch.float64)
+        nb = self.neighbors.select(pos, self.positions[self.train_rows], self.band.wavelength, train=False)
+        src = self.train_rows[nb.index]
+        bs = batch_size or self.batch_size
+        for s in range(0, len(pos), bs):
+            rows = torch.zeros(len(pos[s:s + bs]), dtype=torch.long)
+            batch = self.make_batch(rows, src[s:s + bs], nb.mask[s:s + bs])
+            batch["tgt_pos"] = pos[s:s + bs].float()
+            batch["tgt_spectrum"] = torch.zeros_like(batch["tgt_spectrum"])
+            batch["tgt_id"] = torch.arange(s + 1, s + 1 + len(rows))
+            yield batch
