@@ -1,6 +1,7 @@
 """graf-synthesize: spectra at new transmitter positions from a checkpoint, as a NeRF2-format folder.
 
     graf-synthesize ckpt_path=RUN/checkpoints/last.ckpt model=graf_cpu scene=rfid_s23 positions=new.csv [out=DIR]
+    graf-synthesize model=knn scene=rfid_s23 positions=new.csv        (a method with nothing trained)
 
 ``positions`` is a CSV of x,y,z (header optional).  Neighbours come from the scene's training split.
 The folder (``<output_dir>/synthesized`` unless ``out``) holds spectrum/NNNNN.png, tx_pos.csv and
@@ -32,7 +33,12 @@ def run(cfg: DictConfig) -> dict:
     neighbors = hydra.utils.instantiate(cfg.neighbors)
     dm = hydra.utils.instantiate(cfg.data, scene=scene, band=band, neighbors=neighbors, data_root=cfg.get("data_root"))
     model_cls = hydra.utils.get_class(cfg.model._target_)
-    model = model_cls.load_from_checkpoint(cfg.ckpt_path, map_location="cpu")
+    if cfg.get("ckpt_path"):
+        model = model_cls.load_from_checkpoint(cfg.ckpt_path, map_location="cpu")
+    else:
+        model = hydra.utils.instantiate(cfg.model)
+        if getattr(model, "has_trainable_parameters", False):
+            raise ValueError(f"{model_cls.__name__} is a trained model: give its checkpoint with ckpt_path=...")
     t0 = time.perf_counter()
     spectra = synthesize(model, dm, positions)
     t_pred = time.perf_counter() - t0
