@@ -109,6 +109,7 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str, c
         "split_source": data.split_source,
         "neighbors": repr(objects["neighbors"]),
         "trainable_parameters": int(sum(p.numel() for p in model.parameters() if p.requires_grad)),
+        "global_step": int(trainer.global_step),
         "device": str(model.device),
         "versions": {"graf": graf.__version__, "torch": torch.__version__, "python": platform.python_version()},
     }

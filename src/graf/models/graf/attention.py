@@ -1,0 +1,82 @@
+"""Post-norm Transformer blocks (seed appendix D) on ``F.scaled_dot_product_attention``.
+
+One block: ``x = LayerNorm(x + Attention(x, context))``, then ``x = LayerNorm(x + FFN(x))`` with
+``FFN = Linear(d, ffn_dim) -> ReLU -> Linear(ffn_dim, d)``.  Attention has ``num_heads`` heads of
+``head_dim`` each (inner width ``num_heads * head_dim``, projected back to ``d``) and the usual
+``1 / sqrt(head_dim)`` scaling.
+
+* :class:`CrossAttentionBlock`: queries ``x [B, Nq, d]`` attend to ``context [B, Nk, d]`` (GRaF's scene
+  representation: voxel queries over the neighbour tokens; 1 head of width d = 16).
+* :class:`SelfAttentionBlock`: ``x [B, N, d]`` attends to itself (GRaF's ray transformer: 10 heads of
+  8 on width-16 voxel tokens).
+
+``key_mask [B, Nk]`` is True for real keys (padded keys get no attention weight); every row needs at
+least one real key.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+class MultiHeadAttention(nn.Module):
+    def __init__(self, d_model: int, num_heads: int = 1, head_dim: int | None = None, dropout: float = 0.0):
+        super().__init__()
+        self.num_heads = int(num_heads)
+        self.head_dim = int(head_dim) if head_dim is not None else d_model // self.num_heads
+        inner = self.num_heads * self.head_dim
+        self.q = nn.Linear(d_model, inner)
+        self.k = nn.Linear(d_model, inner)
+        self.v = nn.Linear(d_model, inner)
+        self.out = nn.Linear(inner, d_model)
+        self.dropout = float(dropout)
+
+    def _split(self, x: torch.Tensor) -> torch.Tensor:  # [B, N, H*Dh] -> [B, H, N, Dh]
+        return x.unflatten(-1, (self.num_heads, self.head_dim)).transpose(1, 2)
+
+    def forward(self, x: torch.Tensor, context: torch.Tensor, key_mask: torch.Tensor | None = None) -> torch.Tensor:
+        q, k, v = self._split(self.q(x)), self._split(self.k(context)), self._split(self.v(context))
+        # [B, 1, 1, Nk], True = attend.  Callers pass None when nothing is padded (keeps SDPA's fused kernels)
+        mask = None if key_mask is None else key_mask[:, None, None, :].to(torch.bool)
+        # under autocast the projections may come out in different dtypes (a bf16 Linear vs fp32 input)
+        dtype = torch.promote_types(torch.promote_types(q.dtype, k.dtype), v.dtype)
+        y = F.scaled_dot_product_attention(q.to(dtype), k.to(dtype), v.to(dtype), attn_mask=mask,
+                                           dropout_p=self.dropout if self.training else 0.0)
+        return self.out(y.transpose(1, 2).flatten(-2))
+
+
+class _PostNormBlock(nn.Module):
+    def __init__(self, d_model: int, num_heads: int, head_dim: int | None, ffn_dim: int, dropout: float = 0.0):
+        super().__init__()
+        self.attn = MultiHeadAttention(d_model, num_heads, head_dim, dropout)
+        self.norm1 = nn.LayerNorm(d_model)
+        self.ffn = nn.Sequential(nn.Linear(d_model, ffn_dim), nn.ReLU(), nn.Linear(ffn_dim, d_model))
+        self.norm2 = nn.LayerNorm(d_model)
+
+    def _block(self, x, context, key_mask):
+        x = self.norm1(x + self.attn(x, context, key_mask))
+        return self.norm2(x + self.ffn(x))
+
+
+class CrossAttentionBlock(_PostNormBlock):
+    """Queries attend to a context (default: one head of width ``d_model``)."""
+
+    def __init__(self, d_model: int = 16, num_heads: int = 1, head_dim: int | None = None, ffn_dim: int = 64,
+                 dropout: float = 0.0):
+        super().__init__(d_model, num_heads, head_dim, ffn_dim, dropout)
+
+    def forward(self, x: torch.Tensor, context: torch.Tensor, key_mask: torch.Tensor | None = None) -> torch.Tensor:
+        return self._block(x, context, key_mask)
+
+
+class SelfAttentionBlock(_PostNormBlock):
+    """Tokens attend to each other (default: 10 heads of 8 on width 16)."""
+
+    def __init__(self, d_model: int = 16, num_heads: int = 10, head_dim: int | None = 8, ffn_dim: int = 64,
+                 dropout: float = 0.0):
+        super().__init__(d_model, num_heads, head_dim, ffn_dim, dropout)
+
+    def forward(self, x: torch.Tensor, key_mask: torch.Tensor | None = None) -> torch.Tensor:
+        return self._block(x, x, key_mask)

@@ -1,0 +1,288 @@
+"""GRaF model (graf.models.graf): contracts, invariances and short CPU training runs on real batches."""
+
+from __future__ import annotations
+
+import inspect
+import math
+
+import lightning as L
+import pytest
+import torch
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+
+from graf.bands import Band
+from graf.cli.common import REPO_CONF
+from graf.data.datamodule import SpectrumDataModule
+from graf.data.scenes import NeRF2Scene
+from graf.models.graf import (CrossAttentionBlock, GRaFModule, PositionalEncoding, ResNetEncoder,
+                              SelfAttentionBlock, normalize_positions, num_samples, sample_voxels)
+from graf.models.knn import KNNModule
+from graf.neighbors import NeighborSelector
+from graf.sim.array import grid_directions
+
+UHF = Band(name="915mhz", frequency_hz=915e6)
+
+
+def _datamodule(path, L=3, L_train=(1, 3), batch_size=2, band=UHF) -> SpectrumDataModule:
+    dm = SpectrumDataModule(NeRF2Scene(name="tiny", path=str(path)), band,
+                            NeighborSelector(L=L, L_train=L_train, radius=10.0), batch_size=batch_size)
+    dm.setup()
+    return dm
+
+
+def _eval_batch(dm, n=2) -> dict:
+    return next(iter(dm.test_dataloader())) if n == dm.batch_size else dm._collate_eval(list(range(n)))
+
+
+def _preset(name: str, **overrides) -> GRaFModule:
+    """The model exactly as conf/model/<name>.yaml builds it (with overrides)."""
+    cfg = OmegaConf.load(REPO_CONF / "model" / f"{name}.yaml")
+    if "defaults" in cfg:  # graf_cpu.yaml extends graf.yaml
+        base = OmegaConf.load(REPO_CONF / "model" / "graf.yaml")
+        cfg = OmegaConf.merge(base, {k: v for k, v in cfg.items() if k != "defaults"})
+    torch.manual_seed(0)
+    return instantiate(cfg, **overrides)
+
+
+def _small(**overrides) -> GRaFModule:
+    """The CPU preset with few voxels per ray: the real architecture, fast inference."""
+    return _preset("graf_cpu", **{"max_samples": 4, "chunk_rays": 40000, **overrides}).eval()
+
+
+@pytest.fixture
+def tiny(make_scene):
+    return _datamodule(make_scene(n=16))
+
+
+@pytest.fixture(scope="module")
+def rfid():
+    return _datamodule("embedded:rfid_s23_200", L=10, L_train=(3, 10), batch_size=2)
+
+
+# ---------------------------------------------------------------------------------------------- configs
+def test_preset_configs_are_the_constructor_arguments(compose_cfg):
+    params = set(inspect.signature(GRaFModule.__init__).parameters) - {"self"}
+    for name, method in (("graf", "graf"), ("graf_cpu", "graf")):
+        cfg = compose_cfg("train", (f"model={name}",)).model
+        assert set(cfg) - {"_target_"} == params
+        model = instantiate(cfg)
+        assert model.method == method and model.has_trainable_parameters
+        assert model.hparams.encoder_widths == list(cfg.encoder_widths)
+    paper, cpu = compose_cfg("train", ("model=graf",)).model, compose_cfg("train", ("model=graf_cpu",)).model
+    assert list(paper.encoder_widths) == [64, 128, 256, 512] and paper.rays_per_step == 5120
+    assert (paper.d_model, paper.ray_heads, paper.ray_head_dim, paper.pe_freqs) == (16, 10, 8, 10)
+    assert cpu.encoder_downsample == 2 and cpu.max_samples < paper.max_samples
+    assert instantiate(compose_cfg("train", ("model=graf", "model.residual=true")).model).method == "graf-residual"
+
+
+# ---------------------------------------------------------------------------------------------- parts
+def test_positional_encoding_and_normalisation():
+    pe = PositionalEncoding(10)
+    assert pe(torch.zeros(5, 3)).shape == (5, 63) and pe(torch.zeros(2, 7, 4)).shape == (2, 7, 84)
+    x = torch.tensor([[0.25, -0.5, 1.0]])
+    y = pe(x)
+    assert torch.equal(y[:, :3], x)
+    k = 3  # sin(2^k pi x) of the second coordinate sits after the 3 inputs at (coord * F + k)
+    assert torch.allclose(y[0, 3 + 1 * 10 + k], torch.sin(torch.tensor(2.0 ** k * math.pi * -0.5)), atol=1e-6)
+    assert torch.allclose(y[0, 33 + 1 * 10 + k], torch.cos(torch.tensor(2.0 ** k * math.pi * -0.5)), atol=1e-6)
+    bounds = torch.tensor([[[-1.0, 0.0, 0.0], [3.0, 1.0, 2.0]]])
+    corners = torch.tensor([[[-1.0, 0.0, 0.0], [3.0, 1.0, 2.0], [1.0, 0.5, 1.0]]])
+    n = normalize_positions(corners, bounds)
+    assert torch.allclose(n[0, 2], torch.zeros(3)) and n.abs().max() == 1.0  # centre -> 0, largest axis -> +-1
+    assert torch.allclose(n[0, 1] - n[0, 0], (corners[0, 1] - corners[0, 0]) / 2.0)  # one scale for all axes
+
+
+def test_encoder_is_resnet18_and_per_spectrum():
+    enc = ResNetEncoder((64, 128, 256, 512))
+    n_conv = sum(isinstance(m, torch.nn.Conv2d) and m.kernel_size != (1, 1) for m in enc.modules())
+    assert n_conv == 17  # stem + 4 stages x 2 BasicBlocks x 2 convs (+ 3 shortcut 1x1 convs)
+    assert 11.0e6 < sum(p.numel() for p in enc.parameters()) < 11.3e6  # ResNet-18 without its fc
+    small = ResNetEncoder((16, 32, 64, 128), downsample=2).eval()
+    x = torch.rand(3, 1, 90, 360)
+    with torch.no_grad():
+        f = small(x)
+        assert f.shape == (3, 128) and torch.isfinite(f).all()
+        assert torch.allclose(small(x[1:2]), f[1:2], atol=1e-5)  # GroupNorm: no batch effects
+
+
+def test_attention_blocks_mask_and_sizes():
+    torch.manual_seed(0)
+    cross, selfb = CrossAttentionBlock(16, 1, 16), SelfAttentionBlock(16, 10, 8)
+    assert cross.attn.q.weight.shape == (16, 16) and selfb.attn.q.weight.shape == (80, 16)
+    q, ctx = torch.randn(2, 5, 16), torch.randn(2, 4, 16)
+    mask = torch.tensor([[True, True, False, False], [True, True, True, True]])
+    out = cross(q, ctx, mask)
+    garbage = ctx.clone()
+    garbage[0, 2:] = 1e3
+    assert torch.allclose(cross(q, garbage, mask), out, atol=1e-6)
+    assert torch.allclose(cross(q[:1], ctx[:1, :2]), out[:1], atol=1e-6)
+    y = selfb(q)
+    assert y.shape == q.shape and torch.allclose(y.mean(-1), torch.zeros(2, 5), atol=1e-5)  # post-norm output
+
+
+def test_voxels_follow_the_scene_and_band(rfid):
+    b = _eval_batch(rfid)
+    assert num_samples(torch.tensor([5.56]), torch.tensor([0.328]), 128) == [17]
+    assert num_samples(b["ray_length"], b["wavelength"], 128) == [17, 17]  # rfid_s23 at 915 MHz
+    assert num_samples(torch.tensor([5.56]), torch.tensor([0.0125]), 128) == [128]  # capped
+    assert num_samples(torch.tensor([5.56, 5.56]), torch.tensor([0.328, 0.125]), 32) == [17, 32]
+    dirs = grid_directions().float()[[0, 361, 32399]]  # pixels (r, c) = (0, 0), (1, 1), (89, 359)
+    pos, mask, S = sample_voxels(b["gw_pos"], b["gw_rot"], dirs, b["ray_length"], b["wavelength"], 128)
+    assert S == [17, 17] and pos.shape == (2, 3, 17, 3) and mask.all()
+    step = float(b["ray_length"][0]) / 17
+    world = b["gw_rot"][0] @ dirs[1]
+    assert torch.allclose(pos[0, 1, 0], b["gw_pos"][0] + 0.5 * step * world, atol=1e-5)
+    assert torch.allclose(pos[0, 1, 16], b["gw_pos"][0] + 16.5 * step * world, atol=1e-5)
+    assert abs(step - float(b["wavelength"][0])) < 0.02  # voxel size ~ the wavelength
+
+
+def test_items_with_different_voxel_counts_share_a_batch(tiny):
+    model = _small(max_samples=32)
+    b = _eval_batch(tiny)
+    b["wavelength"] = b["wavelength"] * torch.tensor([1.0, 0.5])  # item 1: twice the voxels
+    pix = torch.arange(0, 32400, 97).expand(2, -1)
+    with torch.no_grad():
+        ctx = model.prepare(b)
+        assert ctx["samples"][1] > ctx["samples"][0] and ctx["sample_mask"] is not None
+        both = model.render(ctx, pix)
+        for i in range(2):
+            one = model.render(model.prepare({k: v[i:i + 1] for k, v in b.items()}), pix[i:i + 1])
+            assert torch.allclose(both[i], one[0], atol=1e-5)
+
+
+# ---------------------------------------------------------------------------------------------- inference
+def test_prediction_contract_and_invariances(tiny):
+    model = _small()
+    b = _eval_batch(tiny)
+    assert b["src_mask"].all() and b["src_pos"].shape[1] == 3
+    with torch.no_grad():
+        pred = model.predict_spectra(b)
+        assert pred.shape == (2, 90, 360) and pred.dtype == torch.float32
+        assert torch.isfinite(pred).all() and (pred >= 0).all() and pred.std() > 0
+
+        # a padded neighbour (mask False) holding garbage changes nothing
+        g = dict(b)
+        g["src_pos"] = torch.cat([b["src_pos"], torch.full((2, 1, 3), 1e4)], 1)
+        g["src_spectra"] = torch.cat([b["src_spectra"], torch.rand(2, 1, 90, 360) * 100], 1)
+        g["src_mask"] = torch.cat([b["src_mask"], torch.zeros(2, 1, dtype=torch.bool)], 1)
+        assert torch.allclose(model.predict_spectra(g), pred, atol=1e-5)
+
+        # L = 1, a co-located neighbour, all-zero and all-one spectra
+        one = {**b, "src_pos": b["src_pos"][:, :1], "src_spectra": b["src_spectra"][:, :1],
+               "src_mask": b["src_mask"][:, :1]}
+        p1 = model.predict_spectra(one)
+        assert p1.shape == (2, 90, 360) and torch.isfinite(p1).all() and not torch.allclose(p1, pred)
+        co = {**b, "src_pos": b["src_pos"].clone()}
+        co["src_pos"][:, 0] = b["tgt_pos"]
+        assert torch.isfinite(model.predict_spectra(co)).all()
+        for value in (0.0, 1.0):
+            flat = {**b, "src_spectra": torch.full_like(b["src_spectra"], value)}
+            assert torch.isfinite(model.predict_spectra(flat)).all()
+
+        # bf16 autocast on CPU: finite, and close to fp32 (geometry and PE stay fp32)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            pb = model.predict_spectra(b)
+        assert pb.dtype == torch.float32 and torch.isfinite(pb).all()
+        assert (pb - pred).abs().mean() < 0.02
+
+
+def test_scene_index_enters_the_encoding(tiny):
+    model = _small(use_scene_index=True)
+    assert model.mlp1[0].in_features == 128 + 84 + 63 and model.query_voxel.in_features == 84
+    b = _eval_batch(tiny)
+    pix = torch.arange(0, 32400, 101).expand(2, -1)
+    with torch.no_grad():
+        p0 = model.render(model.prepare(b), pix)
+        p1 = model.render(model.prepare({**b, "scene_index": torch.ones(2, dtype=torch.long)}), pix)
+    assert torch.isfinite(p1).all() and not torch.allclose(p0, p1)
+
+
+@pytest.mark.parametrize("weighting", ["idw", "barycentric"])
+def test_residual_at_init_is_knn(rfid, weighting):
+    model = _small(residual=True, weighting=weighting)
+    assert model.method == "graf-residual"
+    b = _eval_batch(rfid)
+    with torch.no_grad():
+        pred = model.predict_spectra(b)
+    knn = KNNModule(weighting=weighting).predict_spectra(b)
+    assert (pred - knn).abs().max() < 1e-5
+
+
+def test_chunking_and_encoder_calls(rfid):
+    model = _small(chunk_rays=1000)
+    b = _eval_batch(rfid)
+    b["src_mask"][0, 7:] = False  # fewer real neighbours for one target
+    seen = []
+    model.encoder.register_forward_hook(lambda mod, inp, out: seen.append(inp[0].shape[0]))
+    with torch.no_grad():
+        chunked = model.predict_spectra(b)
+        assert seen == [int(b["src_mask"].sum())] == [17]  # once per real neighbour spectrum, not per ray
+        model.chunk_rays = 40000
+        whole = model.predict_spectra(b)
+        assert seen == [17, 17]
+    assert torch.allclose(chunked, whole, atol=1e-5)
+    # training: one encoder pass per batch too, and rays_per_step split evenly across the targets
+    model.train()
+    pix = model.sample_pixels(2, "cpu")
+    assert pix.shape == (2, 512) and all(len(set(r.tolist())) == 512 for r in pix)
+    assert torch.equal(pix, model.sample_pixels(2, "cpu"))  # seeded from the global step
+    seen.clear()
+    model.render(model.prepare(b), pix).sum().backward()
+    assert seen == [17]
+
+
+# ---------------------------------------------------------------------------------------------- training
+def test_optimisation_lowers_the_loss_on_a_fixed_batch(tiny):
+    model = _preset("graf_cpu", max_samples=8)
+    b = next(iter(tiny.train_dataloader()))
+    pix = model.sample_pixels(2, "cpu")
+    target = b["tgt_spectrum"].flatten(1).gather(1, pix)
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(12):
+        loss = torch.nn.functional.mse_loss(model.render(model.prepare(b), pix), target)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert all(math.isfinite(v) for v in losses) and losses[-1] < 0.5 * losses[0]
+
+
+def test_learning_rate_schedule():
+    model = _small(lr=1e-3, lr_decay=0.1, decay_steps=100)
+    conf = model.configure_optimizers()
+    opt, sched = conf["optimizer"], conf["lr_scheduler"]
+    assert isinstance(opt, torch.optim.Adam) and sched["interval"] == "step"
+    for _ in range(100):
+        opt.step()
+        sched["scheduler"].step()
+    assert abs(opt.param_groups[0]["lr"] - 1e-4) < 1e-9
+
+
+@pytest.mark.parametrize("preset,overrides", [
+    ("graf", {"rays_per_step": 128}),  # the paper's sizes, few rays per step to stay fast
+    ("graf_cpu", {}),
+    ("graf_cpu", {"residual": True, "weighting": "idw"}),
+])
+def test_two_training_steps_and_checkpoint(tiny, tmp_path, preset, overrides):
+    model = _preset(preset, **overrides)
+    before = {k: v.detach().clone() for k, v in model.named_parameters()}
+    trainer = L.Trainer(max_steps=2, accelerator="cpu", logger=False, enable_checkpointing=False,
+                        limit_val_batches=0, num_sanity_val_steps=0, enable_progress_bar=False,
+                        enable_model_summary=False)
+    trainer.fit(model, datamodule=tiny)
+    assert trainer.global_step == 2
+    assert math.isfinite(float(trainer.callback_metrics["train/loss"]))
+    changed = [k for k, v in model.named_parameters() if not torch.equal(v, before[k])]
+    assert "head.weight" in changed and any(k.startswith("encoder.") for k in changed)
+    assert any(k.startswith("mlp1.") for k in changed) and any(k.startswith("ray_blocks.") for k in changed)
+    if preset == "graf_cpu":  # checkpoint round trip (hparams included) gives identical predictions
+        path = tmp_path / "graf.ckpt"
+        trainer.save_checkpoint(path)
+        loaded = GRaFModule.load_from_checkpoint(path, map_location="cpu").eval()
+        assert loaded.hparams == model.hparams and loaded.method == model.method
+        model.eval()
+        b = _eval_batch(tiny)
+        with torch.no_grad():
+            assert torch.equal(loaded.predict_spectra(b), model.predict_spectra(b))
