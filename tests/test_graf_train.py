@@ -1,0 +1,54 @@
+"""graf-train with GRaF through the real configs: a short run, and a killed run resumed from its checkpoint."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from graf.cli.train import train
+
+FAST = ["model.rays_per_step=64", "model.max_samples=8", "data.batch_size=2", "baselines={}", "plot_count=1",
+        "trainer.limit_test_batches=1", "trainer.enable_progress_bar=false"]
+
+
+def test_graf_train_two_steps_through_the_real_configs(compose_cfg):
+    for residual in ("false", "true"):
+        cfg = compose_cfg("train", ("experiment=graf_rfid_s23", "trainer.max_steps=2", f"model.residual={residual}",
+                                    *FAST))
+        metrics, objects = train(cfg)
+        r = json.loads((Path(cfg.paths.output_dir) / "results.json").read_text())
+        assert r["method"] == ("graf-residual" if residual == "true" else "graf")
+        assert r["global_step"] == 2 and r["trainable_parameters"] > 100_000
+        assert all(torch.isfinite(torch.tensor(v)) for v in metrics.values())
+        assert (Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt").is_file()
+
+
+def test_killed_training_resumes_from_its_last_checkpoint(tmp_path):
+    exe = str(Path(sys.executable).parent / "graf-train")
+    args = ["experiment=graf_rfid_s23", "trainer.max_steps=16", "callbacks.model_checkpoint.every_n_train_steps=2",
+            "trainer.accelerator=cpu", "logger=none", *FAST]
+    first = tmp_path / "first"
+    p = subprocess.Popen([exe, *args, f"hydra.run.dir={first}"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                         text=True)
+    ckpt = first / "checkpoints" / "last.ckpt"
+    deadline = time.time() + 300
+    while time.time() < deadline and not ckpt.exists() and p.poll() is None:
+        time.sleep(0.01)
+    p.send_signal(signal.SIGKILL)
+    p.wait()
+    assert ckpt.exists(), "no checkpoint was written before the kill"
+    step_at_kill = torch.load(ckpt, map_location="cpu", weights_only=False)["global_step"]
+    assert 2 <= step_at_kill < 16 and not (first / "results.json").exists()
+    second = tmp_path / "second"
+    p = subprocess.run([exe, *args, f"ckpt_path={ckpt}", f"hydra.run.dir={second}"], capture_output=True, text=True,
+                       timeout=600)
+    assert p.returncode == 0, p.stderr[-3000:]
+    r = json.loads((second / "results.json").read_text())
+    assert r["global_step"] == 16  # continued from the checkpoint to the planned length, not restarted
+    assert torch.load(second / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)["global_step"] == 16
