@@ -25,7 +25,7 @@ from graf.io import atomic_write_bytes, atomic_write_json
 log = logging.getLogger("graf")
 
 METRICS = ("test/mse", "test/psnr", "test/ssim", "test/lpips")
-IGNORED_PREFIXES = ("paths.", "hydra.", "data_root", "task_name", "logger.", "trainer.default_root_dir",
+IGNORED_PREFIXES = ("paths.", "hydra.", "data_root", "task_name", "logger.", "trainer.default_root_dir", "callbacks.",
                     "save_predictions", "plot_count", "ckpt_path")
 
 
@@ -83,6 +83,9 @@ def build_table(rows: list[dict]) -> tuple[list[str], list[list]]:
         m = r.get("metrics", {})
         body.append([r.get("method"), r.get("scene"), *[flat.get(k) for k in axes], r.get("n_test"),
                      *[m.get(k) for k in METRICS], r.get("seconds")])
+        for name, b in (r.get("baselines") or {}).items():  # tested in the same run, same split and neighbours
+            body.append([name, r.get("scene"), *[flat.get(k) for k in axes], r.get("n_test"),
+                         *[b["metrics"].get(k) for k in METRICS], b.get("seconds")])
     return header, body
 
 
@@ -116,7 +119,7 @@ def make_table(cfg: DictConfig) -> dict:
     rows = collect(runs)
     header, body = build_table(rows)
     md, text_csv = to_markdown(header, body), to_csv(header, body)
-    payload = {"rows": [dict(zip(header, row)) | {"results_file": r["_file"]} for row, r in zip(body, rows)],
+    payload = {"rows": [dict(zip(header, row)) for row in body],
                "sources": [str(r) for r in runs]}
     for folder in [_output_dir(cfg)] + ([Path(cfg.out)] if cfg.get("out") else []):
         atomic_write_bytes(folder / "table.md", md.encode())
