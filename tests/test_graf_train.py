@@ -52,3 +52,16 @@ def test_killed_training_resumes_from_its_last_checkpoint(tmp_path):
     r = json.loads((second / "results.json").read_text())
     assert r["global_step"] == 16  # continued from the checkpoint to the planned length, not restarted
     assert torch.load(second / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)["global_step"] == 16
+
+
+def test_bench_models_reports_cost_side_by_side(tmp_path):
+    exe = str(Path(sys.executable).parent / "graf-bench-models")
+    p = subprocess.run([exe, "bench.spectra=1", "~models.graf", "models.graf_cpu.max_samples=4",
+                        f"hydra.run.dir={tmp_path}"], capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr[-3000:]
+    r = json.loads((tmp_path / "results.json").read_text())
+    assert set(r["models"]) == {"graf_cpu", "knn"}
+    g = r["models"]["graf_cpu"]
+    assert g["parameters"] > 100_000 and g["checkpoint_mb"] > 0.5 and g["s_per_spectrum"] > 0
+    assert g["samples_per_ray"] == 4 and r["models"]["knn"]["parameters"] == 0
+    assert "time ratio" in p.stdout

@@ -17,7 +17,7 @@ import lightning as L
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from graf.cli.common import CONF_DIR, _output_dir, task_wrapper
+from graf.cli.common import CONF_DIR, _output_dir, build_datamodule, task_wrapper
 from graf.io import atomic_write_json
 
 PAPER = {"graf": {"mb": 478.6, "s_per_spectrum": 1.95}, "nerf2": {"mb": 8.3, "s_per_spectrum": 0.43}}
@@ -33,10 +33,7 @@ def _samples(model, batch):
 
 @task_wrapper
 def bench(cfg: DictConfig) -> dict:
-    band = hydra.utils.instantiate(cfg.band)
-    scene = hydra.utils.instantiate(cfg.scene)
-    neighbors = hydra.utils.instantiate(cfg.neighbors)
-    dm = hydra.utils.instantiate(cfg.data, scene=scene, band=band, neighbors=neighbors, data_root=cfg.get("data_root"))
+    band, scene, neighbors, dm = build_datamodule(cfg)
     dm.setup("test")
     n = int(cfg.bench.spectra)
     idx, mask = dm.eval_neighbors()

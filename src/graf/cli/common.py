@@ -65,17 +65,23 @@ def _output_dir(cfg: DictConfig) -> Path:
         return Path.cwd()
 
 
+def build_datamodule(cfg: DictConfig):
+    """Band, scene, neighbour selector and the datamodule that joins them (``cfg.data``)."""
+    band = hydra.utils.instantiate(cfg.band)
+    scene = hydra.utils.instantiate(cfg.scene)
+    neighbors = hydra.utils.instantiate(cfg.neighbors)
+    datamodule = hydra.utils.instantiate(cfg.data, scene=scene, band=band, neighbors=neighbors,
+                                         data_root=cfg.get("data_root"))
+    return band, scene, neighbors, datamodule
+
+
 def build(cfg: DictConfig) -> dict:
     """Instantiate band, scene, neighbour selector, datamodule, model, loggers and trainer."""
     if cfg.get("seed") is not None:
         L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     out = _output_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
-    band = hydra.utils.instantiate(cfg.band)
-    scene = hydra.utils.instantiate(cfg.scene)
-    neighbors = hydra.utils.instantiate(cfg.neighbors)
-    datamodule = hydra.utils.instantiate(cfg.data, scene=scene, band=band, neighbors=neighbors,
-                                         data_root=cfg.get("data_root"))
+    band, scene, neighbors, datamodule = build_datamodule(cfg)
     model = hydra.utils.instantiate(cfg.model)
     loggers = [hydra.utils.instantiate(c) for c in (cfg.get("logger") or {}).values()
                if isinstance(c, DictConfig) and "_target_" in c]

@@ -17,7 +17,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from graf.cli.common import CONF_DIR, _output_dir, task_wrapper
+from graf.cli.common import CONF_DIR, _output_dir, build_datamodule, task_wrapper
 from graf.io import atomic_write_json
 
 
@@ -28,10 +28,7 @@ def run(cfg: DictConfig) -> dict:
 
     started = time.perf_counter()
     positions, had_header = _read_positions(Path(cfg.positions))
-    band = hydra.utils.instantiate(cfg.band)
-    scene = hydra.utils.instantiate(cfg.scene)
-    neighbors = hydra.utils.instantiate(cfg.neighbors)
-    dm = hydra.utils.instantiate(cfg.data, scene=scene, band=band, neighbors=neighbors, data_root=cfg.get("data_root"))
+    band, scene, neighbors, dm = build_datamodule(cfg)
     model_cls = hydra.utils.get_class(cfg.model._target_)
     if cfg.get("ckpt_path"):
         model = model_cls.load_from_checkpoint(cfg.ckpt_path, map_location="cpu")
