@@ -29,7 +29,7 @@ def test_reads_real_s23_slice():
     assert set(d.ids[d.train_idx]).isdisjoint(d.ids[d.test_idx])
 
 
-def _copy(tmp_path, n_keep=None):
+def _copy(tmp_path):
     dst = tmp_path / "s23"
     shutil.copytree(EMBEDDED_S23, dst)
     return dst

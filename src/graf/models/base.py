@@ -17,7 +17,6 @@ class SpectrumModule(L.LightningModule):
     def __init__(self):
         super().__init__()
         self.test_metrics = spectrum_metrics("test/")
-        self.val_metrics = spectrum_metrics("val/", lpips=False)
 
     @property
     def has_trainable_parameters(self) -> bool:
@@ -35,6 +34,3 @@ class SpectrumModule(L.LightningModule):
 
     def test_step(self, batch: dict, batch_idx: int) -> dict:
         return self._eval_step(batch, self.test_metrics)
-
-    def validation_step(self, batch: dict, batch_idx: int) -> dict:
-        return self._eval_step(batch, self.val_metrics)
