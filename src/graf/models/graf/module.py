@@ -47,6 +47,8 @@ from graf.models.graf.rays import (N_AZIMUTH, N_ELEVATION, N_RAYS, local_directi
 from graf.models.knn.weights import barycentric_weights, idw_weights
 
 WEIGHTINGS = ("idw", "barycentric")
+LOSSES = ("mse", "log_mse")
+LOG_MSE_EPS = 1e-6
 # The scene index enters the PE as a coordinate ``index * SCENE_INDEX_SCALE``: with a raw integer n every
 # sin(2^k pi n) is 0 and cos(2^k pi n) is 1 for k >= 1, so the PE would carry nothing but n and (-1)^n.
 SCENE_INDEX_SCALE = (math.sqrt(5.0) - 1.0) / 2.0
@@ -75,6 +77,9 @@ class GRaFModule(SpectrumModule):
         chunk_rays: rays per forward chunk at inference (bounds memory).
         lr / lr_decay / decay_steps: Adam; the lr is multiplied by lr_decay over decay_steps steps.
         residual / weighting: predict |KNN(weighting) + re + j im| instead of |re + j im|.
+        loss: ``mse`` (the seed's per-ray L2) or ``log_mse`` (the mean over the batch's targets of
+            log(MSE of the target's rays + 1e-6): the training counterpart of the mean per-spectrum PSNR, so
+            spectra that are already well predicted are not traded for the badly predicted ones).
         use_scene_index: 4-D positions (x, y, z, scene index) for cross-scene training.
     """
 
@@ -83,10 +88,12 @@ class GRaFModule(SpectrumModule):
                  ray_head_dim: int = 8, ffn_dim: int = 64, mlp_dim: int = 64, pe_freqs: int = 10,
                  max_samples: int = 128, rays_per_step: int = 5120, chunk_rays: int = 4096, lr: float = 5e-4,
                  lr_decay: float = 0.1, decay_steps: int = 300_000, residual: bool = False,
-                 weighting: str = "idw", use_scene_index: bool = False):
+                 weighting: str = "idw", use_scene_index: bool = False, loss: str = "mse"):
         super().__init__()
         if weighting not in WEIGHTINGS:
             raise ValueError(f"model.weighting must be one of {WEIGHTINGS}, got {weighting!r}")
+        if loss not in LOSSES:
+            raise ValueError(f"model.loss must be one of {LOSSES}, got {loss!r}")
         if min(d_model, scene_blocks, ray_heads, ray_head_dim, max_samples, rays_per_step, chunk_rays) < 1:
             raise ValueError("GRaF sizes must be positive")
         encoder_widths = [int(w) for w in encoder_widths]  # plain ints in the checkpoint, not a ListConfig
@@ -95,6 +102,7 @@ class GRaFModule(SpectrumModule):
         self.rays_per_step, self.chunk_rays = int(rays_per_step), int(chunk_rays)
         self.lr, self.lr_decay, self.decay_steps = float(lr), float(lr_decay), int(decay_steps)
         self.residual, self.weighting, self.use_scene_index = bool(residual), weighting, bool(use_scene_index)
+        self.loss_name = loss
         d = self.d_model
         coord_dim = 4 if self.use_scene_index else 3
 
@@ -224,7 +232,10 @@ class GRaFModule(SpectrumModule):
         pix = self.sample_pixels(B, batch["tgt_pos"].device)
         pred = self.render(self.prepare(batch), pix)
         target = batch["tgt_spectrum"].flatten(1).gather(1, pix).float()
-        loss = F.mse_loss(pred.float(), target)
+        if self.loss_name == "mse":
+            loss = F.mse_loss(pred.float(), target)
+        else:  # per-target MSE [B] -> mean log
+            loss = torch.log((pred.float() - target).pow(2).mean(dim=1) + LOG_MSE_EPS).mean()
         self.log("train/loss", loss, prog_bar=True, batch_size=B)
         return loss
 
