@@ -158,3 +158,18 @@ def test_console_scripts_run_end_to_end(tmp_path, make_scene):
         assert "PSNR" in proc.stdout and (out / "results.json").is_file()
     proc = subprocess.run([str(bindir / "graf-eval"), "scene=nope"], capture_output=True, text=True, env=env)
     assert proc.returncode != 0 and "Could not find 'scene/nope'" in proc.stderr
+
+
+def test_a_sweep_with_a_failing_job_keeps_the_table_of_the_others(tmp_path):
+    exe = str(Path(sys.executable).parent / "graf-eval")
+    sweep = tmp_path / "sweep"
+    p = subprocess.run([exe, "-m", "model=knn", "model.weighting=idw,no_such_weighting,barycentric", "plot_count=0",
+                        "logger=none", "trainer.limit_test_batches=1", "trainer.enable_progress_bar=false",
+                        f"hydra.sweep.dir={sweep}"], capture_output=True, text=True, timeout=600)
+    assert p.returncode != 0  # the sweep reports the failure ...
+    table = json.loads((sweep / "table.json").read_text())  # ... after running every job and tabulating them
+    assert [r["method"] for r in table["rows"]] == ["knn", "knn-barycentric"]
+    assert all(r["PSNR"] > 10 for r in table["rows"])
+    failed = json.loads((sweep / "failed.json").read_text())
+    assert [f["job"] for f in failed] == [1] and "no_such_weighting" in failed[0]["error"]
+    assert "| knn-barycentric |" in (sweep / "table.md").read_text()

@@ -5,6 +5,15 @@
 Config keys whose values differ between the runs become columns (so a sweep's axes show up by
 themselves).  Writes ``table.md``, ``table.csv`` and ``results.json`` (``{"rows": [...]}``) into the
 output folder (and into ``out`` when given), and prints the Markdown table.
+
+Every multirun also gets its table without this command: :class:`SweepTable` (a Hydra callback, in
+``conf/hydra/default.yaml``) rewrites ``table.md`` / ``table.csv`` / ``table.json`` in the sweep folder after
+each job, so a sweep whose later job fails or is killed still leaves the table of the jobs that finished,
+and the failed jobs are listed in ``failed.json`` beside it.
+
+Baselines tested inside a run (results.json ``baselines``) become rows of their own; the model's own
+settings (``model.*``) are left blank in them, and a baseline row identical to one already in the table
+(the same KNN beside several models) appears once.
 """
 
 from __future__ import annotations
@@ -17,6 +26,9 @@ import math
 from pathlib import Path
 
 import hydra
+from hydra.core.utils import JobReturn, JobStatus
+from hydra.experimental.callback import Callback
+from hydra.types import RunMode
 from omegaconf import DictConfig, ListConfig
 
 from graf.cli.common import CONF_DIR, _output_dir, task_wrapper
@@ -37,6 +49,10 @@ def _flatten(d, prefix=""):
     else:
         out[prefix[:-1]] = json.dumps(d) if isinstance(d, list) else d
     return out
+
+
+# settings of the run's own model and training, which do not apply to the baselines tested beside it
+BASELINE_BLANK = ("model.", "model", "trainer.", "experiment")
 
 
 def _natural(path: Path) -> list:
@@ -77,15 +93,20 @@ def varying_keys(rows: list[dict]) -> list[str]:
 def build_table(rows: list[dict]) -> tuple[list[str], list[list]]:
     axes = varying_keys(rows)
     header = ["method", "scene", *axes, "n_test", "MSE", "PSNR", "SSIM", "LPIPS", "seconds"]
-    body = []
+    body, seen = [], set()
     for r in rows:
         flat = _flatten(r.get("config", {}))
         m = r.get("metrics", {})
         body.append([r.get("method"), r.get("scene"), *[flat.get(k) for k in axes], r.get("n_test"),
                      *[m.get(k) for k in METRICS], r.get("seconds")])
         for name, b in (r.get("baselines") or {}).items():  # tested in the same run, same split and neighbours
-            body.append([name, r.get("scene"), *[flat.get(k) for k in axes], r.get("n_test"),
-                         *[b["metrics"].get(k) for k in METRICS], b.get("seconds")])
+            ax = [None if k.startswith(BASELINE_BLANK) else flat.get(k) for k in axes]
+            key = json.dumps([name, r.get("scene"), ax, b["metrics"]], default=str)
+            if key in seen:
+                continue
+            seen.add(key)
+            body.append([name, r.get("scene"), *ax, r.get("n_test"), *[b["metrics"].get(k) for k in METRICS],
+                         b.get("seconds")])
     return header, body
 
 
@@ -117,16 +138,45 @@ def make_table(cfg: DictConfig) -> dict:
     runs = cfg.runs
     runs = list(runs) if isinstance(runs, (list, ListConfig)) else [runs]
     rows = collect(runs)
-    header, body = build_table(rows)
-    md, text_csv = to_markdown(header, body), to_csv(header, body)
-    payload = {"rows": [dict(zip(header, row)) for row in body],
-               "sources": [str(r) for r in runs]}
     for folder in [_output_dir(cfg)] + ([Path(cfg.out)] if cfg.get("out") else []):
-        atomic_write_bytes(folder / "table.md", md.encode())
-        atomic_write_bytes(folder / "table.csv", text_csv.encode())
-        atomic_write_json(folder / "results.json", payload)
-    print(md)
+        payload = write_table(folder, rows, [str(r) for r in runs])
+    print(to_markdown(*build_table(rows)))
     return payload
+
+
+def write_table(folder: Path, rows: list[dict], sources: list[str], json_name: str = "results.json") -> dict:
+    """Write ``table.md``, ``table.csv`` and the rows as JSON (``json_name``) into ``folder``, atomically.
+    A sweep folder's JSON is ``table.json``: a ``results.json`` there would be read back as a run."""
+    header, body = build_table(rows)
+    payload = {"rows": [dict(zip(header, row)) for row in body], "sources": sources}
+    atomic_write_bytes(folder / "table.md", to_markdown(header, body).encode())
+    atomic_write_bytes(folder / "table.csv", to_csv(header, body).encode())
+    atomic_write_json(folder / json_name, payload)
+    return payload
+
+
+class SweepTable(Callback):
+    """Hydra callback: after every job of a multirun, rewrite the sweep folder's table from the results.json
+    files under it (``table.md``, ``table.csv``, ``table.json``) and record failed jobs in ``failed.json``.
+    Never raises: a table that cannot be written is logged, the sweep goes on."""
+
+    def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs) -> None:
+        if config.hydra.get("mode") != RunMode.MULTIRUN:
+            return
+        sweep_dir = Path(config.hydra.sweep.dir)
+        try:
+            if job_return.status == JobStatus.FAILED:
+                failed_file = sweep_dir / "failed.json"
+                failed = json.loads(failed_file.read_text()) if failed_file.exists() else []
+                failed.append({"job": int(config.hydra.job.num), "overrides": list(config.hydra.overrides.task),
+                               "error": repr(job_return._return_value)})
+                atomic_write_json(failed_file, failed)
+            files = sorted(sweep_dir.rglob("results.json"), key=_natural)
+            if files:
+                write_table(sweep_dir, collect(files), [str(f) for f in files], json_name="table.json")
+                log.info("sweep table: %s", sweep_dir / "table.md")
+        except Exception:  # a table is a convenience: never break the sweep
+            log.exception("could not write the sweep table in %s", sweep_dir)
 
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="table")
