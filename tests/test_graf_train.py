@@ -9,6 +9,7 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 import torch
 
 from graf.cli.train import train
@@ -65,3 +66,31 @@ def test_bench_models_reports_cost_side_by_side(tmp_path):
     assert g["parameters"] > 100_000 and g["checkpoint_mb"] > 0.5 and g["s_per_spectrum"] > 0
     assert g["samples_per_ray"] == 4 and r["models"]["knn"]["parameters"] == 0
     assert "time ratio" in p.stdout
+
+
+def test_finetune_starts_from_a_checkpoints_weights_and_rejects_another_architecture(compose_cfg, tmp_path):
+    cfg = compose_cfg("train", ("experiment=graf_rfid_s23", "trainer.max_steps=2", *FAST))
+    train(cfg)
+    ckpt = Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt"
+    trained = torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"]
+
+    from graf.cli.train import load_weights
+    from hydra.utils import instantiate
+    fresh = instantiate(cfg.model)
+    assert not torch.equal(fresh.state_dict()["mlp1.0.weight"], trained["mlp1.0.weight"])
+    load_weights(fresh, ckpt)
+    assert all(torch.equal(v, trained[k]) for k, v in fresh.state_dict().items())
+
+    cfg2 = compose_cfg("train", ("experiment=graf_rfid_s23", "trainer.max_steps=1", "finetune=from_checkpoint",
+                                 f"finetune.init_from={ckpt}", f"paths.output_dir={tmp_path / 'ft'}", *FAST))
+    train(cfg2)
+    r = json.loads((tmp_path / "ft" / "results.json").read_text())
+    assert r["global_step"] == 1  # a fresh schedule, not a resumed one
+    other = compose_cfg("train", ("experiment=graf_rfid_s23", "model.d_model=8", "finetune=from_checkpoint",
+                                  f"finetune.init_from={ckpt}", *FAST))
+    with pytest.raises(ValueError, match="another architecture"):
+        train(other)
+    missing = compose_cfg("train", ("experiment=graf_rfid_s23", "finetune=from_checkpoint",
+                                    f"finetune.init_from={tmp_path / 'nope.ckpt'}", *FAST))
+    with pytest.raises(FileNotFoundError, match="nope.ckpt"):
+        train(missing)
