@@ -17,6 +17,7 @@ from graf.data.datamodule import SpectrumDataModule
 from graf.data.scenes import NeRF2Scene
 from graf.models.graf import (CrossAttentionBlock, GRaFModule, PositionalEncoding, ResNetEncoder,
                               SelfAttentionBlock, normalize_positions, num_samples, sample_voxels)
+from graf.models.graf.rays import random_pixels
 from graf.models.knn import KNNModule
 from graf.neighbors import NeighborSelector
 from graf.sim.array import grid_directions
@@ -224,9 +225,9 @@ def test_chunking_and_encoder_calls(rfid):
     assert torch.allclose(chunked, whole, atol=1e-5)
     # training: one encoder pass per batch too, and rays_per_step split evenly across the targets
     model.train()
-    pix = model.sample_pixels(2, "cpu")
+    pix = random_pixels(2, model.rays_per_step, model.global_step, "cpu")
     assert pix.shape == (2, 512) and all(len(set(r.tolist())) == 512 for r in pix)
-    assert torch.equal(pix, model.sample_pixels(2, "cpu"))  # seeded from the global step
+    assert torch.equal(pix, random_pixels(2, model.rays_per_step, model.global_step, "cpu"))  # seeded from the global step
     seen.clear()
     model.render(model.prepare(b), pix).sum().backward()
     assert seen == [17]
@@ -236,7 +237,7 @@ def test_chunking_and_encoder_calls(rfid):
 def test_optimisation_lowers_the_loss_on_a_fixed_batch(tiny):
     model = _preset("graf_cpu", max_samples=8)
     b = next(iter(tiny.train_dataloader()))
-    pix = model.sample_pixels(2, "cpu")
+    pix = random_pixels(2, model.rays_per_step, model.global_step, "cpu")
     target = b["tgt_spectrum"].flatten(1).gather(1, pix)
     opt = torch.optim.Adam(model.parameters(), lr=3e-3)
     losses = []

@@ -42,8 +42,8 @@ from graf.models.base import SpectrumModule
 from graf.models.graf.attention import CrossAttentionBlock, SelfAttentionBlock
 from graf.models.graf.encoder import ResNetEncoder
 from graf.models.graf.encoding import PositionalEncoding, normalize_offsets, normalize_positions
-from graf.models.graf.rays import (N_AZIMUTH, N_ELEVATION, N_RAYS, local_directions, num_samples, voxel_distances,
-                                  world_directions)
+from graf.models.graf.rays import (fp32, local_directions, num_samples, random_pixels, render_spectra,
+                                  voxel_distances, world_directions)
 from graf.models.knn.weights import barycentric_weights, idw_weights
 
 WEIGHTINGS = ("idw", "barycentric")
@@ -54,10 +54,6 @@ LOG_MSE_EPS = 1e-6
 SCENE_INDEX_SCALE = (math.sqrt(5.0) - 1.0) / 2.0
 AMPLITUDE_EPS = 1e-12
 
-
-def _fp32(device: torch.device):
-    """Autocast off (geometry, positional encodings and the KNN base stay fp32 under mixed precision)."""
-    return torch.autocast(device_type=device.type, enabled=False)
 
 
 def _mlp(d_in: int, hidden: int, d_out: int) -> nn.Sequential:
@@ -185,7 +181,7 @@ class GRaFModule(SpectrumModule):
         """Predicted values ``[B, R]`` of the pixels ``pix [B, R]`` (long, ``r * 360 + c``)."""
         B, R = pix.shape
         S = max(ctx["samples"])
-        with _fp32(pix.device):  # geometry in fp32 also under autocast: PE phases reach 2^9 pi x
+        with fp32(pix.device):  # geometry in fp32 also under autocast: PE phases reach 2^9 pi x
             dirs = world_directions(ctx["gw_rot"], self.ray_dirs[pix].float())  # [B, R, 3]
             pos = ctx["gw_pos"][:, None, None, :] + ctx["dist"][:, None, :, None] * dirs[:, :, None, :]  # [B,R,S,3]
             pe = self.pe(self._coords(pos, {"bounds": ctx["bounds"], "scene_index": ctx["scene_index"]}))
@@ -206,7 +202,7 @@ class GRaFModule(SpectrumModule):
             pooled = (v * m).sum(dim=1) / m.sum(dim=1)
         re, im = self.head(pooled).float().view(B, R, 2).unbind(-1)
         if self.residual:
-            with _fp32(pix.device):
+            with fp32(pix.device):
                 src = ctx["base_src"].gather(2, pix[:, None, :].expand(-1, ctx["base_src"].shape[1], -1))
                 re = re + torch.einsum("bl,blr->br", ctx["base_w"], src)
         return torch.sqrt(re * re + im * im + AMPLITUDE_EPS)
@@ -214,22 +210,11 @@ class GRaFModule(SpectrumModule):
     # ------------------------------------------------------------------ Lightning API
     def predict_spectra(self, batch: dict) -> torch.Tensor:
         ctx = self.prepare(batch)
-        B = batch["tgt_pos"].shape[0]
-        per = max(1, self.chunk_rays // B)
-        allpix = torch.arange(N_RAYS, device=ctx["tokens"].device)
-        out = [self.render(ctx, allpix[s:s + per].expand(B, -1)) for s in range(0, N_RAYS, per)]
-        return torch.cat(out, dim=1).view(B, N_ELEVATION, N_AZIMUTH).float()
-
-    def sample_pixels(self, batch_size: int, device) -> torch.Tensor:
-        """``[B, R]`` random pixels, ``R = rays_per_step // B`` (at least 1, at most 32400) per target, without
-        replacement per target; the generator is seeded from the global step (reproducible)."""
-        R = min(N_RAYS, max(1, self.rays_per_step // batch_size))
-        g = torch.Generator().manual_seed(int(self.global_step))
-        return torch.rand(batch_size, N_RAYS, generator=g).argsort(dim=1)[:, :R].to(device)
+        return render_spectra(self.render, ctx, batch["tgt_pos"].shape[0], self.chunk_rays, ctx["tokens"].device)
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         B = batch["tgt_pos"].shape[0]
-        pix = self.sample_pixels(B, batch["tgt_pos"].device)
+        pix = random_pixels(B, self.rays_per_step, self.global_step, batch["tgt_pos"].device)
         pred = self.render(self.prepare(batch), pix)
         target = batch["tgt_spectrum"].flatten(1).gather(1, pix).float()
         if self.loss_name == "mse":

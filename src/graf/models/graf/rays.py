@@ -65,3 +65,25 @@ def sample_voxels(gw_pos: torch.Tensor, gw_rot: torch.Tensor, dirs_local: torch.
     dirs = world_directions(gw_rot.to(gw_pos.dtype), dirs_local)  # [B, R, 3]
     pos = gw_pos[:, None, None, :] + dist[:, None, :, None] * dirs[:, :, None, :]
     return pos, sample_mask(samples, gw_pos.device), samples
+
+
+def random_pixels(batch_size: int, rays_per_step: int, step: int, device=None) -> torch.Tensor:
+    """``[B, R]`` random pixels for a training step, ``R = rays_per_step // B`` (at least 1, at most 32400) per
+    target, without replacement per target; the generator is seeded from ``step`` (reproducible, resumable)."""
+    R = min(N_RAYS, max(1, rays_per_step // batch_size))
+    g = torch.Generator().manual_seed(int(step))
+    return torch.rand(batch_size, N_RAYS, generator=g).argsort(dim=1)[:, :R].to(device)
+
+
+def render_spectra(render, ctx: dict, batch_size: int, chunk_rays: int, device=None) -> torch.Tensor:
+    """Whole ``[B, 90, 360]`` spectra from ``render(ctx, pix [B, R]) -> [B, R]``, in chunks of at most
+    ``chunk_rays`` rays over the whole batch (memory bounded by the chunk, not by the spectrum)."""
+    per = max(1, chunk_rays // batch_size)
+    allpix = torch.arange(N_RAYS, device=device)
+    out = [render(ctx, allpix[s:s + per].expand(batch_size, -1)) for s in range(0, N_RAYS, per)]
+    return torch.cat(out, dim=1).view(batch_size, N_ELEVATION, N_AZIMUTH).float()
+
+
+def fp32(device: torch.device):
+    """Autocast off: ray geometry, positional-encoding phases and rendering stay fp32 under mixed precision."""
+    return torch.autocast(device_type=device.type, enabled=False)
