@@ -1,0 +1,126 @@
+"""KNN-DL: the L neighbours' spectra fused with per-pixel weight maps that a small network predicts from
+the geometry of target and neighbours (the learned-weights baseline of seed E.2, built on the linear
+fusion of appendix A.2).
+
+    pred[b, p] = sum_l w[b, l, p] * SS_l[p]
+
+**Weights.** :class:`.weightnet.WeightNet` maps the relative geometry of each (target, neighbour) pair
+(PE of the normalised offset, distance in wavelengths, distance rank, neighbour count, plus a DeepSets
+mean over the target's neighbours) and each ray direction to two coarse maps (``map_size``, default
+18 x 72, i.e. 5 deg cells), upsampled bilinearly (circular in azimuth) to 90 x 360:
+
+    w = softmax_l( log w_idw + logit )  +  s * (t - mean_real(t)),   t = tanh(correction)
+
+- The **convex part** is a per-pixel softmax over the real neighbours with the log of the IDW weights
+  (1/d, :func:`graf.models.knn.idw_weights`) as a fixed bias.  The decoder's last layer is
+  zero-initialised, so at step 0 the model *is* IDW KNN and training starts from it.  A convex
+  combination keeps the interpolation theorem's guarantee (seed A.1): the error is bounded by the
+  neighbours' spread, whatever the network outputs.
+- The **signed correction** (bound ``signed_scale`` = s) lets a weight go negative or above 1, as the
+  per-target weight matrices of seed A.2 do (their normalised values span -1..1, Fig 1b), i.e. it allows
+  extrapolation beyond the neighbours' hull along a pixel's dominant trend.  It is centred over the real
+  neighbours, so the weights still sum to 1 (an affine combination: a spectrum common to all neighbours
+  is reproduced exactly), and bounded, so a badly predicted correction cannot blow a pixel up.
+  ``signed_scale: 0`` gives the purely convex model.  (In 300-step CPU runs on rfid_s23 the two were
+  within 0.3 dB PSNR of each other, with dense and with sparse neighbours; the default keeps the signed
+  part because the A.2 weights are signed.)
+
+Padded neighbours (``src_mask`` False) get weight exactly 0 (``-inf`` logit, masked correction).  A
+neighbour at distance 0 from the target takes the whole IDW bias (the others' bias is ``-inf``), so the
+convex part is that neighbour; only the bounded correction can move weight to the others.  With L = 1
+the weight is 1.
+
+**Neighbour spectra never enter the weight network**: the weights depend on geometry only, so one
+trained model serves every target of a scene and applies to any set of neighbours.  The network is
+small: with the defaults 14,914 parameters (per-neighbour MLP 42 -> 64, DeepSets 64 -> 64, decoder
+32 -> 32 -> 2 per cell); one forward costs B x L x 1,296 cells of a 32-wide MLP plus the upsampling
+(on one CPU core: a training step of 4 targets with up to 10 neighbours ~0.06 s, the 40 test spectra of
+rfid_s23 with L = 10 ~0.26 s).
+
+**Training**: the whole 90 x 360 map of every target of the batch (cheap here: nothing is rendered per
+ray), L2 loss; Adam with an exponential learning-rate decay by ``lr_decay`` over ``decay_steps`` steps
+(stepped every optimiser step), as GRaF.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+import torch.nn.functional as F
+
+from graf.models.base import SpectrumModule
+from graf.models.graf.encoding import normalize_offsets
+from graf.models.graf.rays import N_AZIMUTH, N_ELEVATION
+from graf.models.knn.weights import idw_weights
+from graf.models.knn_dl.weightnet import WeightNet, upsample_maps
+
+
+class KNNDLModule(SpectrumModule):
+    """Args (all in ``conf/model/knn_dl.yaml``):
+        map_size: coarse weight-map grid (h, w); h divides 90, w divides 360.
+        hidden / decoder_hidden: widths of the per-neighbour MLP and of the per-cell decoder.
+        pe_freqs / dir_freqs: positional-encoding bands of the offset and of the ray direction.
+        max_rank: scale of the rank and neighbour-count features (the largest L expected).
+        signed_scale: bound of the signed, zero-sum weight correction (0: convex weights only).
+        idw_power: the IDW bias is log(1 / d^idw_power).
+        lr / lr_decay / decay_steps: Adam; the lr is multiplied by lr_decay over decay_steps steps.
+    """
+
+    def __init__(self, map_size: Sequence[int] = (18, 72), hidden: int = 64, decoder_hidden: int = 32,
+                 pe_freqs: int = 6, dir_freqs: int = 3, max_rank: int = 10, signed_scale: float = 0.5,
+                 idw_power: float = 1.0, lr: float = 1e-3, lr_decay: float = 0.1, decay_steps: int = 10_000):
+        super().__init__()
+        map_size = [int(v) for v in map_size]  # plain ints in the checkpoint, not a ListConfig
+        if len(map_size) != 2 or min(map_size) < 1 or N_ELEVATION % map_size[0] or N_AZIMUTH % map_size[1]:
+            raise ValueError(f"model.map_size must be [h, w] with h dividing 90 and w dividing 360, got {map_size}")
+        for key, value in (("hidden", hidden), ("decoder_hidden", decoder_hidden), ("max_rank", max_rank),
+                           ("decay_steps", decay_steps)):
+            if int(value) < 1:
+                raise ValueError(f"model.{key} must be >= 1, got {value}")
+        for key, value in (("pe_freqs", pe_freqs), ("dir_freqs", dir_freqs)):
+            if int(value) < 0:
+                raise ValueError(f"model.{key} must be >= 0, got {value}")
+        if signed_scale < 0:
+            raise ValueError(f"model.signed_scale must be >= 0, got {signed_scale}")
+        if idw_power <= 0 or lr <= 0 or not 0 < lr_decay <= 1:
+            bad = "idw_power" if idw_power <= 0 else "lr" if lr <= 0 else "lr_decay"
+            raise ValueError(f"model.{bad} out of range (idw_power > 0, lr > 0, 0 < lr_decay <= 1)")
+        self.save_hyperparameters()
+        self.signed_scale, self.idw_power = float(signed_scale), float(idw_power)
+        self.lr, self.lr_decay, self.decay_steps = float(lr), float(lr_decay), int(decay_steps)
+        self.net = WeightNet(map_size, int(hidden), int(decoder_hidden), int(pe_freqs), int(dir_freqs), int(max_rank))
+
+    @property
+    def method(self) -> str:
+        return "knn-dl"
+
+    def fusion_weights(self, batch: dict) -> torch.Tensor:
+        """``[B, L, 90, 360]`` per-pixel weights; 0 for padded neighbours, summing to 1 over l."""
+        mask = batch["src_mask"].bool()
+        tgt, src = batch["tgt_pos"].float(), batch["src_pos"].float()
+        offset = src - tgt[:, None, :]
+        maps = upsample_maps(self.net(normalize_offsets(offset, batch["bounds"].float()), offset,
+                                      batch["wavelength"].float(), mask, batch["gw_rot"].float()))
+        bias = torch.log(idw_weights(tgt, src, mask, power=self.idw_power))  # -inf where the IDW weight is 0
+        w = torch.softmax(bias[..., None, None] + maps[:, :, 0], dim=1)
+        if self.signed_scale > 0:
+            m = mask[..., None, None].to(w.dtype)
+            t = torch.tanh(maps[:, :, 1]) * m
+            w = w + self.signed_scale * (t - m * t.sum(dim=1, keepdim=True) / m.sum(dim=1, keepdim=True))
+        return w
+
+    def predict_spectra(self, batch: dict) -> torch.Tensor:
+        w = self.fusion_weights(batch)
+        src = batch["src_spectra"].float().masked_fill(~batch["src_mask"].bool()[..., None, None], 0.0)
+        return (w * src).sum(dim=1)
+
+    def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
+        loss = F.mse_loss(self.predict_spectra(batch), batch["tgt_spectrum"].float())
+        self.log("train/loss", loss, prog_bar=True, batch_size=batch["tgt_pos"].shape[0])
+        return loss
+
+    def configure_optimizers(self):
+        opt = torch.optim.Adam(self.parameters(), lr=self.lr)
+        sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=self.lr_decay ** (1.0 / self.decay_steps))
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step", "frequency": 1}}
