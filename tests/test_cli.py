@@ -173,3 +173,19 @@ def test_a_sweep_with_a_failing_job_keeps_the_table_of_the_others(tmp_path):
     failed = json.loads((sweep / "failed.json").read_text())
     assert [f["job"] for f in failed] == [1] and "no_such_weighting" in failed[0]["error"]
     assert "| knn-barycentric |" in (sweep / "table.md").read_text()
+
+
+def test_the_comparison_study_composes_one_job_per_method_on_the_same_neighbours():
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(REPO_CONF), version_base="1.3"):
+        options = GlobalHydra.instance().config_loader().get_group_options("experiment")
+        jobs = sorted(o for o in options if o.startswith("compare_rfid_s23_"))  # what glob(compare_rfid_s23_*) runs
+        cfgs = {j: compose(config_name="train", overrides=[f"experiment={j}"]) for j in jobs}
+    GlobalHydra.instance().clear()
+    methods = {j: instantiate(c.model).method for j, c in cfgs.items()}
+    assert sorted(methods.values()) == ["graf", "knn", "knn-dl", "nerf2"]
+    for c in cfgs.values():
+        assert c.scene.name == "rfid_s23" and c.neighbors.exclude_within == 0.25 and c.baselines is None
+        assert c.neighbors.L == 10 and list(c.neighbors.L_train) == [3, 10]
+    steps = {methods[j]: c.trainer.max_steps for j, c in cfgs.items()}
+    assert steps["graf"] == 3500 and steps["nerf2"] == 500 and steps["knn-dl"] == 2000

@@ -24,11 +24,8 @@ PAPER = {"graf": {"mb": 478.6, "s_per_spectrum": 1.95}, "nerf2": {"mb": 8.3, "s_
 
 
 def _samples(model, batch):
-    if not hasattr(model, "max_samples"):
-        return None
-    from graf.models.graf.rays import num_samples
-
-    return int(num_samples(batch["ray_length"], batch["wavelength"], model.max_samples)[0])
+    """Samples per ray of a ray-rendering model (GRaF, NeRF2) on this scene and band; None for the others."""
+    return int(model.samples_per_ray(batch)[0]) if hasattr(model, "samples_per_ray") else None
 
 
 @task_wrapper

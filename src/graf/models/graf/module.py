@@ -153,10 +153,14 @@ class GRaFModule(SpectrumModule):
         args = (batch["tgt_pos"], batch["src_pos"], batch["src_mask"])
         return idw_weights(*args) if self.weighting == "idw" else barycentric_weights(*args)
 
+    def samples_per_ray(self, batch: dict) -> list[int]:
+        """Voxels per ray of each batch item: one wavelength apart over the scene's ray length, capped."""
+        return num_samples(batch["ray_length"], batch["wavelength"], self.max_samples)
+
     def prepare(self, batch: dict) -> dict:
         """Everything about a batch that does not depend on the rays: computed once per batch."""
         tokens, mask = self.encode_neighbours(batch)
-        samples = num_samples(batch["ray_length"], batch["wavelength"], self.max_samples)
+        samples = self.samples_per_ray(batch)
         S = max(samples)
         smask = torch.arange(S, device=tokens.device)[None, :] < torch.as_tensor(samples, device=tokens.device)[:, None]
         ctx = {

@@ -86,13 +86,18 @@ class NeRF2Module(SpectrumModule):
         return "nerf2"
 
     # ------------------------------------------------------------------ rays
+    def samples_per_ray(self, batch: dict) -> list[int]:
+        """Samples per ray of each batch item: ``sample_spacing`` wavelengths apart from near to far, capped."""
+        far = batch["ray_length"].float()
+        return num_samples(far - self.near, batch["wavelength"].float() * self.sample_spacing, self.max_samples)
+
     def prepare(self, batch: dict) -> dict:
         """Per-batch ray geometry: sample counts, distances ``t [B, S]``, gateway and transmitter."""
         far = batch["ray_length"].float()
         if bool((far <= self.near).any()):
             raise ValueError(f"model.near ({self.near} m) must be below the scene's ray_length "
                              f"({float(far.min()):.4g} m)")
-        samples = num_samples(far - self.near, batch["wavelength"].float() * self.sample_spacing, self.max_samples)
+        samples = self.samples_per_ray(batch)
         return {"samples": samples, "t": sample_distances(self.near, far, samples),
                 "gw_pos": batch["gw_pos"].float(), "gw_rot": batch["gw_rot"].float(), "tx": batch["tgt_pos"].float()}
 
