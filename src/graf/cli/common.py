@@ -135,7 +135,8 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str, c
             continue
         rows.append(_test_baseline(cfg, name, bcfg, dm, data))
     if len(rows) > 1:
-        results["baselines"] = {r["method"]: {"metrics": r["metrics"], "seconds": r["seconds"]} for r in rows[1:]}
+        results["baselines"] = {r["method"]: {"metrics": r["metrics"], "seconds": r["seconds"],
+                                              "trainable_parameters": r["trainable_parameters"]} for r in rows[1:]}
     atomic_write_json(out / "results.json", results)
     log.info("results: %s", out / "results.json")
     print(format_metrics_table(rows))
@@ -152,6 +153,7 @@ def _test_baseline(cfg: DictConfig, name: str, bcfg: DictConfig, dm, data) -> di
     trainer.test(model=model, datamodule=dm, verbose=False)
     m = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")}
     return {"method": getattr(model, "method", name), "scene": data.name, "n_test": int(len(collector.arrays()["ids"])),
+            "trainable_parameters": int(sum(p.numel() for p in model.parameters() if p.requires_grad)),
             "metrics": {k: m.get(k) for k in ("test/mse", "test/psnr", "test/ssim", "test/lpips")},
             "seconds": round(time.perf_counter() - started, 3)}
 

@@ -84,29 +84,35 @@ def collect(paths: list[str | Path]) -> list[dict]:
 
 
 def varying_keys(rows: list[dict]) -> list[str]:
+    """Config keys whose values differ between the runs.  When the runs are of different methods
+    (``model._target_`` varies), the model's own settings are left out: they are not comparable across
+    methods, the method column names the model, and each run's results.json holds its full config."""
     flats = [_flatten(r.get("config", {})) for r in rows]
     keys = sorted(set().union(*flats)) if flats else []
-    return [k for k in keys if not k.startswith(IGNORED_PREFIXES)
-            and len({json.dumps(f.get(k), default=str) for f in flats}) > 1]
+    varying = [k for k in keys if not k.startswith(IGNORED_PREFIXES)
+               and len({json.dumps(f.get(k), default=str) for f in flats}) > 1]
+    if "model._target_" in varying:
+        varying = [k for k in varying if not k.startswith("model.")]
+    return varying
 
 
 def build_table(rows: list[dict]) -> tuple[list[str], list[list]]:
     axes = varying_keys(rows)
-    header = ["method", "scene", *axes, "n_test", "MSE", "PSNR", "SSIM", "LPIPS", "seconds"]
+    header = ["method", "scene", *axes, "parameters", "steps", "n_test", "MSE", "PSNR", "SSIM", "LPIPS", "seconds"]
     body, seen = [], set()
     for r in rows:
         flat = _flatten(r.get("config", {}))
         m = r.get("metrics", {})
-        body.append([r.get("method"), r.get("scene"), *[flat.get(k) for k in axes], r.get("n_test"),
-                     *[m.get(k) for k in METRICS], r.get("seconds")])
+        body.append([r.get("method"), r.get("scene"), *[flat.get(k) for k in axes], r.get("trainable_parameters"),
+                     r.get("global_step"), r.get("n_test"), *[m.get(k) for k in METRICS], r.get("seconds")])
         for name, b in (r.get("baselines") or {}).items():  # tested in the same run, same split and neighbours
             ax = [None if k.startswith(BASELINE_BLANK) else flat.get(k) for k in axes]
             key = json.dumps([name, r.get("scene"), ax, b["metrics"]], default=str)
             if key in seen:
                 continue
             seen.add(key)
-            body.append([name, r.get("scene"), *ax, r.get("n_test"), *[b["metrics"].get(k) for k in METRICS],
-                         b.get("seconds")])
+            body.append([name, r.get("scene"), *ax, b.get("trainable_parameters"), None, r.get("n_test"),
+                         *[b["metrics"].get(k) for k in METRICS], b.get("seconds")])
     return header, body
 
 
