@@ -32,10 +32,15 @@ def plot_spectra_grid(pred: np.ndarray, target: np.ndarray, ids: np.ndarray, pat
         fig.colorbar(im, ax=axes[r, :].tolist(), shrink=0.9)
     if title:
         fig.suptitle(title)
+    return save_figure(fig, path, dpi=80)
+
+
+def save_figure(fig, path, dpi: int = 80) -> Path:
+    """Save a figure atomically (temporary file + rename) and close it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, dpi=80)
+    fig.savefig(tmp, dpi=dpi)
     plt.close(fig)
     tmp.replace(path)
     return path

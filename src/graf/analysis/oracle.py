@@ -33,6 +33,7 @@ import torch  # noqa: E402
 
 from graf.metrics import psnr_per_sample  # noqa: E402
 from graf.models.knn.weights import idw_weights  # noqa: E402
+from graf.plotting import save_figure  # noqa: E402
 
 SPLITS = ("test", "train", "all")
 # Seed appendix A.2, Fig 1b: RFID dataset, 6 neighbours, 200 iterations.
@@ -183,10 +184,4 @@ def plot_oracle(results: dict, path: str | Path) -> Path:
     axw.set_xlabel("fitted weight / max |weight| of its target")
     axw.set_ylabel("fraction of weights")
     axw.legend(fontsize=8)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, dpi=90)
-    plt.close(fig)
-    tmp.replace(path)
-    return path
+    return save_figure(fig, path, dpi=90)

@@ -21,6 +21,7 @@ from omegaconf import DictConfig  # noqa: E402
 
 from graf.cli.common import CONF_DIR, _output_dir, task_wrapper  # noqa: E402
 from graf.io import atomic_write_json  # noqa: E402
+from graf.plotting import save_figure  # noqa: E402
 
 
 @task_wrapper
@@ -53,8 +54,7 @@ def show(cfg: DictConfig) -> dict:
             ax.set_xticks([]), ax.set_yticks([])
     fig.suptitle(f"Simulated spectra at {band.name} (azimuth 1-360 deg across, elevation 1-90 deg up)")
     out = _output_dir(cfg)
-    fig.savefig(out / "scenes.png", dpi=70)
-    plt.close(fig)
+    save_figure(fig, out / "scenes.png", dpi=70)
     result = {"band": band.name, "scenes": summary, "figure": "scenes.png"}
     atomic_write_json(out / "results.json", result)
     if cfg.get("out"):
