@@ -13,6 +13,14 @@ import torch
 from graf.metrics import spectrum_metrics
 
 
+def adam_exponential_decay(module, lr: float, lr_decay: float, decay_steps: int) -> dict:
+    """Adam with the learning rate multiplied by ``lr_decay`` over ``decay_steps`` optimiser steps
+    (exponential, stepped every step): the optimiser of GRaF and KNN-DL, in Lightning's return format."""
+    opt = torch.optim.Adam(module.parameters(), lr=lr)
+    sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=lr_decay ** (1.0 / max(1, decay_steps)))
+    return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step", "frequency": 1}}
+
+
 class SpectrumModule(L.LightningModule):
     def __init__(self):
         super().__init__()

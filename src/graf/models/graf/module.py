@@ -38,7 +38,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from graf.models.base import SpectrumModule
+from graf.models.base import SpectrumModule, adam_exponential_decay
 from graf.models.graf.attention import CrossAttentionBlock, SelfAttentionBlock
 from graf.models.graf.encoder import ResNetEncoder
 from graf.models.graf.encoding import PositionalEncoding, normalize_offsets, normalize_positions
@@ -229,7 +229,4 @@ class GRaFModule(SpectrumModule):
         return loss
 
     def configure_optimizers(self):
-        opt = torch.optim.Adam(self.parameters(), lr=self.lr)
-        gamma = self.lr_decay ** (1.0 / max(1, self.decay_steps))
-        sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=gamma)
-        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step", "frequency": 1}}
+        return adam_exponential_decay(self, self.lr, self.lr_decay, self.decay_steps)

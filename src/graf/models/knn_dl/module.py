@@ -49,7 +49,7 @@ from typing import Sequence
 import torch
 import torch.nn.functional as F
 
-from graf.models.base import SpectrumModule
+from graf.models.base import SpectrumModule, adam_exponential_decay
 from graf.models.graf.encoding import normalize_offsets
 from graf.models.graf.rays import N_AZIMUTH, N_ELEVATION
 from graf.models.knn.weights import idw_weights
@@ -121,6 +121,4 @@ class KNNDLModule(SpectrumModule):
         return loss
 
     def configure_optimizers(self):
-        opt = torch.optim.Adam(self.parameters(), lr=self.lr)
-        sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=self.lr_decay ** (1.0 / self.decay_steps))
-        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step", "frequency": 1}}
+        return adam_exponential_decay(self, self.lr, self.lr_decay, self.decay_steps)

@@ -30,6 +30,7 @@ from torch import nn
 
 from graf.models.graf.encoding import PositionalEncoding
 from graf.models.graf.rays import N_AZIMUTH, N_ELEVATION
+from graf.sim.array import directions
 
 CHANNELS = 2  # fusion logit, signed correction
 
@@ -41,9 +42,7 @@ def cell_directions(map_size: Sequence[int]) -> torch.Tensor:
     # pixel r is elevation r + 1 deg, pixel c azimuth c + 1 deg (graf.sim.array.grid_directions)
     el = (torch.arange(h, dtype=torch.float64) + 0.5) * (N_ELEVATION / h) - 0.5 + 1.0
     az = (torch.arange(w, dtype=torch.float64) + 0.5) * (N_AZIMUTH / w) - 0.5 + 1.0
-    e, a = torch.meshgrid(torch.deg2rad(el), torch.deg2rad(az), indexing="ij")
-    d = torch.stack([torch.cos(e) * torch.cos(a), torch.cos(e) * torch.sin(a), torch.sin(e)], -1)
-    return d.reshape(-1, 3).float()
+    return directions(el, az).float()
 
 
 def upsample_maps(maps: torch.Tensor) -> torch.Tensor:
