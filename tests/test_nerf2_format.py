@@ -182,3 +182,102 @@ def test_error_non_integer_id(tmp_path):
 
 def test_error_missing_folder(tmp_path):
     _expect(tmp_path / "nope", "scene folder does not exist", "nope")
+
+
+# ---------------------------------------------------------------- the reader does not guess silently
+def _small_positions(n):
+    return (np.arange(3 * n, dtype=np.float64).reshape(n, 3) + 0.5) / 10
+
+
+def _small_folder(tmp_path, n=5, header=True, spectra=None, index=True):
+    """A written folder with ids 1..n at distinct positions; ``header=False`` drops tx_pos.csv's header."""
+    pos = _small_positions(n)
+    ids = np.arange(1, n + 1)
+    if spectra is None:
+        spectra = smooth_spectra(pos)
+    kw = {"train_ids": ids[: n - 1], "test_ids": ids[n - 1:]} if index else {}
+    root = write_nerf2_folder(tmp_path / "small", spectra, pos, ids, np.zeros(3), np.array([0, 0, 0, 1.0]), **kw)
+    if not header:
+        csv_path = root / "tx_pos.csv"
+        csv_path.write_text("\n".join(csv_path.read_text().splitlines()[1:]) + "\n")
+    return root, pos
+
+
+def test_error_headerless_positions_with_partly_numeric_first_row(tmp_path):
+    root, _ = _small_folder(tmp_path, header=False)
+    lines = (root / "tx_pos.csv").read_text().splitlines()
+    lines[0] = "1.0,2.0,abc"
+    (root / "tx_pos.csv").write_text("\n".join(lines) + "\n")
+    err = _expect(root, r"line 1 .* neither a header .* nor a numeric x,y,z row", "tx_pos.csv")
+    assert "'abc'" in err.problem
+
+
+def test_error_headerless_positions_with_garbage_first_row_is_not_shifted(tmp_path):
+    # a first row with no numeric cell is a header by the rule; with rows for ids 1..n the lost row
+    # shows up as a missing one instead of every spectrum silently taking the next row's position
+    root, _ = _small_folder(tmp_path, header=False)
+    lines = (root / "tx_pos.csv").read_text().splitlines()
+    lines[0] = "abc,def,ghi"
+    (root / "tx_pos.csv").write_text("\n".join(lines) + "\n")
+    _expect(root, r"has 4 position rows but spectrum id 5 needs row 5 \(line 1 was taken as a header row\)",
+            "tx_pos.csv")
+
+
+def test_error_header_row_with_wrong_cell_count(tmp_path):
+    root, _ = _small_folder(tmp_path)
+    lines = (root / "tx_pos.csv").read_text().splitlines()
+    lines[0] = "x,y"
+    (root / "tx_pos.csv").write_text("\n".join(lines) + "\n")
+    _expect(root, r"line 1 .* looks like a header .* has 2 cells; expected 3", "tx_pos.csv")
+
+
+def test_bom_before_header_reads_same_positions(tmp_path):
+    root, pos = _small_folder(tmp_path)
+    plain = read_nerf2_folder(root)
+    csv_path = root / "tx_pos.csv"
+    csv_path.write_bytes(b"\xef\xbb\xbf" + csv_path.read_bytes())
+    d = read_nerf2_folder(root)
+    assert d.meta["tx_pos_header"] is True
+    np.testing.assert_array_equal(d.ids, plain.ids)
+    np.testing.assert_array_equal(d.positions, plain.positions)
+    np.testing.assert_allclose(d.positions, pos[d.ids - 1], atol=1e-6)
+
+
+def test_bom_before_headerless_numeric_row_is_id_1(tmp_path):
+    root, pos = _small_folder(tmp_path, header=False)
+    csv_path = root / "tx_pos.csv"
+    csv_path.write_bytes(b"\xef\xbb\xbf" + csv_path.read_bytes())
+    d = read_nerf2_folder(root)
+    assert d.meta["tx_pos_header"] is False
+    np.testing.assert_array_equal(d.ids, [1, 2, 3, 4, 5])
+    np.testing.assert_allclose(d.positions, pos, rtol=0, atol=1e-9)  # row 1 is id 1, no shift
+
+
+def test_error_jpeg_named_png(tmp_path):
+    root, _ = _small_folder(tmp_path)
+    Image.new("L", (360, 90), 128).save(root / "spectrum" / "00003.png", format="JPEG")
+    _expect(root, r"cannot be read as a PNG image: it is a JPEG file", "00003.png")
+
+
+def test_warns_constant_spectrum(tmp_path):
+    spectra = smooth_spectra(_small_positions(5))
+    spectra[2] = 0.5
+    root, _ = _small_folder(tmp_path, spectra=spectra)
+    with pytest.warns(UserWarning, match=r"small: spectrum id 3 is constant \(all 0\.502\)"):
+        d = read_nerf2_folder(root)
+    assert d.spectra.shape[0] == 5  # read, not refused
+
+
+def test_warns_all_zero_spectra(tmp_path):
+    spectra = smooth_spectra(_small_positions(5))
+    spectra[1] = 0.0
+    spectra[4] = 0.0
+    root, _ = _small_folder(tmp_path, spectra=spectra)
+    with pytest.warns(UserWarning, match=r"small: spectrum ids \[2, 5\] are constant \(all 0\.000\)"):
+        read_nerf2_folder(root)
+
+
+def test_error_one_spectrum_without_index_files(tmp_path):
+    root, _ = _small_folder(tmp_path, n=1, index=False)
+    _expect(root, r"1 spectrum and no index files: a seeded split needs at least 2 \(one to train on, one to test\)",
+            "small")

@@ -4,6 +4,7 @@ Layout of a scene folder (XPengZhao/NeRF2, RFID spectrum datasets)::
 
     spectrum/NNNNN.png    8-bit grayscale, 90 rows (elevation) x 360 columns (azimuth), label = pixel / 255
     tx_pos.csv            optional header ``x,y,z``; data row k-1 is the position of spectrum id k (ids start at 1)
+                          (UTF-8, a byte-order mark is stripped; a first row is a header only when no cell is numeric)
     gateway_info.yml      gateway1.position [x, y, z]; gateway1.orientation quaternion (x, y, z, w)
     train_index.txt       spectrum ids, one per line (optional, together with test_index.txt)
     test_index.txt
@@ -11,7 +12,8 @@ Layout of a scene folder (XPengZhao/NeRF2, RFID spectrum datasets)::
 Ids are parsed as integers, so ``00132.png`` and ``132.png`` are both id 132.  When *both* index files
 are missing, a seeded split is made (``split_seed``, ``train_fraction``; NeRF2 itself uses an unseeded
 80/20 shuffle) and recorded in :attr:`SpectrumSet.split_source`.  Everything else is strict: a problem
-raises :class:`DataFormatError` naming the file and what is wrong with it.
+raises :class:`DataFormatError` naming the file and what is wrong with it.  Constant (e.g. all-zero)
+spectra are read but warned about (:func:`graf.data.spectrum_set.warn_flat_spectra`).
 """
 
 from __future__ import annotations
@@ -21,7 +23,6 @@ import io
 import logging
 import math
 import os
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -29,68 +30,31 @@ import torch
 import yaml
 from PIL import Image
 
+from graf.data.spectrum_set import DataFormatError, SpectrumSet, warn_flat_spectra
+from graf.geometry.grid import N_AZIMUTH, N_ELEVATION, SPECTRUM_SHAPE
 from graf.io import atomic_write_bytes
 
 log = logging.getLogger(__name__)
 
-N_ELEVATION = 90
-N_AZIMUTH = 360
-SPECTRUM_SHAPE = (N_ELEVATION, N_AZIMUTH)
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+# leading bytes of formats that turn up under a .png name, to say what a refused file looks like
+_OTHER_SIGNATURES = (
+    (b"\xff\xd8\xff", "a JPEG file"),
+    (b"GIF87a", "a GIF file"),
+    (b"GIF89a", "a GIF file"),
+    (b"BM", "a BMP file"),
+    (b"II*\x00", "a TIFF file"),
+    (b"MM\x00*", "a TIFF file"),
+    (b"RIFF", "a RIFF (e.g. WebP) file"),
+)
 
 
-class DataFormatError(ValueError):
-    """A scene's files are not in the expected format.  The message names the file and the problem."""
-
-    def __init__(self, path: str | os.PathLike, problem: str):
-        self.path = str(path)
-        self.problem = problem
-        super().__init__(f"{self.path}: {problem}")
-
-
-@dataclass
-class SpectrumSet:
-    """A scene's measurements held once in memory.
-
-    Attributes:
-        spectra: float32 ``[N, 90, 360]`` in [0, 1]; row r is elevation r+1 deg, column c azimuth c+1 deg.
-        positions: float64 ``[N, 3]`` transmitter positions (m).
-        ids: int64 ``[N]`` spectrum ids as in the files.
-        train_idx / test_idx: int64 row indices into the arrays above (disjoint).
-        gateway_position: ``[3]``; gateway_orientation: quaternion ``[4]`` in (x, y, z, w) order.
-    """
-
-    name: str
-    spectra: torch.Tensor
-    positions: np.ndarray
-    ids: np.ndarray
-    train_idx: np.ndarray
-    test_idx: np.ndarray
-    gateway_position: np.ndarray
-    gateway_orientation: np.ndarray
-    frequency_hz: float
-    source: str
-    split_source: str
-    meta: dict = field(default_factory=dict)
-
-    @property
-    def wavelength(self) -> float:
-        return 299_792_458.0 / self.frequency_hz
-
-    @property
-    def n_train(self) -> int:
-        return int(len(self.train_idx))
-
-    @property
-    def n_test(self) -> int:
-        return int(len(self.test_idx))
-
-    def bounds(self) -> np.ndarray:
-        """Axis-aligned box ``[2, 3]`` holding every transmitter and the gateway (a real scene's only
-        known geometry); simulated scenes carry their room bounds instead in ``meta['bounds']``."""
-        if "bounds" in self.meta:
-            return np.asarray(self.meta["bounds"], dtype=np.float64)
-        pts = np.vstack([self.positions, self.gateway_position[None]])
-        return np.stack([pts.min(0), pts.max(0)])
+def _read_text(path: Path) -> str:
+    """A text file decoded as UTF-8 with a leading byte-order mark stripped."""
+    try:
+        return path.read_bytes().decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise DataFormatError(path, f"is not UTF-8 text ({exc})") from None
 
 
 def _parse_id(text: str, where: str | Path) -> int:
@@ -122,7 +86,7 @@ def _scan_spectra(spectrum_dir: Path) -> dict[int, Path]:
 def _read_index(path: Path) -> list[int]:
     ids: list[int] = []
     seen: set[int] = set()
-    for line_no, line in enumerate(path.read_text().splitlines(), start=1):
+    for line_no, line in enumerate(_read_text(path).splitlines(), start=1):
         if not line.strip():
             continue
         k = _parse_id(line, f"{path} line {line_no}")
@@ -136,9 +100,25 @@ def _read_index(path: Path) -> list[int]:
 
 
 def read_spectrum_png(path: Path) -> np.ndarray:
-    """One spectrum PNG as float32 ``[90, 360]`` in [0, 1] (pixel / 255)."""
+    """One spectrum PNG as float32 ``[90, 360]`` in [0, 1] (pixel / 255).
+
+    The file must start with the PNG signature: bytes of another format under a ``.png`` name are refused.
+    """
     try:
-        with Image.open(path) as im:
+        with open(path, "rb") as fh:
+            head = fh.read(len(PNG_SIGNATURE))
+    except OSError as exc:
+        raise DataFormatError(path, f"cannot be read ({exc})") from None
+    if head != PNG_SIGNATURE:
+        if not head:
+            what = "the file is empty"
+        else:
+            what = next((f"it is {name}" for sig, name in _OTHER_SIGNATURES if head.startswith(sig)), None)
+            what = what or "not a PNG file"
+            what += f" (signature {head!r}, expected {PNG_SIGNATURE!r})"
+        raise DataFormatError(path, f"cannot be read as a PNG image: {what}")
+    try:
+        with Image.open(path, formats=["PNG"]) as im:
             mode, size = im.mode, im.size
             if mode != "L":
                 raise DataFormatError(path, f"spectrum is not 8-bit grayscale (PIL mode {mode!r}, expected 'L')")
@@ -149,24 +129,48 @@ def read_spectrum_png(path: Path) -> np.ndarray:
             arr = np.asarray(im, dtype=np.float32)
     except DataFormatError:
         raise
-    except Exception as exc:  # truncated or non-PNG content
+    except Exception as exc:  # truncated or corrupt PNG content
         raise DataFormatError(path, f"cannot be read as a PNG image ({exc})") from None
     return arr / 255.0
 
 
+def _is_number(cell: str) -> bool:
+    try:
+        float(cell)
+    except ValueError:
+        return False
+    return True
+
+
 def _read_positions(path: Path) -> tuple[np.ndarray, bool]:
-    """Returns (rows [M, 3], had_header).  A first row that does not parse as numbers is a header."""
+    """Returns (rows [M, 3], had_header).
+
+    Decoded as UTF-8 with a byte-order mark stripped.  The first row is a header only when *none* of its
+    cells is numeric (and then it must have 3 cells, as NeRF2's ``x,y,z``); a first row that is partly
+    numeric is neither a header nor a position and is refused, so no spectrum is ever matched to the
+    next row's position.
+    """
     if not path.is_file():
         raise DataFormatError(path, "transmitter position file is missing")
-    rows = list(csv.reader(io.StringIO(path.read_text())))
+    rows = list(csv.reader(io.StringIO(_read_text(path))))
     rows = [r for r in rows if any(c.strip() for c in r)]
     if not rows:
         raise DataFormatError(path, "is empty")
-    had_header = False
-    try:
-        [float(c) for c in rows[0]]
-    except ValueError:
-        had_header = True
+    first = rows[0]
+    numeric = [_is_number(c) for c in first]
+    if any(numeric) and not all(numeric):
+        raise DataFormatError(
+            path, f"line 1 {','.join(first)!r} is neither a header (no numeric cell) nor a numeric x,y,z row: "
+                  f"cells {[c for c, n in zip(first, numeric) if not n]!r} are not numbers, the others are")
+    had_header = not any(numeric)
+    if had_header:
+        if len(first) != 3:
+            raise DataFormatError(
+                path, f"line 1 {','.join(first)!r} looks like a header (no numeric cell) but has {len(first)} cells; "
+                      "expected 3 (x,y,z)")
+        if [c.strip().lower() for c in first] != ["x", "y", "z"]:
+            log.warning("%s: line 1 %r is not 'x,y,z' but has no numeric cell: taken as a header row",
+                        path, ",".join(first))
         rows = rows[1:]
     log.info("%s: %s", path, "header row found and skipped" if had_header else "no header row; first row is id 1")
     out = np.full((len(rows), 3), np.nan)
@@ -250,9 +254,16 @@ def read_nerf2_folder(
         present, absent = (train_file, test_file) if train_file.is_file() else (test_file, train_file)
         raise DataFormatError(absent, f"is missing while {present.name} exists: give both index files or neither")
     else:
+        if len(files) < 2:
+            raise DataFormatError(
+                root, f"{len(files)} spectrum and no index files: a seeded split needs at least 2 "
+                      "(one to train on, one to test)")
         train_ids, test_ids = seeded_split(list(files), split_seed, train_fraction)
         split_source = f"seeded split (no index files): seed={split_seed}, train_fraction={train_fraction}"
         log.warning("%s: no index files; %s", root, split_source)
+    for which, ids in (("training", train_ids), ("test", test_ids)):
+        if not ids:  # index files listing no ids are refused above; this guards the seeded split
+            raise DataFormatError(root, f"the {which} split is empty ({len(files)} spectra, {split_source})")
 
     positions_all, had_header = _read_positions(root / "tx_pos.csv")
     gw_pos, gw_quat = _read_gateway(root / "gateway_info.yml")
@@ -262,7 +273,9 @@ def read_nerf2_folder(
     rows = all_ids - 1
     if rows.max() >= len(positions_all):
         k = int(all_ids[rows.argmax()])
-        raise DataFormatError(pos_file, f"has {len(positions_all)} position rows but spectrum id {k} needs row {k}")
+        note = " (line 1 was taken as a header row)" if had_header else ""
+        raise DataFormatError(
+            pos_file, f"has {len(positions_all)} position rows but spectrum id {k} needs row {k}{note}")
     positions = positions_all[rows]
     bad = ~np.isfinite(positions).all(axis=1)
     if bad.any():
@@ -272,6 +285,7 @@ def read_nerf2_folder(
     spectra = torch.empty((len(all_ids), *SPECTRUM_SHAPE), dtype=torch.float32)
     for i, k in enumerate(all_ids.tolist()):
         spectra[i] = torch.from_numpy(read_spectrum_png(files[k]))
+    warn_flat_spectra(spectra, all_ids, root)
     n_train = len(train_ids)
     return SpectrumSet(
         name=name or root.name,

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from graf.bands import Band
-from graf.data.nerf2_format import DataFormatError, SpectrumSet
+from graf.data.spectrum_set import DataFormatError, SpectrumSet, warn_flat_spectra
 from graf.io import atomic_write_json, atomic_write_npz
 
 log = logging.getLogger(__name__)
@@ -173,11 +173,14 @@ def read_dataset(path: str | Path, name: str | None = None) -> SpectrumSet:
         if not np.isfinite(positions).all():
             raise DataFormatError(path, "positions are not all finite")
         a = dict(f.attrs)
+        ids = f["ids"][()].astype(np.int64)
+        spectra = torch.from_numpy(spectra).float().div_(255.0)
+        warn_flat_spectra(spectra, ids, path)
         return SpectrumSet(
             name=name or str(a.get("scene", path.stem)),
-            spectra=torch.from_numpy(spectra).float().div_(255.0),
+            spectra=spectra,
             positions=positions,
-            ids=f["ids"][()].astype(np.int64),
+            ids=ids,
             train_idx=f["train_idx"][()].astype(np.int64),
             test_idx=f["test_idx"][()].astype(np.int64),
             gateway_position=np.asarray(a["gateway_position"], float),
