@@ -8,7 +8,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 
-from graf.cli.common import REPO_CONF
+from graf.cli.common import CONF_DIR
 from graf.data.nerf2_format import write_nerf2_folder
 
 os.environ.setdefault("WANDB_MODE", "offline")
@@ -53,7 +53,7 @@ def compose_cfg(tmp_path):
 
     def _compose(config_name: str = "eval", overrides: tuple[str, ...] = ()):
         GlobalHydra.instance().clear()
-        with initialize_config_dir(config_dir=str(REPO_CONF), version_base="1.3"):
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
             cfg = compose(config_name=config_name, overrides=[
                 f"paths.output_dir={tmp_path / 'out'}", "trainer.accelerator=cpu", "logger=none",
                 "trainer.enable_progress_bar=false", f"data_root={tmp_path / 'data'}", *overrides])

@@ -10,12 +10,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hydra import compose, initialize_config_dir
+from hydra import compose, initialize_config_dir, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from graf.cli.common import REPO_CONF
+from graf.cli.common import CONF_DIR, CONF_PATH
 from graf.cli.evaluate import evaluate
 from graf.cli.table import make_table
 from graf.cli.train import train
@@ -29,17 +29,30 @@ def _results(cfg) -> dict:
     return json.loads((Path(cfg.paths.output_dir) / "results.json").read_text())
 
 
+def test_commands_read_the_configs_shipped_in_the_package():
+    """Every command reads pkg://graf.conf (what a wheel ships); conf/ in the checkout is a link to it."""
+    assert CONF_PATH == "pkg://graf.conf"
+    assert (Path(__file__).resolve().parents[1] / "conf").resolve() == CONF_DIR.resolve()
+    GlobalHydra.instance().clear()
+    with initialize_config_module(config_module="graf.conf", version_base="1.3"):
+        for name in ("train", "eval", "simulate", "table", "oracle", "synthesize", "show_scenes",
+                     "bench_sim", "bench_models"):
+            assert compose(config_name=name) is not None
+        assert compose(config_name="eval").scene._target_
+    GlobalHydra.instance().clear()
+
+
 def test_every_config_group_option_composes():
     groups = ["scene", "band", "neighbors", "model", "trainer", "logger", "experiment"]
     for config_name in ("train", "eval", "simulate"):
         for group in groups:
-            for f in sorted((REPO_CONF / group).glob("*.yaml")):
+            for f in sorted((CONF_DIR / group).glob("*.yaml")):
                 if config_name == "simulate" and group in ("neighbors", "model", "trainer", "logger"):
                     continue
                 if group == "experiment" and (config_name == "simulate") != f.stem.startswith("sim_"):
                     continue  # experiments named sim_* are graf-simulate's
                 GlobalHydra.instance().clear()
-                with initialize_config_dir(config_dir=str(REPO_CONF), version_base="1.3"):
+                with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
                     overrides = [f"{group}={f.stem}"] + (["scene.path=x"] if f.stem == "nerf2" else [])
                     cfg = compose(config_name=config_name, overrides=overrides)
                 assert cfg.scene._target_ and cfg.band.frequency_hz > 0
@@ -72,7 +85,7 @@ def test_eval_knn_rfid_s23_writes_results_and_predictions(compose_cfg):
     assert abs(r["metrics"]["test/psnr"] - psnr) < 0.01
     assert abs(r["metrics"]["test/ssim"] - ssim) < 0.002
     # and the targets are the test split's spectra in the reader's order
-    test_ids = [int(x) for x in (REPO_CONF.parent / "src/graf/embedded/rfid_s23_200/test_index.txt").read_text().split()]
+    test_ids = [int(x) for x in (CONF_DIR.parent / "embedded/rfid_s23_200/test_index.txt").read_text().split()]
     assert z["ids"].tolist() == test_ids
     assert 20 < r["metrics"]["test/psnr"] < 40  # dense real neighbours: a sane range, not a fixed value
 
@@ -135,7 +148,7 @@ def test_table_collects_runs(compose_cfg, tmp_path):
         evaluate(cfg)
         outs.append(_results(cfg))
     GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(REPO_CONF), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         tcfg = compose(config_name="table", overrides=[f"runs={tmp_path / 'runs'}",
                                                        f"paths.output_dir={tmp_path / 'table'}"])
     GlobalHydra.instance().clear()
@@ -177,7 +190,7 @@ def test_a_sweep_with_a_failing_job_keeps_the_table_of_the_others(tmp_path):
 
 def test_the_comparison_study_composes_one_job_per_method_on_the_same_neighbours():
     GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(REPO_CONF), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         options = GlobalHydra.instance().config_loader().get_group_options("experiment")
         jobs = sorted(o for o in options if o.startswith("compare_rfid_s23_"))  # what glob(compare_rfid_s23_*) runs
         cfgs = {j: compose(config_name="train", overrides=[f"experiment={j}"]) for j in jobs}

@@ -12,7 +12,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from graf.bands import Band
-from graf.cli.common import REPO_CONF
+from graf.cli.common import CONF_DIR
 from graf.data.datamodule import SpectrumDataModule
 from graf.data.scenes import NeRF2Scene
 from graf.models.graf import (CrossAttentionBlock, GRaFModule, PositionalEncoding, ResNetEncoder,
@@ -38,9 +38,9 @@ def _eval_batch(dm, n=2) -> dict:
 
 def _preset(name: str, **overrides) -> GRaFModule:
     """The model exactly as conf/model/<name>.yaml builds it (with overrides)."""
-    cfg = OmegaConf.load(REPO_CONF / "model" / f"{name}.yaml")
+    cfg = OmegaConf.load(CONF_DIR / "model" / f"{name}.yaml")
     if "defaults" in cfg:  # graf_cpu.yaml extends graf.yaml
-        base = OmegaConf.load(REPO_CONF / "model" / "graf.yaml")
+        base = OmegaConf.load(CONF_DIR / "model" / "graf.yaml")
         cfg = OmegaConf.merge(base, {k: v for k, v in cfg.items() if k != "defaults"})
     torch.manual_seed(0)
     return instantiate(cfg, **overrides)

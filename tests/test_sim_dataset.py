@@ -18,7 +18,7 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 
 import graf.sim  # noqa: F401  (configures Sionna RT's CPU backend)
-from graf.cli.common import REPO_CONF
+from graf.cli.common import CONF_DIR
 from graf.cli.evaluate import evaluate
 from graf.data.nerf2_format import DataFormatError, read_nerf2_folder
 from graf.sim.dataset import generate, read_dataset
@@ -85,7 +85,7 @@ def test_dataset_contents_and_nerf2_export_round_trip(reference):
 
 def test_graf_eval_reads_the_simulated_scene(reference, tmp_path):
     GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(REPO_CONF), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name="eval", overrides=[
             "model=knn", "scene=small_room", "band=2.4ghz", f"data_root={reference}", "logger=none",
             f"paths.output_dir={tmp_path}", "trainer.accelerator=cpu", "plot_count=1"])
@@ -98,7 +98,7 @@ def test_graf_eval_reads_the_simulated_scene(reference, tmp_path):
 
 def test_changed_configuration_is_refused_and_missing_dataset_is_explained(tmp_path):
     GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(REPO_CONF), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name="simulate", overrides=["scene=small_room", "band=2.4ghz"])
     GlobalHydra.instance().clear()
     scene, band = instantiate(cfg.scene), instantiate(cfg.band)

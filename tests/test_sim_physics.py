@@ -10,7 +10,7 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 
 from graf.bands import Band
-from graf.cli.common import REPO_CONF
+from graf.cli.common import CONF_DIR
 from graf.metrics import psnr_per_sample
 from graf.models.knn.weights import barycentric_weights
 from graf.sim.scene import SimulatedScene
@@ -111,7 +111,7 @@ def test_barycentric_interpolation_error_is_quadratic_in_free_space_and_larger_n
 
 def test_default_sample_budget_is_converged_on_a_small_scene():
     GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(REPO_CONF), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name="simulate", overrides=["scene=small_room", "band=2.4ghz"])
     GlobalHydra.instance().clear()
     scene, band = instantiate(cfg.scene), instantiate(cfg.band)
@@ -132,7 +132,7 @@ def test_low_and_high_bands_follow_the_wavelength(band_name):
     """Band extremes: the array pitch follows the wavelength, materials outside their ITU range are
     extrapolated and flagged, and spectra stay finite and normalised."""
     GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(REPO_CONF), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name="simulate", overrides=["scene=small_room", f"band={band_name}"])
     GlobalHydra.instance().clear()
     scene, band = instantiate(cfg.scene), instantiate(cfg.band)

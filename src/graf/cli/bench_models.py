@@ -17,7 +17,7 @@ import lightning as L
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from graf.cli.common import CONF_DIR, _output_dir, build_datamodule, task_wrapper
+from graf.cli.common import CONF_PATH, _output_dir, build_datamodule, task_wrapper
 from graf.io import atomic_write_json
 
 PAPER = {"graf": {"mb": 478.6, "s_per_spectrum": 1.95}, "nerf2": {"mb": 8.3, "s_per_spectrum": 0.43}}
@@ -74,7 +74,7 @@ def bench(cfg: DictConfig) -> dict:
     return result
 
 
-@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="bench_models")
+@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="bench_models")
 def main(cfg: DictConfig) -> None:
     bench(cfg)
 

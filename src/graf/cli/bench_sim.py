@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from graf.cli.common import CONF_DIR, _output_dir, task_wrapper
+from graf.cli.common import CONF_PATH, _output_dir, task_wrapper
 from graf.io import atomic_write_json
 
 PAPER_SECONDS_PER_SPECTRUM = 59.5
@@ -115,7 +115,7 @@ def bench(cfg: DictConfig) -> dict:
     return out
 
 
-@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="bench_sim")
+@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="bench_sim")
 def main(cfg: DictConfig) -> None:
     bench(cfg)
 

@@ -14,7 +14,6 @@ from __future__ import annotations
 import functools
 import logging
 import math
-import os
 import platform
 import time
 from pathlib import Path
@@ -31,8 +30,11 @@ from graf.plotting import plot_spectra_grid
 
 log = logging.getLogger("graf")
 
-REPO_CONF = Path(__file__).resolve().parents[3] / "conf"
-CONF_DIR = os.environ.get("GRAF_CONF_DIR", str(REPO_CONF))
+# The configs ship inside the package (src/graf/conf; conf/ in the checkout links to it).  Every
+# @hydra.main reads them as a package resource, so an installed wheel works from any folder; add a
+# folder of your own with Hydra's --config-dir.  CONF_DIR is the same folder on disk (for tests).
+CONF_PATH = "pkg://graf.conf"
+CONF_DIR = Path(graf.__file__).resolve().parent / "conf"
 
 
 def task_wrapper(task):

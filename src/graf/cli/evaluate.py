@@ -7,7 +7,7 @@ import time
 import hydra
 from omegaconf import DictConfig
 
-from graf.cli.common import CONF_DIR, build, sweep_value, task_wrapper, test_and_report
+from graf.cli.common import CONF_PATH, build, sweep_value, task_wrapper, test_and_report
 
 
 @task_wrapper
@@ -20,7 +20,7 @@ def evaluate(cfg: DictConfig) -> tuple[dict, dict]:
     return metrics, objects
 
 
-@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="eval")
+@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="eval")
 def main(cfg: DictConfig) -> float:
     metrics, _ = evaluate(cfg)
     return sweep_value(cfg, metrics)

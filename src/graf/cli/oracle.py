@@ -16,7 +16,7 @@ import time
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from graf.cli.common import CONF_DIR, _output_dir, build_datamodule, task_wrapper
+from graf.cli.common import CONF_PATH, _output_dir, build_datamodule, task_wrapper
 from graf.io import atomic_write_json
 
 
@@ -76,7 +76,7 @@ def run(cfg: DictConfig) -> dict:
     return results
 
 
-@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="oracle")
+@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="oracle")
 def main(cfg: DictConfig) -> None:
     run(cfg)
 

@@ -19,7 +19,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
-from graf.cli.common import CONF_DIR, _output_dir, task_wrapper  # noqa: E402
+from graf.cli.common import CONF_PATH, _output_dir, task_wrapper  # noqa: E402
 from graf.io import atomic_write_json  # noqa: E402
 from graf.plotting import save_figure  # noqa: E402
 
@@ -66,7 +66,7 @@ def show(cfg: DictConfig) -> dict:
     return result
 
 
-@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="show_scenes")
+@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="show_scenes")
 def main(cfg: DictConfig) -> None:
     show(cfg)
 

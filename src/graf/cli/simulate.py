@@ -14,7 +14,7 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from graf.cli.common import CONF_DIR, _output_dir, task_wrapper
+from graf.cli.common import CONF_PATH, _output_dir, task_wrapper
 from graf.io import atomic_write_json
 
 log = logging.getLogger("graf")
@@ -50,7 +50,7 @@ def simulate(cfg: DictConfig) -> dict:
     return results
 
 
-@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="simulate")
+@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="simulate")
 def main(cfg: DictConfig) -> None:
     simulate(cfg)
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from graf.cli.common import CONF_DIR, _output_dir, build_datamodule, task_wrapper
+from graf.cli.common import CONF_PATH, _output_dir, build_datamodule, task_wrapper
 from graf.io import atomic_write_json
 
 
@@ -51,7 +51,7 @@ def run(cfg: DictConfig) -> dict:
     return result
 
 
-@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="synthesize")
+@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="synthesize")
 def main(cfg: DictConfig) -> None:
     run(cfg)
 

@@ -31,7 +31,7 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, ListConfig
 
-from graf.cli.common import CONF_DIR, _output_dir, task_wrapper
+from graf.cli.common import CONF_PATH, _output_dir, task_wrapper
 from graf.io import atomic_write_bytes, atomic_write_json
 
 log = logging.getLogger("graf")
@@ -185,7 +185,7 @@ class SweepTable(Callback):
             log.exception("could not write the sweep table in %s", sweep_dir)
 
 
-@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="table")
+@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="table")
 def main(cfg: DictConfig) -> None:
     make_table(cfg)
 

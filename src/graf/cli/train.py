@@ -11,7 +11,7 @@ import hydra
 import torch
 from omegaconf import DictConfig
 
-from graf.cli.common import CONF_DIR, build, sweep_value, task_wrapper, test_and_report
+from graf.cli.common import CONF_PATH, build, sweep_value, task_wrapper, test_and_report
 
 log = logging.getLogger("graf")
 
@@ -53,7 +53,7 @@ def load_weights(model, path) -> None:
     log.info("fine-tuning %s from the weights of %s", type(model).__name__, path)
 
 
-@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="train")
+@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="train")
 def main(cfg: DictConfig) -> float:
     metrics, _ = train(cfg)
     return sweep_value(cfg, metrics)
