@@ -15,14 +15,15 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from graf.cli.common import CONF_DIR, CONF_PATH
+from graf.cli.common import CONF_DIR, CONF_PATH, ConfigError
 from graf.cli.evaluate import evaluate
 from graf.cli.table import make_table
 from graf.cli.train import train
-from graf.data.nerf2_format import DataFormatError
+from graf.data.spectrum_set import DataFormatError
 
-RESULT_KEYS = {"method", "scene", "band_hz", "n_train", "n_test", "metrics", "seconds", "config"}
-METRIC_KEYS = {"test/mse", "test/psnr", "test/ssim", "test/lpips"}
+RESULT_KEYS = {"method", "scene", "band_hz", "n_train", "n_test", "metrics", "seconds", "config", "splits"}
+TEST_KEYS = {"test/mse", "test/psnr", "test/ssim", "test/lpips"}
+METRIC_KEYS = TEST_KEYS | {k.replace("test/", "val/") for k in TEST_KEYS}
 
 
 def _results(cfg) -> dict:
@@ -53,12 +54,21 @@ def test_every_config_group_option_composes():
                     continue  # experiments named sim_* are graf-simulate's
                 GlobalHydra.instance().clear()
                 with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-                    overrides = [f"{group}={f.stem}"] + (["scene.path=x"] if f.stem == "nerf2" else [])
+                    overrides = [f"{group}={f.stem}"] + (["scene.path=x", "band=2.4ghz"] if f.stem == "nerf2" else [])
                     cfg = compose(config_name=config_name, overrides=overrides)
                 assert cfg.scene._target_ and cfg.band.frequency_hz > 0
                 if group in ("scene", "band", "neighbors", "model"):
                     instantiate(cfg[group])  # every option also builds its object
     GlobalHydra.instance().clear()
+
+
+def test_a_nerf2_folder_needs_its_band(compose_cfg, make_scene):
+    folder = make_scene(n=12)
+    cfg = compose_cfg("eval", ("scene=nerf2", f"scene.path={folder}"))
+    with pytest.raises(ConfigError, match=r"does not say its carrier frequency: add band=<one of 1.8ghz, 2.4ghz, "
+                                          r"3ghz, 915mhz>"):
+        evaluate(cfg)
+    assert compose_cfg("eval", ("scene=conference_v1",)).band.name == "2.4ghz"  # simulated scenes: the paper's band
 
 
 def test_rfid_scene_defaults_to_915mhz_and_band_overrides_it(compose_cfg):
@@ -67,12 +77,16 @@ def test_rfid_scene_defaults_to_915mhz_and_band_overrides_it(compose_cfg):
 
 
 def test_eval_knn_rfid_s23_writes_results_and_predictions(compose_cfg):
-    cfg = compose_cfg("eval", ("model=knn", "scene=rfid_s23", "save_predictions=true", "neighbors=l4"))
+    cfg = compose_cfg("eval", ("model=knn", "scene=rfid_s23", "save_predictions=true", "neighbors=fixed", "neighbors.L=4"))
     metrics, _ = evaluate(cfg)
     out = Path(cfg.paths.output_dir)
     r = _results(cfg)
     assert RESULT_KEYS <= set(r) and set(r["metrics"]) == METRIC_KEYS
     assert (r["method"], r["scene"], r["band_hz"], r["n_train"], r["n_test"]) == ("knn", "rfid_s23", 915e6, 160, 40)
+    s = r["splits"]
+    assert (s["n_fit"], s["n_val"], s["val_fraction"]) == (144, 16, 0.1) and all(np.isfinite(list(r["metrics"].values())))
+    test_ids = set(int(v) for v in (CONF_DIR.parent / "embedded/rfid_s23_200/test_index.txt").read_text().split())
+    assert len(s["val_ids"]) == 16 and not set(s["val_ids"]) & test_ids
     assert (out / "spectra.png").stat().st_size > 10_000
     z = np.load(out / "predictions.npz")
     assert z["pred"].shape == z["target"].shape == (40, 90, 360) and z["pred"].dtype == np.float32
@@ -91,8 +105,8 @@ def test_eval_knn_rfid_s23_writes_results_and_predictions(compose_cfg):
 
 
 def test_barycentric_and_sparse_neighbours_change_the_result(compose_cfg):
-    dense = evaluate(compose_cfg("eval", ("model.weighting=barycentric", "neighbors=l6", "plot_count=0")))[0]
-    sparse = evaluate(compose_cfg("eval", ("model.weighting=barycentric", "neighbors=l6",
+    dense = evaluate(compose_cfg("eval", ("model.weighting=barycentric", "neighbors=fixed", "neighbors.L=6", "plot_count=0")))[0]
+    sparse = evaluate(compose_cfg("eval", ("model.weighting=barycentric", "neighbors=fixed", "neighbors.L=6",
                                            "neighbors.exclude_within=0.25", "plot_count=0")))[0]
     assert sparse["test/psnr"] < dense["test/psnr"] - 3  # s23 is dense; removing near neighbours hurts
 
@@ -106,7 +120,7 @@ def test_train_with_knn_skips_fit_and_tests(compose_cfg):
 
 def test_user_scene_folder_without_code(compose_cfg, make_scene):
     folder = make_scene(n=16, index=False)
-    cfg = compose_cfg("eval", ("scene=nerf2", f"scene.path={folder}", "band=2.4ghz", "neighbors=l2"))
+    cfg = compose_cfg("eval", ("scene=nerf2", f"scene.path={folder}", "band=2.4ghz", "neighbors=fixed", "neighbors.L=2"))
     evaluate(cfg)
     r = _results(cfg)
     assert (r["n_train"], r["n_test"]) == (13, 3) and r["band_hz"] == 2.412e9
@@ -115,13 +129,13 @@ def test_user_scene_folder_without_code(compose_cfg, make_scene):
 
 def test_relative_scene_path_is_found_under_data_root(compose_cfg, make_scene, tmp_path):
     folder = make_scene(n=12, name="data/mine")
-    cfg = compose_cfg("eval", ("scene=nerf2", "scene.path=mine", f"data_root={folder.parent}", "plot_count=0"))
+    cfg = compose_cfg("eval", ("scene=nerf2", "band=2.4ghz", "scene.path=mine", f"data_root={folder.parent}", "plot_count=0"))
     evaluate(cfg)
     assert _results(cfg)["n_test"] == 3
 
 
 def test_bad_scene_path_is_a_clear_error(compose_cfg, tmp_path):
-    cfg = compose_cfg("eval", ("scene=nerf2", f"scene.path={tmp_path / 'missing'}"))
+    cfg = compose_cfg("eval", ("scene=nerf2", "band=2.4ghz", f"scene.path={tmp_path / 'missing'}"))
     with pytest.raises(DataFormatError, match="missing: scene folder does not exist"):
         evaluate(cfg)
 
@@ -144,7 +158,7 @@ def test_csv_logger_records_test_metrics(compose_cfg):
 def test_table_collects_runs(compose_cfg, tmp_path):
     outs = []
     for L in (2, 4):
-        cfg = compose_cfg("eval", (f"neighbors=l{L}", "plot_count=0", f"paths.output_dir={tmp_path / f'runs/{L}'}"))
+        cfg = compose_cfg("eval", ("neighbors=fixed", f"neighbors.L={L}", "plot_count=0", f"paths.output_dir={tmp_path / f'runs/{L}'}"))
         evaluate(cfg)
         outs.append(_results(cfg))
     GlobalHydra.instance().clear()
@@ -165,7 +179,7 @@ def test_console_scripts_run_end_to_end(tmp_path, make_scene):
     for cmd in ("graf-eval", "graf-train"):
         out = tmp_path / cmd
         proc = subprocess.run([str(bindir / cmd), "scene=nerf2", f"scene.path={folder}", "band=2.4ghz",
-                               "neighbors=l2", "trainer.accelerator=cpu", f"hydra.run.dir={out}"],
+                               "neighbors=fixed", "neighbors.L=2", "trainer.accelerator=cpu", f"hydra.run.dir={out}"],
                               capture_output=True, text=True, env=env, timeout=300)
         assert proc.returncode == 0, proc.stderr[-2000:]
         assert "PSNR" in proc.stdout and (out / "results.json").is_file()

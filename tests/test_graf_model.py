@@ -15,12 +15,12 @@ from graf.bands import Band
 from graf.cli.common import CONF_DIR
 from graf.data.datamodule import SpectrumDataModule
 from graf.data.scenes import NeRF2Scene
-from graf.models.graf import (CrossAttentionBlock, GRaFModule, PositionalEncoding, ResNetEncoder,
-                              SelfAttentionBlock, normalize_positions, num_samples, sample_voxels)
-from graf.models.graf.rays import random_pixels
+from graf.geometry.encoding import PositionalEncoding, normalize_positions
+from graf.geometry.rays import num_samples, random_pixels, sample_voxels
+from graf.models.graf import CrossAttentionBlock, GRaFModule, ResNetEncoder, SelfAttentionBlock
 from graf.models.knn import KNNModule
 from graf.neighbors import NeighborSelector
-from graf.sim.array import grid_directions
+from graf.geometry.grid import grid_directions
 
 UHF = Band(name="915mhz", frequency_hz=915e6)
 

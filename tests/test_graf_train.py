@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from graf.cli.train import train
+from graf.models.base import CheckpointError
 
 FAST = ["model.rays_per_step=64", "model.max_samples=8", "data.batch_size=2", "baselines={}", "plot_count=1",
         "trainer.limit_test_batches=1", "trainer.enable_progress_bar=false"]
@@ -95,5 +96,5 @@ def test_finetune_starts_from_a_checkpoints_weights_and_rejects_another_architec
         train(other)
     missing = compose_cfg("train", ("experiment=graf_rfid_s23", "finetune=from_checkpoint",
                                     f"finetune.init_from={tmp_path / 'nope.ckpt'}", *FAST))
-    with pytest.raises(FileNotFoundError, match="nope.ckpt"):
+    with pytest.raises(CheckpointError, match="nope.ckpt: checkpoint file does not exist"):
         train(missing)

@@ -18,7 +18,7 @@ from graf.cli.train import train
 from graf.data.datamodule import SpectrumDataModule
 from graf.data.scenes import NeRF2Scene
 from graf.models.nerf2 import NeRF2Module, NeRF2Network, render_rays, sample_distances
-from graf.models.graf.rays import random_pixels
+from graf.geometry.rays import random_pixels
 from graf.neighbors import NeighborSelector
 
 UHF = Band(name="915mhz", frequency_hz=915e6)

@@ -9,7 +9,8 @@ import pytest
 import torch
 from scipy.optimize import brentq
 
-from graf.sim.array import Bartlett, array_positions, grid_directions, pattern_gain, rotation_from_axes
+from graf.geometry.grid import grid_directions
+from graf.sim.array import Bartlett, array_positions, pattern_gain, rotation_from_axes
 
 
 def _single_path_spectrum(u: np.ndarray, wavelength: float, pitch_wavelengths: float = 0.5, pattern="iso"):

@@ -42,9 +42,9 @@ def task_wrapper(task):
     the loggers (wandb included), so a failed run in a sweep leaves a finished, inspectable record."""
 
     @functools.wraps(task)
-    def wrapped(cfg: DictConfig):
+    def wrapped(cfg: DictConfig, *args, **kwargs):
         try:
-            return task(cfg)
+            return task(cfg, *args, **kwargs)
         except Exception:
             log.exception("%s failed; output folder: %s", cfg.get("task_name", "task"), _output_dir(cfg))
             raise
@@ -67,8 +67,20 @@ def _output_dir(cfg: DictConfig) -> Path:
         return Path.cwd()
 
 
+class ConfigError(ValueError):
+    """A configuration that cannot run as given; the message says what to set."""
+
+
+METRIC_NAMES = ("mse", "psnr", "ssim", "lpips")
+EVAL_METRICS = tuple(f"{s}/{m}" for s in ("val", "test") for m in METRIC_NAMES)
+
+
 def build_datamodule(cfg: DictConfig):
     """Band, scene, neighbour selector and the datamodule that joins them (``cfg.data``)."""
+    if cfg.get("band") is None:
+        choices = sorted(p.stem for p in (CONF_DIR / "band").glob("*.yaml"))
+        raise ConfigError(f"scene {cfg.scene.get('name', '?')!r} does not say its carrier frequency: add "
+                          f"band=<one of {', '.join(choices)}> (the band its spectra were measured at)")
     band = hydra.utils.instantiate(cfg.band)
     scene = hydra.utils.instantiate(cfg.scene)
     neighbors = hydra.utils.instantiate(cfg.neighbors)
@@ -78,55 +90,103 @@ def build_datamodule(cfg: DictConfig):
 
 
 def build(cfg: DictConfig) -> dict:
-    """Instantiate band, scene, neighbour selector, datamodule, model, loggers and trainer."""
+    """Instantiate band, scene, neighbour selector, datamodule (set up), model, loggers and trainer."""
     if cfg.get("seed") is not None:
         L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     out = _output_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
     band, scene, neighbors, datamodule = build_datamodule(cfg)
+    datamodule.setup("fit")
     model = hydra.utils.instantiate(cfg.model)
     loggers = [hydra.utils.instantiate(c) for c in (cfg.get("logger") or {}).values()
                if isinstance(c, DictConfig) and "_target_" in c]
-    collector = PredictionCollector()
-    callbacks = [collector] + [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()
-                               if isinstance(c, DictConfig) and "_target_" in c]
+    callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()
+                 if isinstance(c, DictConfig) and "_target_" in c]
     trainer = hydra.utils.instantiate(cfg.trainer, logger=loggers or False, callbacks=callbacks)
     return {"band": band, "scene": scene, "neighbors": neighbors, "datamodule": datamodule, "model": model,
-            "loggers": loggers, "collector": collector, "trainer": trainer, "output_dir": out}
+            "loggers": loggers, "trainer": trainer, "output_dir": out}
 
 
-def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str, ckpt_path=None) -> dict:
-    """Test, then write results.json (+ predictions.npz, spectra.png).  Returns the metrics."""
+def ray_sampling(model, dm) -> dict | None:
+    """Samples per ray and the effective voxel (sample spacing) of a ray-rendering model on each of the
+    datamodule's scenes; logs a warning where ``max_samples`` caps S (voxels longer than nominal)."""
+    out = {}
+    for k, d in enumerate(dm.sets):
+        r = model.ray_sampling(float(dm.ray_length[k]), float(dm.wavelength[k]))
+        if r is None:
+            return None
+        out[d.name] = r
+        if r["capped"]:
+            log.warning("%s on %s: max_samples caps the samples per ray at %d (%d needed), so each sample spans "
+                        "%.2f wavelengths (%.3f m) instead of %.2f", type(model).__name__, d.name,
+                        r["samples_per_ray"], r["uncapped_samples"], r["sample_spacing_wavelengths"],
+                        r["sample_spacing_m"], r["nominal_spacing_wavelengths"])
+    return out
+
+
+def evaluation_trainer(cfg: DictConfig, loggers=(), callbacks=()) -> L.Trainer:
+    """The trainer of the final evaluations (validation and test of the final weights).  Both evaluate
+    ``trainer.limit_test_batches`` of their split; validation during training (off by default) is the fit
+    trainer's business."""
+    t = cfg.trainer
+    limit = t.get("limit_test_batches", 1.0)
+    return L.Trainer(accelerator=t.get("accelerator", "auto"), devices=t.get("devices", 1),
+                     precision=t.get("precision", "32-true"), logger=list(loggers) or False,
+                     callbacks=list(callbacks), enable_progress_bar=bool(t.get("enable_progress_bar", True)),
+                     enable_model_summary=False, enable_checkpointing=False, limit_val_batches=limit,
+                     limit_test_batches=limit, default_root_dir=t.get("default_root_dir"))
+
+
+def evaluate_model(cfg: DictConfig, model, dm, loggers=()) -> tuple[dict, dict]:
+    """Validation then test metrics of ``model`` (``{val/..., test/...}``) and the test predictions."""
+    collector = PredictionCollector()
+    trainer = evaluation_trainer(cfg, loggers, [collector])
+    trainer.validate(model=model, datamodule=dm, verbose=False)
+    metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("val/")}
+    trainer.test(model=model, datamodule=dm, verbose=False)
+    metrics.update({k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")})
+    return {k: metrics.get(k) for k in EVAL_METRICS}, collector.arrays()
+
+
+def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -> dict:
+    """Validate and test the model, then write results.json (+ predictions.npz, spectra.png).  Returns the
+    metrics (``val/...`` and ``test/...``)."""
     trainer, model, dm = objects["trainer"], objects["model"], objects["datamodule"]
-    trainer.test(model=model, datamodule=dm, ckpt_path=ckpt_path, verbose=False)
-    metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")}
+    metrics, arrays = evaluate_model(cfg, model, dm, objects["loggers"])
     out: Path = objects["output_dir"]
-    arrays = objects["collector"].arrays()
-    data = dm.data
+    config = OmegaConf.to_container(cfg, resolve=True)
+    if objects.get("checkpoint"):  # graf-eval of a checkpoint: the model that ran is the checkpoint's
+        config["model"] = objects["checkpoint"]["model"]
     results = {
         "method": getattr(model, "method", type(model).__name__),
-        "scene": data.name,
+        "scene": dm.scene_name,
         "band_hz": float(objects["band"].frequency_hz),
-        "n_train": data.n_train,
+        "n_train": dm.n_train,
         "n_test": int(len(arrays["ids"])),
-        "metrics": {k: metrics.get(k) for k in ("test/mse", "test/psnr", "test/ssim", "test/lpips")},
+        "metrics": metrics,
         "seconds": round(time.perf_counter() - started, 3),
-        "config": OmegaConf.to_container(cfg, resolve=True),
+        "config": config,
         "task": task,
         "eval_split": dm.eval_split,
-        "split_source": data.split_source,
+        "split_source": "; ".join(d.split_source for d in dm.sets),
+        "splits": dm.split_summary(),
         "neighbors": repr(objects["neighbors"]),
         "trainable_parameters": int(sum(p.numel() for p in model.parameters() if p.requires_grad)),
-        "global_step": int(trainer.global_step),
+        "global_step": int(objects.get("checkpoint", {}).get("global_step", trainer.global_step)),
         "device": str(model.device),
         "versions": {"graf": graf.__version__, "torch": torch.__version__, "python": platform.python_version()},
     }
+    sampling = ray_sampling(model, dm)
+    if sampling is not None:
+        results["ray_sampling"] = sampling
+    if objects.get("checkpoint"):
+        results["checkpoint"] = {k: v for k, v in objects["checkpoint"].items() if k != "model"}
     if cfg.get("save_predictions"):
         atomic_write_npz(out / "predictions.npz", **arrays)
         results["predictions"] = "predictions.npz"
     if int(cfg.get("plot_count", 0)) > 0 and len(arrays["ids"]):
         fig = plot_spectra_grid(arrays["pred"], arrays["target"], arrays["ids"], out / "spectra.png",
-                                title=f"{results['method']} on {data.name}", max_rows=int(cfg.plot_count))
+                                title=f"{results['method']} on {dm.scene_name}", max_rows=int(cfg.plot_count))
         results["figure"] = fig.name
         for lg in objects["loggers"]:
             if hasattr(lg, "log_image"):
@@ -135,7 +195,7 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str, c
     for name, bcfg in (cfg.get("baselines") or {}).items():
         if not isinstance(bcfg, DictConfig) or "_target_" not in bcfg or bcfg == cfg.model:
             continue
-        rows.append(_test_baseline(cfg, name, bcfg, dm, data))
+        rows.append(_test_baseline(cfg, name, bcfg, dm))
     if len(rows) > 1:
         results["baselines"] = {r["method"]: {"metrics": r["metrics"], "seconds": r["seconds"],
                                               "trainable_parameters": r["trainable_parameters"]} for r in rows[1:]}
@@ -145,24 +205,20 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str, c
     return metrics
 
 
-def _test_baseline(cfg: DictConfig, name: str, bcfg: DictConfig, dm, data) -> dict:
-    """Test a baseline (nothing trained) on the same datamodule, neighbours and split, for a side-by-side table."""
+def _test_baseline(cfg: DictConfig, name: str, bcfg: DictConfig, dm) -> dict:
+    """Validate and test a baseline (nothing trained) on the same datamodule, neighbours and splits."""
     started = time.perf_counter()
     model = hydra.utils.instantiate(bcfg)
-    collector = PredictionCollector()
-    trainer = L.Trainer(accelerator=cfg.trainer.get("accelerator", "auto"), devices=1, logger=False,
-                        callbacks=[collector], enable_progress_bar=False, enable_model_summary=False)
-    trainer.test(model=model, datamodule=dm, verbose=False)
-    m = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")}
-    return {"method": getattr(model, "method", name), "scene": data.name, "n_test": int(len(collector.arrays()["ids"])),
+    metrics, arrays = evaluate_model(cfg, model, dm)
+    return {"method": getattr(model, "method", name), "scene": dm.scene_name, "n_test": int(len(arrays["ids"])),
             "trainable_parameters": int(sum(p.numel() for p in model.parameters() if p.requires_grad)),
-            "metrics": {k: m.get(k) for k in ("test/mse", "test/psnr", "test/ssim", "test/lpips")},
-            "seconds": round(time.perf_counter() - started, 3)}
+            "metrics": metrics, "seconds": round(time.perf_counter() - started, 3)}
 
 
 def format_metrics_table(rows: list[dict]) -> str:
-    """A plain-text table of the four test metrics, one row per results dict."""
-    head = f"{'method':<22}{'scene':<16}{'n_test':>7}{'MSE':>10}{'PSNR':>9}{'SSIM':>8}{'LPIPS':>8}"
+    """A plain-text table of the four test metrics (and the validation PSNR), one row per results dict."""
+    head = (f"{'method':<22}{'scene':<16}{'n_test':>7}{'MSE':>10}{'PSNR':>9}{'SSIM':>8}{'LPIPS':>8}"
+            f"{'val PSNR':>10}")
     lines = [head, "-" * len(head)]
     for r in rows:
         m = r["metrics"]
@@ -172,7 +228,8 @@ def format_metrics_table(rows: list[dict]) -> str:
             return format(v, spec) if v is not None and not math.isnan(v) else "n/a"
 
         lines.append(f"{r['method']:<22}{r['scene']:<16}{r['n_test']:>7}{f('test/mse', '10.4f')}"
-                     f"{f('test/psnr', '9.2f')}{f('test/ssim', '8.3f')}{f('test/lpips', '8.3f')}")
+                     f"{f('test/psnr', '9.2f')}{f('test/ssim', '8.3f')}{f('test/lpips', '8.3f')}"
+                     f"{f('val/psnr', '10.2f')}")
     return "\n".join(lines)
 
 
@@ -181,6 +238,9 @@ def sweep_value(cfg: DictConfig, metrics: dict) -> float:
     name = cfg.get("optimized_metric")
     if not name:
         return 0.0
+    if not str(name).startswith("val/"):
+        raise ConfigError(f"optimized_metric={name}: a sweep may optimise a validation metric (val/...) only; "
+                          "nothing is chosen on the test split")
     v = metrics.get(name)
     if v is None or not math.isfinite(v):
         log.warning("optimized metric %s is %s; reporting -inf", name, v)

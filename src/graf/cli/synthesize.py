@@ -31,6 +31,9 @@ def run(cfg: DictConfig) -> dict:
     band, scene, neighbors, dm = build_datamodule(cfg)
     model_cls = hydra.utils.get_class(cfg.model._target_)
     if cfg.get("ckpt_path"):
+        from graf.models.base import check_checkpoint, read_checkpoint
+
+        check_checkpoint(read_checkpoint(cfg.ckpt_path), model_cls, cfg.ckpt_path)
         model = model_cls.load_from_checkpoint(cfg.ckpt_path, map_location="cpu")
     else:
         model = hydra.utils.instantiate(cfg.model)

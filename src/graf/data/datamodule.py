@@ -1,160 +1,360 @@
-"""From a scene's spectra in memory to batches of targets with their neighbours.
+"""From scenes' spectra in memory to batches of targets with their neighbours.
 
 A batch (IBRNet/GNT style: source views on one axis with a mask)::
 
-    tgt_index    long  [B]              row of the target in the SpectrumSet
-    tgt_id       long  [B]              spectrum id as in the files
+    tgt_index    long  [B]              row of the target in the datamodule's concatenated spectra
+    tgt_id       long  [B]              spectrum id as in the scene's files
     tgt_pos      float [B, 3]
     tgt_spectrum float [B, 90, 360]
-    src_index    long  [B, L]           rows of the neighbours (training split only)
+    src_index    long  [B, L]           rows of the neighbours (always of the target's own scene)
     src_pos      float [B, L, 3]
     src_spectra  float [B, L, 90, 360]  gathered from the one in-memory tensor, never stored per ray
     src_mask     bool  [B, L]
-    gw_pos       float [B, 3]           gateway (receiver) position
-    gw_rot       float [B, 3, 3]        gateway rotation, local -> world (spectrum grid directions are local)
-    wavelength   float [B]              of the band (m): GRaF's voxel size
-    ray_length   float [B]              farthest corner of the scene's bounds from the gateway (m)
-    bounds       float [B, 2, 3]        the scene's axis-aligned box (min, max), for normalising positions
-    scene_index  long  [B]              which scene (0 unless several scenes are trained together)
+    gw_pos       float [B, 3]           the item's gateway (receiver) position
+    gw_rot       float [B, 3, 3]        its gateway rotation, local -> world (spectrum grid directions are local)
+    wavelength   float [B]              of the item's band (m): GRaF's voxel size
+    ray_length   float [B]              farthest corner of the item's scene bounds from its gateway (m)
+    bounds       float [B, 2, 3]        the item's scene box (min, max)
+    scene_index  long  [B]              which of the datamodule's scenes the item belongs to
 
-Evaluation neighbours are selected once in :meth:`setup` (deterministic); training neighbours are drawn
-per batch with a seeded generator (L uniform in ``L_train``).
+Every per-item geometry value is gathered through the item's scene index from per-scene tables, so scenes
+of different sizes and bands can share a batch.
+
+**Splits.**  Each scene's training split (from its files) is cut, with a seeded permutation
+(``val_seed``, the same whatever the run's ``seed``), into a *validation* part (``val_fraction`` of it, at
+least one spectrum) and the *fit* part (the rest):
+
+- training targets and their neighbours: fit spectra only (never the target itself);
+- validation targets: the validation spectra, neighbours from the fit spectra only (so nothing a model is
+  chosen on was trained on, and validation conditions match training);
+- test targets: the test split, neighbours from the whole training split (fit + validation: at test time
+  every measured spectrum is known).
+
+The validation and test splits never share a spectrum; nothing is ever chosen on the test split.
+
+**Training batches are a pure function of (seed, batch number).**  Batch ``k`` belongs to epoch
+``k // batches_per_epoch``, whose order is a permutation seeded by ``(seed, epoch)``; its neighbour
+counts and draws come from a generator seeded by ``(seed, k)``.  The loader starts at the trainer's
+``global_step``, so a run resumed from a checkpoint draws exactly the batches an uninterrupted run would,
+and with ``num_workers > 0`` worker ``w`` builds batches ``k = w, w + W, ...`` (no shared generator, no
+identical draws across workers, the same stream for every worker count).
 """
 
 from __future__ import annotations
 
 import logging
+import warnings
 from pathlib import Path
+from typing import Callable, Sequence
 
 import lightning as L
+import numpy as np
 import torch
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import DataLoader, Dataset, IterableDataset, get_worker_info
 
 from graf.bands import Band
-from graf.data.nerf2_format import SpectrumSet
-from graf.neighbors import NeighborSelector
+from graf.data.spectrum_set import DataFormatError, SpectrumSet
+from graf.neighbors import Neighbors, NeighborSelector
 
 log = logging.getLogger(__name__)
 
+EVAL_SPLITS = ("test", "val", "train")
 
-class _Rows(Dataset):
-    def __init__(self, rows: torch.Tensor):
-        self.rows = rows
+
+def mixed_seed(*parts: int) -> int:
+    """A 63-bit seed from integers (numpy's SeedSequence: well mixed, stable across versions)."""
+    state = np.random.SeedSequence([int(p) & 0xFFFFFFFF for p in parts]).generate_state(1, np.uint64)[0]
+    return int(state) & 0x7FFFFFFFFFFFFFFF
+
+
+def carve_validation(train_rows: np.ndarray, fraction: float, seed: int, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(fit_rows, val_rows)``: a seeded ``fraction`` (rounded, at least 1) of ``train_rows`` for validation."""
+    n = len(train_rows)
+    if not 0.0 < fraction < 1.0:
+        raise ValueError(f"data.val_fraction must be in (0, 1), got {fraction}")
+    if n < 2:
+        raise DataFormatError(where, f"the training split holds {n} spectrum(s): at least 2 are needed, one to "
+                                     "validate on and one to train on and take neighbours from")
+    n_val = min(max(int(round(n * fraction)), 1), n - 1)
+    perm = np.random.default_rng(int(seed)).permutation(n)
+    return np.sort(train_rows[perm[n_val:]]), np.sort(train_rows[perm[:n_val]])
+
+
+class _Positions(Dataset):
+    """Map-style dataset of positions 0..n-1 into a split's rows (evaluation)."""
+
+    def __init__(self, n: int):
+        self.n = int(n)
 
     def __len__(self) -> int:
-        return len(self.rows)
+        return self.n
 
     def __getitem__(self, i: int) -> int:
-        return int(self.rows[i])
+        return int(i)
+
+
+class TrainBatchStream(IterableDataset):
+    """Batch numbers ``start, start + 1, ...`` up to the end of ``start``'s epoch (``__len__``: one epoch).
+
+    Each worker yields its share (``k % num_workers == worker id``); the DataLoader interleaves them back in
+    order.  The batch itself is built by the loader's ``collate_fn`` from ``k`` alone."""
+
+    def __init__(self, batches_per_epoch: int):
+        self.batches_per_epoch = int(batches_per_epoch)
+        self.start = 0
+
+    def __len__(self) -> int:
+        return self.batches_per_epoch
+
+    def __iter__(self):
+        info = get_worker_info()
+        wid, nw = (0, 1) if info is None else (info.id, info.num_workers)
+        end = (self.start // self.batches_per_epoch + 1) * self.batches_per_epoch
+        return iter(range(self.start + wid, end, nw))
+
+
+class StepLoader(DataLoader):
+    """The training loader: sets the stream's first batch number from ``step_source()`` (the trainer's
+    global step) every time it is iterated.  Its ``state_dict`` (saved in Lightning checkpoints) records the
+    seed and batch number, and a resumed run with another seed is warned about."""
+
+    def __init__(self, stream: TrainBatchStream, step_source: Callable[[], int], seed: int, **kwargs):
+        super().__init__(stream, batch_size=None, shuffle=False, **kwargs)
+        self.step_source, self.seed = step_source, int(seed)
+
+    def __iter__(self):
+        self.dataset.start = int(self.step_source())
+        return super().__iter__()
+
+    def state_dict(self) -> dict:
+        return {"seed": self.seed, "next_batch": int(self.step_source()), "stream": "step-indexed"}
+
+    def load_state_dict(self, state: dict) -> None:
+        if int(state.get("seed", self.seed)) != self.seed:
+            warnings.warn(f"resuming a run trained with data seed {state['seed']} with seed {self.seed}: the "
+                          "batches after the checkpoint differ from an uninterrupted run", stacklevel=2)
 
 
 class SpectrumDataModule(L.LightningDataModule):
     """Args:
-        scene: a scene object (``conf/scene``) with ``load(data_root, band)``.
-        band: the :class:`Band`.
+        scene: a scene object (``conf/scene``) with ``load(data_root, band)``, or a list of them (trained
+            together; each batch item keeps its own scene's geometry and band).
+        band: the :class:`Band`, or a list (one per scene).
         neighbors: the :class:`NeighborSelector`.
         data_root: where datasets are read from and written to.
         batch_size: targets per batch.
-        eval_split: ``test`` (default) or ``train`` (each training target with its other neighbours).
-        seed: seeds the training-time draw of L and of targets.
+        eval_split: what ``test_dataloader`` evaluates: ``test`` (default), ``val``, or ``train`` (each fit
+            target with its other fit neighbours).
+        seed: seeds the training stream (target order, L and neighbour draws).
+        val_fraction / val_seed: the validation part of each scene's training split (seeded by ``val_seed``,
+            independent of ``seed``).
     """
 
-    def __init__(self, scene, band: Band, neighbors: NeighborSelector, data_root: str | Path | None = None,
-                 batch_size: int = 4, num_workers: int = 0, eval_split: str = "test", seed: int = 0):
+    def __init__(self, scene, band: Band | Sequence[Band], neighbors: NeighborSelector,
+                 data_root: str | Path | None = None, batch_size: int = 4, num_workers: int = 0,
+                 eval_split: str = "test", seed: int = 0, val_fraction: float = 0.1, val_seed: int = 0):
         super().__init__()
-        if eval_split not in ("test", "train"):
-            raise ValueError(f"eval_split must be 'test' or 'train', got {eval_split!r}")
-        self.scene, self.band, self.neighbors = scene, band, neighbors
+        if eval_split not in EVAL_SPLITS:
+            raise ValueError(f"data.eval_split must be one of {EVAL_SPLITS}, got {eval_split!r}")
+        self.scenes = list(scene) if isinstance(scene, (list, tuple)) else [scene]
+        bands = list(band) if isinstance(band, (list, tuple)) else [band] * len(self.scenes)
+        if len(bands) != len(self.scenes):
+            raise ValueError(f"{len(bands)} bands given for {len(self.scenes)} scenes")
+        self.bands, self.band, self.neighbors = bands, bands[0], neighbors
         self.data_root = data_root
         self.batch_size, self.num_workers = int(batch_size), int(num_workers)
         self.eval_split, self.seed = eval_split, int(seed)
-        self.data: SpectrumSet | None = None
-        self._gen = torch.Generator().manual_seed(self.seed)
+        self.val_fraction, self.val_seed = float(val_fraction), int(val_seed)
+        self.sets: list[SpectrumSet] = []
 
     # ------------------------------------------------------------------ setup
     def setup(self, stage: str | None = None) -> None:
-        if self.data is None:
-            self.data = self.scene.load(self.data_root, self.band)
-            d = self.data
-            self.positions = torch.as_tensor(d.positions, dtype=torch.float64)
-            self.ids = torch.as_tensor(d.ids)
-            self.train_rows = torch.as_tensor(d.train_idx)
-            self.test_rows = torch.as_tensor(d.test_idx)
-            log.info("scene %s: %d train / %d test spectra (%s), band %s (%.4f m)", d.name, d.n_train, d.n_test,
-                     d.split_source, self.band.name, self.band.wavelength)
-            self._eval_rows = self.test_rows if self.eval_split == "test" else self.train_rows
-            from scipy.spatial.transform import Rotation
+        if self.sets:
+            return
+        from scipy.spatial.transform import Rotation
 
-            self.gw_pos = torch.as_tensor(d.gateway_position, dtype=torch.float32)
-            self.gw_rot = torch.as_tensor(Rotation.from_quat(d.gateway_orientation).as_matrix(), dtype=torch.float32)
-            b = d.bounds()
-            corners = torch.as_tensor([[b[i, 0], b[j, 1], b[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
-            self.ray_length = float((corners - self.gw_pos.double()).norm(dim=1).max())
-            self.bounds = torch.as_tensor(b, dtype=torch.float32)
-            nb = self._select(self._eval_rows, train=False)
-            self._eval_src = (nb.index, nb.mask)
+        self.sets = [s.load(self.data_root, b) for s, b in zip(self.scenes, self.bands)]
+        spectra, pos, ids, scene_of, splits = [], [], [], [], {"train": [], "fit": [], "val": [], "test": []}
+        gw_pos, gw_rot, wl, ray_len, bounds = [], [], [], [], []
+        offset = 0
+        for k, (d, band) in enumerate(zip(self.sets, self.bands)):
+            n = len(d.ids)
+            train = np.asarray(d.train_idx, np.int64) + offset
+            fit, val = carve_validation(train, self.val_fraction, self.val_seed, d.source)
+            splits["train"].append(train), splits["fit"].append(fit), splits["val"].append(val)
+            splits["test"].append(np.asarray(d.test_idx, np.int64) + offset)
+            spectra.append(d.spectra), pos.append(np.asarray(d.positions, np.float64))
+            ids.append(np.asarray(d.ids, np.int64)), scene_of.append(np.full(n, k, np.int64))
+            p = torch.as_tensor(d.gateway_position, dtype=torch.float64)
+            b = torch.as_tensor(d.bounds(), dtype=torch.float64)
+            corners = torch.stack([torch.stack([b[i, 0], b[j, 1], b[m, 2]])
+                                   for i in (0, 1) for j in (0, 1) for m in (0, 1)])
+            gw_pos.append(p), bounds.append(b), wl.append(band.wavelength)
+            gw_rot.append(torch.as_tensor(Rotation.from_quat(d.gateway_orientation).as_matrix()))
+            ray_len.append(float((corners - p).norm(dim=1).max()))
+            log.info("scene %s (index %d): %d train (%d fit + %d validation) / %d test spectra (%s), band %s "
+                     "(%.4f m)", d.name, k, d.n_train, len(fit), len(val), d.n_test, d.split_source, band.name,
+                     band.wavelength)
+            offset += n
+        self.spectra = spectra[0] if len(spectra) == 1 else torch.cat(spectra)
+        self.positions = torch.as_tensor(np.concatenate(pos))
+        self.ids = torch.as_tensor(np.concatenate(ids))
+        self.row_scene = torch.as_tensor(np.concatenate(scene_of))
+        self.train_rows, self.fit_rows, self.val_rows, self.test_rows = (
+            torch.as_tensor(np.concatenate(splits[s])) for s in ("train", "fit", "val", "test"))
+        # per-scene tables, gathered per batch item through its scene index
+        self.gw_pos = torch.stack(gw_pos).float()
+        self.gw_rot = torch.stack(gw_rot).float()
+        self.wavelength = torch.as_tensor(wl, dtype=torch.float32)
+        self.ray_length = torch.as_tensor(ray_len, dtype=torch.float32)
+        self.bounds = torch.stack(bounds).float()
+        self._eval = {}
 
-    def _select(self, rows: torch.Tensor, train: bool):
-        nb = self.neighbors.select(
-            self.positions[rows], self.positions[self.train_rows], self.band.wavelength, train=train,
-            target_ids=self.ids[rows], cand_ids=self.ids[self.train_rows], generator=self._gen,
-        )
-        nb.index = self.train_rows[nb.index]  # candidate positions -> SpectrumSet rows
-        return nb
+    @property
+    def data(self) -> SpectrumSet:
+        """The scene's :class:`SpectrumSet` (single-scene runs; see :attr:`sets` for several)."""
+        if len(self.sets) != 1:
+            raise AttributeError(f"this datamodule holds {len(self.sets)} scenes: use .sets")
+        return self.sets[0]
+
+    @property
+    def scene_name(self) -> str:
+        return "+".join(d.name for d in self.sets)
+
+    @property
+    def n_train(self) -> int:
+        return int(len(self.train_rows))
+
+    # ------------------------------------------------------------------ neighbours
+    def select(self, rows: torch.Tensor, pool: torch.Tensor, train: bool,
+               generator: torch.Generator | None = None) -> Neighbors:
+        """Neighbours of ``rows`` among ``pool`` (both datamodule rows), each target's from its own scene only,
+        never the target itself; indices returned as datamodule rows."""
+        rows, pool = torch.as_tensor(rows, dtype=torch.long), torch.as_tensor(pool, dtype=torch.long)
+        parts = []
+        for k in torch.unique(self.row_scene[rows]).tolist():
+            t = (self.row_scene[rows] == k).nonzero().flatten()
+            cand = pool[self.row_scene[pool] == k]
+            if len(cand) == 0:
+                raise DataFormatError(self.sets[k].source, "no spectra left to take neighbours from")
+            nb = self.neighbors.select(self.positions[rows[t]], self.positions[cand], float(self.wavelength[k]),
+                                       train=train, target_ids=self.ids[rows[t]], cand_ids=self.ids[cand],
+                                       generator=generator)
+            nb.index = cand[nb.index]
+            parts.append((t, nb))
+        if len(parts) == 1:
+            return parts[0][1]
+        T, Lmax = len(rows), max(nb.index.shape[1] for _, nb in parts)
+        out = Neighbors(index=torch.zeros(T, Lmax, dtype=torch.long), mask=torch.zeros(T, Lmax, dtype=torch.bool),
+                        distance=torch.zeros(T, Lmax, dtype=self.positions.dtype),
+                        widened=torch.zeros(T, dtype=torch.bool), short=torch.zeros(T, dtype=torch.bool))
+        for t, nb in parts:
+            w = nb.index.shape[1]
+            out.index[t, :w], out.mask[t, :w], out.distance[t, :w] = nb.index, nb.mask, nb.distance
+            out.widened[t], out.short[t] = nb.widened, nb.short
+        return out
+
+    def _split(self, name: str) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(target rows, neighbour pool)`` of an evaluation split."""
+        return {"test": (self.test_rows, self.train_rows), "val": (self.val_rows, self.fit_rows),
+                "train": (self.fit_rows, self.fit_rows)}[name]
+
+    def split_neighbors(self, name: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(rows [n], src_index [n, L], src_mask [n, L])`` of evaluation split ``name`` (selected once)."""
+        if name not in self._eval:
+            rows, pool = self._split(name)
+            nb = self.select(rows, pool, train=False)
+            self._eval[name] = (rows, nb.index, nb.mask)
+        return self._eval[name]
 
     @property
     def eval_rows(self) -> torch.Tensor:
-        return self._eval_rows
+        return self.split_neighbors(self.eval_split)[0]
 
     def eval_neighbors(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(src_index [n_eval, L], src_mask [n_eval, L])`` used at evaluation."""
-        return self._eval_src
+        """``(src_index [n_eval, L], src_mask [n_eval, L])`` used by ``test_dataloader``."""
+        return self.split_neighbors(self.eval_split)[1:]
 
     # ------------------------------------------------------------------ batches
     def make_batch(self, rows: torch.Tensor, src_index: torch.Tensor, src_mask: torch.Tensor) -> dict:
-        d = self.data
+        rows = torch.as_tensor(rows, dtype=torch.long)
+        k = self.row_scene[rows]
         return {
             "tgt_index": rows,
             "tgt_id": self.ids[rows],
             "tgt_pos": self.positions[rows].float(),
-            "tgt_spectrum": d.spectra[rows],
+            "tgt_spectrum": self.spectra[rows],
             "src_index": src_index,
             "src_pos": self.positions[src_index].float(),
-            "src_spectra": d.spectra[src_index],
+            "src_spectra": self.spectra[src_index],
             "src_mask": src_mask,
-            "gw_pos": self.gw_pos.expand(len(rows), 3),
-            "gw_rot": self.gw_rot.expand(len(rows), 3, 3),
-            "wavelength": torch.full((len(rows),), self.band.wavelength, dtype=torch.float32),
-            "ray_length": torch.full((len(rows),), self.ray_length, dtype=torch.float32),
-            "bounds": self.bounds.expand(len(rows), 2, 3),
-            "scene_index": torch.zeros(len(rows), dtype=torch.long),
+            "gw_pos": self.gw_pos[k],
+            "gw_rot": self.gw_rot[k],
+            "wavelength": self.wavelength[k],
+            "ray_length": self.ray_length[k],
+            "bounds": self.bounds[k],
+            "scene_index": k,
         }
 
-    def _collate_eval(self, positions: list[int]) -> dict:
-        pos = torch.as_tensor(positions, dtype=torch.long)
-        idx, mask = self._eval_src
-        return self.make_batch(self._eval_rows[pos], idx[pos], mask[pos])
+    def _eval_collate(self, name: str):
+        rows, idx, mask = self.split_neighbors(name)
 
-    def _collate_train(self, rows: list[int]) -> dict:
-        rows_t = torch.as_tensor(rows, dtype=torch.long)
-        nb = self._select(rows_t, train=True)
-        return self.make_batch(rows_t, nb.index, nb.mask)
+        def collate(positions: list[int]) -> dict:
+            pos = torch.as_tensor(positions, dtype=torch.long)
+            return self.make_batch(rows[pos], idx[pos], mask[pos])
+
+        return collate
+
+    def _collate_eval(self, positions: list[int]) -> dict:
+        return self._eval_collate(self.eval_split)(positions)
+
+    @property
+    def batches_per_epoch(self) -> int:
+        n = len(self.fit_rows)
+        return max(1, n // self.batch_size) if n > self.batch_size else 1
+
+    def train_batch(self, k: int) -> dict:
+        """Training batch number ``k``: targets from epoch ``k // batches_per_epoch``'s seeded order, and L and
+        neighbours drawn with a generator seeded by ``(seed, k)``."""
+        epoch, j = divmod(int(k), self.batches_per_epoch)
+        order = torch.randperm(len(self.fit_rows), generator=torch.Generator().manual_seed(mixed_seed(self.seed, 0, epoch)))
+        rows = self.fit_rows[order[j * self.batch_size:(j + 1) * self.batch_size]]
+        nb = self.select(rows, self.fit_rows, train=True,
+                         generator=torch.Generator().manual_seed(mixed_seed(self.seed, 1, k)))
+        return self.make_batch(rows, nb.index, nb.mask)
+
+    def _global_step(self) -> int:
+        trainer = getattr(self, "trainer", None)
+        if trainer is None:
+            return 0
+        if int(getattr(trainer, "accumulate_grad_batches", 1)) != 1:
+            raise ValueError("trainer.accumulate_grad_batches must be 1: training batches are numbered by step")
+        return int(trainer.global_step)
 
     def train_dataloader(self) -> DataLoader:
-        return DataLoader(_Rows(self.train_rows), batch_size=self.batch_size, shuffle=True,
-                          generator=torch.Generator().manual_seed(self.seed), collate_fn=self._collate_train,
-                          num_workers=self.num_workers, drop_last=len(self.train_rows) > self.batch_size)
+        return StepLoader(TrainBatchStream(self.batches_per_epoch), self._global_step, self.seed,
+                          collate_fn=self.train_batch, num_workers=self.num_workers)
+
+    def _eval_loader(self, name: str) -> DataLoader:
+        rows = self.split_neighbors(name)[0]
+        return DataLoader(_Positions(len(rows)), batch_size=self.batch_size, shuffle=False,
+                          collate_fn=self._eval_collate(name), num_workers=self.num_workers)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._eval_loader("val")
 
     def test_dataloader(self) -> DataLoader:
-        return DataLoader(_Rows(torch.arange(len(self._eval_rows))), batch_size=self.batch_size, shuffle=False,
-                          collate_fn=self._collate_eval, num_workers=self.num_workers)
+        return self._eval_loader(self.eval_split)
 
-    # No val_dataloader: the only held-out spectra are the test split, and choosing checkpoints on them
-    # would leak.  Training runs test the final weights.
+    def split_summary(self) -> dict:
+        """What results.json records about the splits."""
+        return {"n_train": self.n_train, "n_fit": int(len(self.fit_rows)), "n_val": int(len(self.val_rows)),
+                "n_test": int(len(self.test_rows)), "val_fraction": self.val_fraction, "val_seed": self.val_seed,
+                "val_ids": [int(i) for i in self.ids[self.val_rows]]}
 
     def query_batches(self, positions, batch_size: int | None = None):
-        """Batches for new transmitter positions ``[N, 3]`` (no measured spectrum: ``tgt_spectrum`` is zeros),
-        with neighbours from the training split as at evaluation.  Used by graf-synthesize."""
+        """Batches for new transmitter positions ``[N, 3]`` of the (single) scene (no measured spectrum:
+        ``tgt_spectrum`` is zeros), with neighbours from the training split as at test.  Used by graf-synthesize."""
         pos = torch.as_tensor(positions, dtype=torch.float64)
         nb = self.neighbors.select(pos, self.positions[self.train_rows], self.band.wavelength, train=False)
         src = self.train_rows[nb.index]

@@ -9,7 +9,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from graf.bands import Band
-from graf.data.nerf2_format import DataFormatError, SpectrumSet, read_nerf2_folder
+from graf.data.nerf2_format import read_nerf2_folder
+from graf.data.spectrum_set import DataFormatError, SpectrumSet
 
 EMBEDDED_PREFIX = "embedded:"
 EMBEDDED_DIR = Path(__file__).resolve().parent.parent / "embedded"

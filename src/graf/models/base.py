@@ -1,16 +1,62 @@
-"""Shared LightningModule behaviour of every method: the test protocol and its metrics.
+"""Shared LightningModule behaviour of every method: the evaluation protocol, its metrics, and what a
+checkpoint records about the model that wrote it.
 
 A method implements :meth:`predict_spectra` (batch -> ``[B, 90, 360]``) and, if it learns, ``training_step``
-and ``configure_optimizers``.  Test metrics are per-spectrum means over the evaluated split
-(``test/mse``, ``test/psnr``, ``test/ssim``, ``test/lpips``); predictions are clamped to [0, 1] first.
+and ``configure_optimizers``.  Validation and test metrics are per-spectrum means over the evaluated split
+(``val/...`` and ``test/...``: ``mse``, ``psnr``, ``ssim``, ``lpips``); predictions are clamped to [0, 1] first.
+
+Every checkpoint carries ``checkpoint["graf"] = {"target": <class path>, "layout": <LAYOUT>}``.  A class
+bumps ``LAYOUT`` when its weights change meaning (and says why in ``LAYOUT_CHANGES``); loading a checkpoint
+of another layout, or of another class, is refused with a message that names the file and the reason
+(:func:`check_checkpoint`).
 """
 
 from __future__ import annotations
+
+import math
+from pathlib import Path
 
 import lightning as L
 import torch
 
 from graf.metrics import spectrum_metrics
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be used as asked; the message names the file and why."""
+
+
+def class_path(cls: type) -> str:
+    return f"{cls.__module__}.{cls.__qualname__}"
+
+
+def read_checkpoint(path) -> dict:
+    """A Lightning checkpoint as a dict, with clear errors for a missing or unreadable file."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: checkpoint file does not exist")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:
+        raise CheckpointError(f"{path}: is not a readable checkpoint ({type(exc).__name__}: {exc})") from None
+    if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
+        raise CheckpointError(f"{path}: is not a Lightning checkpoint (no state_dict)")
+    return ckpt
+
+
+def check_checkpoint(ckpt: dict, cls: type, path) -> None:
+    """Refuse a checkpoint written by another class, or by an older layout of ``cls`` (see module doc)."""
+    info = ckpt.get("graf") or {}
+    target = info.get("target")
+    if target is not None and target != class_path(cls):
+        raise CheckpointError(f"{path}: holds a {target} checkpoint, not {class_path(cls)}")
+    layout = int(info.get("layout", 1))
+    want = int(getattr(cls, "LAYOUT", 1))
+    if layout != want:
+        why = getattr(cls, "LAYOUT_CHANGES", {}).get(want, "")
+        raise CheckpointError(f"{path}: was written by {cls.__name__} layout {layout}; this version reads layout "
+                              f"{want} only, and the weights do not carry over{': ' + why if why else ''}. "
+                              "Retrain (or use the version that wrote it).")
 
 
 def adam_exponential_decay(module, lr: float, lr_decay: float, decay_steps: int) -> dict:
@@ -22,9 +68,34 @@ def adam_exponential_decay(module, lr: float, lr_decay: float, decay_steps: int)
 
 
 class SpectrumModule(L.LightningModule):
+    LAYOUT = 1
+    LAYOUT_CHANGES: dict[int, str] = {}
+
     def __init__(self):
         super().__init__()
+        self.val_metrics = spectrum_metrics("val/")
         self.test_metrics = spectrum_metrics("test/")
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        checkpoint["graf"] = {"target": class_path(type(self)), "layout": int(self.LAYOUT)}
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        check_checkpoint(checkpoint, type(self), "checkpoint")
+
+    def ray_sampling(self, ray_length: float, wavelength: float) -> dict | None:
+        """For ray-rendering methods: samples per ray and the effective sample spacing on a scene whose rays
+        are ``ray_length`` m long at ``wavelength`` m, and whether ``max_samples`` capped them (the spacing is
+        then longer than the method's nominal ``sample_spacing`` wavelengths).  None for other methods."""
+        if not hasattr(self, "samples_per_ray"):
+            return None
+        fake = {"ray_length": torch.tensor([float(ray_length)]), "wavelength": torch.tensor([float(wavelength)])}
+        S = int(self.samples_per_ray(fake)[0])
+        span = float(ray_length) - float(getattr(self, "near", 0.0))
+        nominal = float(getattr(self, "sample_spacing", 1.0))
+        spacing = span / S / float(wavelength)
+        return {"samples_per_ray": S, "sample_spacing_m": span / S, "sample_spacing_wavelengths": spacing,
+                "nominal_spacing_wavelengths": nominal, "capped": bool(spacing > nominal * (1 + 1e-6)),
+                "uncapped_samples": int(math.ceil(span / (nominal * float(wavelength)) - 1e-6))}
 
     @property
     def has_trainable_parameters(self) -> bool:
@@ -39,6 +110,9 @@ class SpectrumModule(L.LightningModule):
         metrics.update(pred, target)
         self.log_dict(metrics, on_step=False, on_epoch=True, batch_size=pred.shape[0])
         return {"pred": pred.detach(), "ids": batch["tgt_id"].detach()}
+
+    def validation_step(self, batch: dict, batch_idx: int) -> dict:
+        return self._eval_step(batch, self.val_metrics)
 
     def test_step(self, batch: dict, batch_idx: int) -> dict:
         return self._eval_step(batch, self.test_metrics)

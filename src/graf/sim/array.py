@@ -23,20 +23,9 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-N_ELEVATION, N_AZIMUTH = 90, 360
+from graf.geometry.grid import N_AZIMUTH, N_ELEVATION, grid_directions
+
 PATTERNS = ("iso", "front", "cos")
-
-
-def directions(el_deg: torch.Tensor, az_deg: torch.Tensor) -> torch.Tensor:
-    """Unit directions ``[len(el) * len(az), 3]`` (gateway frame, azimuth fastest) of every (elevation,
-    azimuth) pair in degrees: ``(cos e cos a, cos e sin a, sin e)``."""
-    e, a = torch.meshgrid(torch.deg2rad(el_deg), torch.deg2rad(az_deg), indexing="ij")
-    return torch.stack([torch.cos(e) * torch.cos(a), torch.cos(e) * torch.sin(a), torch.sin(e)], -1).reshape(-1, 3)
-
-
-def grid_directions(dtype=torch.float64) -> torch.Tensor:
-    """Unit directions ``[90 * 360, 3]`` of the spectrum grid in the gateway frame (azimuth fastest)."""
-    return directions(torch.arange(1, N_ELEVATION + 1, dtype=dtype), torch.arange(1, N_AZIMUTH + 1, dtype=dtype))
 
 
 def array_positions(wavelength: float, rows: int = 4, cols: int = 4, pitch_wavelengths: float = 0.5) -> np.ndarray:

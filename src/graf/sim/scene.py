@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from graf.bands import Band
-from graf.data.nerf2_format import DataFormatError, SpectrumSet
+from graf.data.spectrum_set import DataFormatError, SpectrumSet
 from graf.sim.array import PATTERNS, rotation_from_axes
 from graf.sim.geometry import SceneGeometry, build_geometry, sample_positions
 

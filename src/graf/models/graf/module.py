@@ -41,9 +41,9 @@ from torch import nn
 from graf.models.base import SpectrumModule, adam_exponential_decay
 from graf.models.graf.attention import CrossAttentionBlock, SelfAttentionBlock
 from graf.models.graf.encoder import ResNetEncoder
-from graf.models.graf.encoding import PositionalEncoding, normalize_offsets, normalize_positions
-from graf.models.graf.rays import (fp32, local_directions, num_samples, random_pixels, render_spectra,
-                                  voxel_distances, world_directions)
+from graf.geometry.encoding import PositionalEncoding, normalize_offsets, normalize_positions
+from graf.geometry.grid import local_directions
+from graf.geometry.rays import fp32, num_samples, random_pixels, render_spectra, voxel_distances, world_directions
 from graf.models.knn.weights import barycentric_weights, idw_weights
 
 WEIGHTINGS = ("idw", "barycentric")
@@ -61,6 +61,7 @@ def _mlp(d_in: int, hidden: int, d_out: int) -> nn.Sequential:
 
 
 class GRaFModule(SpectrumModule):
+    INFERENCE_SETTINGS = ("chunk_rays",)  # graf-eval may change these on a trained checkpoint
     """Args (all in ``conf/model/graf.yaml``):
         encoder_widths / encoder_downsample: ResNet-18 stage widths; average pooling of the spectra first.
         d_model: token / voxel latent width (16).

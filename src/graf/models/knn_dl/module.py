@@ -50,8 +50,8 @@ import torch
 import torch.nn.functional as F
 
 from graf.models.base import SpectrumModule, adam_exponential_decay
-from graf.models.graf.encoding import normalize_offsets
-from graf.models.graf.rays import N_AZIMUTH, N_ELEVATION
+from graf.geometry.encoding import normalize_offsets
+from graf.geometry.grid import N_AZIMUTH, N_ELEVATION
 from graf.models.knn.weights import idw_weights
 from graf.models.knn_dl.weightnet import WeightNet, upsample_maps
 

@@ -28,9 +28,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from graf.models.graf.encoding import PositionalEncoding
-from graf.models.graf.rays import N_AZIMUTH, N_ELEVATION
-from graf.sim.array import directions
+from graf.geometry.encoding import PositionalEncoding
+from graf.geometry.grid import N_AZIMUTH, N_ELEVATION, directions
 
 CHANNELS = 2  # fusion logit, signed correction
 
@@ -39,7 +38,7 @@ def cell_directions(map_size: Sequence[int]) -> torch.Tensor:
     """``[h * w, 3]`` gateway-frame unit directions of the centres of a coarse ``h x w`` grid over the
     spectrum (row-major, azimuth fastest); cell centres are where :func:`upsample_maps` puts them."""
     h, w = map_size
-    # pixel r is elevation r + 1 deg, pixel c azimuth c + 1 deg (graf.sim.array.grid_directions)
+    # pixel r is elevation r + 1 deg, pixel c azimuth c + 1 deg (graf.geometry.grid.grid_directions)
     el = (torch.arange(h, dtype=torch.float64) + 0.5) * (N_ELEVATION / h) - 0.5 + 1.0
     az = (torch.arange(w, dtype=torch.float64) + 0.5) * (N_AZIMUTH / w) - 0.5 + 1.0
     return directions(el, az).float()

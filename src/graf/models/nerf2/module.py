@@ -1,7 +1,7 @@
 """NeRF2 (Zhao et al., MobiCom 2023) as a per-scene baseline: a radiance field of the scene queried along
 each spectrum ray, with no neighbour spectra (the batch's ``src_*`` entries are ignored).
 
-Each pixel ``p = r * 360 + c`` is a ray from the gateway (directions of :mod:`graf.models.graf.rays`, rotated
+Each pixel ``p = r * 360 + c`` is a ray from the gateway (directions of :mod:`graf.geometry.grid`, rotated
 by ``gw_rot``).  S samples along it (:func:`.renderer.sample_distances`) go through :class:`.NeRF2Network`
 with the ray's world direction and the target transmitter's position, and :func:`.renderer.render_rays`
 turns them into the ray's amplitude.
@@ -39,14 +39,15 @@ import torch
 import torch.nn.functional as F
 
 from graf.models.base import SpectrumModule
-from graf.models.graf.rays import (fp32, local_directions, num_samples, random_pixels, render_spectra,
-                                  world_directions)
+from graf.geometry.grid import local_directions
+from graf.geometry.rays import fp32, num_samples, random_pixels, render_spectra, world_directions
 from graf.models.nerf2.network import NeRF2Network
 from graf.models.nerf2.renderer import render_rays, sample_distances
 
 
 
 class NeRF2Module(SpectrumModule):
+    INFERENCE_SETTINGS = ("chunk_rays",)  # graf-eval may change these on a trained checkpoint
     """Args (all in ``conf/model/nerf2.yaml``):
         depth / width / skips: the attenuation MLP (8 x 256, point encoding re-entered after layer 4).
         pe_freqs: encoding frequencies of points, view directions and transmitter (10: 3 -> 63 dims).

@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from graf.models.graf.encoding import PositionalEncoding
+from graf.geometry.encoding import PositionalEncoding
 
 
 class NeRF2Encoding(PositionalEncoding):

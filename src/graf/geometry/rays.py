@@ -2,7 +2,7 @@
 
 Pixel ``p = r * 360 + c`` of a 90 x 360 spectrum is the ray leaving the gateway at elevation ``r + 1`` deg
 and azimuth ``c + 1`` deg: local direction ``(cos e cos a, cos e sin a, sin e)``
-(:func:`graf.sim.array.grid_directions`), world direction ``gw_rot @ d``.
+(:func:`graf.geometry.grid.grid_directions`), world direction ``gw_rot @ d``.
 
 A ray of the scene's ``ray_length`` (m) is cut into ``S = min(max_samples, ceil(ray_length / wavelength))``
 voxels whose centres lie at ``(s + 0.5) * ray_length / S`` from the gateway: voxels one wavelength long
@@ -16,15 +16,7 @@ import math
 
 import torch
 
-from graf.sim.array import grid_directions
-
-N_ELEVATION, N_AZIMUTH = 90, 360
-N_RAYS = N_ELEVATION * N_AZIMUTH
-
-
-def local_directions(device=None, dtype=torch.float32) -> torch.Tensor:
-    """``[32400, 3]`` unit ray directions in the gateway frame (row-major: ``r * 360 + c``)."""
-    return grid_directions(torch.float64).to(device=device, dtype=dtype)
+from graf.geometry.grid import N_AZIMUTH, N_ELEVATION, N_RAYS
 
 
 def num_samples(ray_length: torch.Tensor, wavelength: torch.Tensor, max_samples: int) -> list[int]:

@@ -1,4 +1,4 @@
-"""Positional encoding (NeRF style, seed appendix D) and the scene normalisation of positions.
+"""Positional encodings (NeRF style, seed appendix D; sinusoidal for distances) and coordinate frames.
 
 :class:`PositionalEncoding` maps ``x [..., D]`` to ``[x, sin(2^k pi x), cos(2^k pi x)]_{k < F}``, i.e.
 ``D + 2 * D * F`` dims: 63 for 3-D coordinates and 84 for 4-D ones (3-D + scene index) with F = 10.
@@ -62,3 +62,29 @@ def normalize_offsets(v: torch.Tensor, bounds: torch.Tensor) -> torch.Tensor:
     """Displacements ``v [B, ..., 3]`` (e.g. neighbour - target) in the same frame (scaled, not centred)."""
     _, scale = scene_frame(bounds.to(v.dtype))
     return v / scale.view((v.shape[0],) + (1,) * (v.dim() - 1))
+
+
+def to_gateway_frame(p: torch.Tensor, gw_pos: torch.Tensor, gw_rot: torch.Tensor) -> torch.Tensor:
+    """World positions ``p [B, ..., 3]`` (m) -> metres in each item's gateway frame: origin at the array
+    centre, axes those of the array (``gw_rot [B, 3, 3]`` is local -> world, so this is ``R^T (p - g)``).
+    The frame every scene shares: the spectrum itself is measured in it."""
+    shape = (p.shape[0],) + (1,) * (p.dim() - 2)
+    v = p - gw_pos.to(p.dtype).view(*shape, 3)
+    return torch.einsum("bij,b...i->b...j", gw_rot.to(p.dtype), v)
+
+
+def to_gateway_axes(v: torch.Tensor, gw_rot: torch.Tensor) -> torch.Tensor:
+    """Displacements ``v [B, ..., 3]`` (m, e.g. neighbour - target) in the gateway's axes (rotated, not moved)."""
+    return torch.einsum("bij,b...i->b...j", gw_rot.to(v.dtype), v)
+
+
+def sinusoidal_encoding(x: torch.Tensor, dim: int, max_period: float = 10_000.0) -> torch.Tensor:
+    """Transformer-style encoding of a scalar ``x [...]`` (e.g. a distance in wavelengths) -> ``[..., dim]``:
+    ``sin(x w_i), cos(x w_i)`` with ``w_i = max_period^(-i / (dim / 2))``, periods from 2 pi to
+    ``2 pi max_period``.  Continuous in ``x``: defined for any distance, in any scene, at any sample count."""
+    if dim < 2 or dim % 2:
+        raise ValueError(f"sinusoidal_encoding needs an even dim >= 2, got {dim}")
+    half = dim // 2
+    w = torch.exp(-math.log(max_period) * torch.arange(half, device=x.device, dtype=torch.float32) / half)
+    a = x.float().unsqueeze(-1) * w
+    return torch.cat([torch.sin(a), torch.cos(a)], dim=-1)
