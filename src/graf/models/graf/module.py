@@ -61,7 +61,6 @@ def _mlp(d_in: int, hidden: int, d_out: int) -> nn.Sequential:
 
 
 class GRaFModule(SpectrumModule):
-    INFERENCE_SETTINGS = ("chunk_rays",)  # graf-eval may change these on a trained checkpoint
     """Args (all in ``conf/model/graf.yaml``):
         encoder_widths / encoder_downsample: ResNet-18 stage widths; average pooling of the spectra first.
         d_model: token / voxel latent width (16).
@@ -107,8 +106,10 @@ class GRaFModule(SpectrumModule):
         pe_abs, pe_off = self.pe.out_dim(coord_dim), self.pe.out_dim(3)
         self.encoder = ResNetEncoder(encoder_widths, in_channels=1, downsample=encoder_downsample)
         self.mlp1 = _mlp(self.encoder.out_dim + pe_abs + pe_off, mlp_dim, d)
-        # Linear(PE(voxel) ⊕ PE(target)) split in two so that the target's half is computed once per target
+        # Linear(PE(voxel) ⊕ PE(ray direction) ⊕ PE(target)) split in three: the direction's part is computed
+        # once per ray (it is constant along the ray) and the target's once per target
         self.query_voxel = nn.Linear(pe_abs, d)
+        self.query_direction = nn.Linear(self.pe.out_dim(3), d, bias=False)
         self.query_target = nn.Linear(pe_abs, d, bias=False)
         self.scene_blocks = nn.ModuleList(CrossAttentionBlock(d, 1, d, ffn_dim) for _ in range(scene_blocks))
         self.mlp2 = _mlp(d, mlp_dim, d)
@@ -190,7 +191,8 @@ class GRaFModule(SpectrumModule):
             dirs = world_directions(ctx["gw_rot"], self.ray_dirs[pix].float())  # [B, R, 3]
             pos = ctx["gw_pos"][:, None, None, :] + ctx["dist"][:, None, :, None] * dirs[:, :, None, :]  # [B,R,S,3]
             pe = self.pe(self._coords(pos, {"bounds": ctx["bounds"], "scene_index": ctx["scene_index"]}))
-        q = self.query_voxel(pe) + ctx["target_query"][:, None, None, :]
+            pe_dir = self.pe(dirs)  # [B, R, 63]: world directions (unit vectors)
+        q = self.query_voxel(pe) + (self.query_direction(pe_dir) + ctx["target_query"][:, None, :])[:, :, None, :]
         q = q.flatten(1, 2)  # [B, R*S, d]: each target's voxels attend to that target's neighbours
         for blk in self.scene_blocks:
             q = blk(q, ctx["tokens"], ctx["key_mask"])
