@@ -41,9 +41,9 @@ from torch import nn
 from graf.models.base import SpectrumModule, adam_exponential_decay
 from graf.models.graf.attention import CrossAttentionBlock, SelfAttentionBlock
 from graf.models.graf.encoder import ResNetEncoder
-from graf.geometry.encoding import PositionalEncoding, normalize_offsets, normalize_positions
+from graf.geometry.encoding import PositionalEncoding, to_gateway_axes, to_gateway_frame
 from graf.geometry.grid import local_directions
-from graf.geometry.rays import fp32, num_samples, random_pixels, render_spectra, voxel_distances, world_directions
+from graf.geometry.rays import fp32, num_samples, random_pixels, render_spectra, voxel_distances
 from graf.models.knn.weights import barycentric_weights, idw_weights
 
 WEIGHTINGS = ("idw", "barycentric")
@@ -84,7 +84,7 @@ class GRaFModule(SpectrumModule):
                  ray_head_dim: int = 8, ffn_dim: int = 64, mlp_dim: int = 64, pe_freqs: int = 10,
                  max_samples: int = 128, rays_per_step: int = 5120, chunk_rays: int = 4096, lr: float = 5e-4,
                  lr_decay: float = 0.1, decay_steps: int = 300_000, residual: bool = False,
-                 weighting: str = "idw", use_scene_index: bool = False, loss: str = "mse"):
+                 weighting: str = "idw", use_scene_index: bool = False, loss: str = "mse", length_unit: float = 4.0):
         super().__init__()
         if weighting not in WEIGHTINGS:
             raise ValueError(f"model.weighting must be one of {WEIGHTINGS}, got {weighting!r}")
@@ -92,13 +92,15 @@ class GRaFModule(SpectrumModule):
             raise ValueError(f"model.loss must be one of {LOSSES}, got {loss!r}")
         if min(d_model, scene_blocks, ray_heads, ray_head_dim, max_samples, rays_per_step, chunk_rays) < 1:
             raise ValueError("GRaF sizes must be positive")
+        if not length_unit > 0:
+            raise ValueError(f"model.length_unit must be > 0 (metres), got {length_unit}")
         encoder_widths = [int(w) for w in encoder_widths]  # plain ints in the checkpoint, not a ListConfig
         self.save_hyperparameters()
         self.d_model, self.max_samples = int(d_model), int(max_samples)
         self.rays_per_step, self.chunk_rays = int(rays_per_step), int(chunk_rays)
         self.lr, self.lr_decay, self.decay_steps = float(lr), float(lr_decay), int(decay_steps)
         self.residual, self.weighting, self.use_scene_index = bool(residual), weighting, bool(use_scene_index)
-        self.loss_name = loss
+        self.loss_name, self.length_unit = loss, float(length_unit)
         d = self.d_model
         coord_dim = 4 if self.use_scene_index else 3
 
@@ -128,14 +130,19 @@ class GRaFModule(SpectrumModule):
         return "graf-residual" if self.residual else "graf"
 
     # ------------------------------------------------------------------ building blocks
+    def _with_scene(self, x: torch.Tensor, scene_index: torch.Tensor) -> torch.Tensor:
+        """Gateway-frame coordinates ``[B, ..., 3]`` (+ the scaled scene index as a 4th coordinate)."""
+        if not self.use_scene_index:
+            return x
+        s = scene_index.to(device=x.device, dtype=x.dtype) * SCENE_INDEX_SCALE
+        s = s.view((x.shape[0],) + (1,) * (x.dim() - 1)).expand(*x.shape[:-1], 1)
+        return torch.cat([x, s], dim=-1)
+
     def _coords(self, p: torch.Tensor, batch: dict) -> torch.Tensor:
-        """World positions ``[B, ..., 3]`` -> normalised coordinates (+ the scaled scene index)."""
-        x = normalize_positions(p.float(), batch["bounds"].float())
-        if self.use_scene_index:
-            s = batch["scene_index"].to(device=x.device, dtype=x.dtype) * SCENE_INDEX_SCALE
-            s = s.view((x.shape[0],) + (1,) * (x.dim() - 1)).expand(*x.shape[:-1], 1)
-            x = torch.cat([x, s], dim=-1)
-        return x
+        """World positions ``[B, ..., 3]`` -> coordinates in the item's gateway frame in units of ``length_unit``
+        metres, the same scale in every scene (+ the scaled scene index)."""
+        x = to_gateway_frame(p.float(), batch["gw_pos"].float(), batch["gw_rot"].float()) / self.length_unit
+        return self._with_scene(x, batch["scene_index"])
 
     def encode_neighbours(self, batch: dict) -> tuple[torch.Tensor, torch.Tensor]:
         """``(tokens [B, L, d], mask [B, L])``; the encoder sees only the real neighbours' spectra."""
@@ -146,7 +153,7 @@ class GRaFModule(SpectrumModule):
         feats[mask] = real
         src_pos, tgt_pos = batch["src_pos"].float(), batch["tgt_pos"].float()
         pe_pos = self.pe(self._coords(src_pos, batch))
-        pe_off = self.pe(normalize_offsets(src_pos - tgt_pos[:, None, :], batch["bounds"].float()))
+        pe_off = self.pe(to_gateway_axes(src_pos - tgt_pos[:, None, :], batch["gw_rot"].float()) / self.length_unit)
         tokens = self.mlp1(torch.cat([feats.float(), pe_pos, pe_off], dim=-1))
         return torch.where(mask[..., None], tokens, torch.zeros_like(tokens)), mask
 
@@ -172,9 +179,6 @@ class GRaFModule(SpectrumModule):
             "samples": samples,
             "sample_mask": None if min(samples) == S else smask,  # [B, S]
             "dist": voxel_distances(batch["ray_length"].float(), samples),  # [B, S]
-            "gw_pos": batch["gw_pos"].float(),
-            "gw_rot": batch["gw_rot"].float(),
-            "bounds": batch["bounds"].float(),
             "scene_index": batch["scene_index"],
         }
         if self.residual:
@@ -188,10 +192,11 @@ class GRaFModule(SpectrumModule):
         B, R = pix.shape
         S = max(ctx["samples"])
         with fp32(pix.device):  # geometry in fp32 also under autocast: PE phases reach 2^9 pi x
-            dirs = world_directions(ctx["gw_rot"], self.ray_dirs[pix].float())  # [B, R, 3]
-            pos = ctx["gw_pos"][:, None, None, :] + ctx["dist"][:, None, :, None] * dirs[:, :, None, :]  # [B,R,S,3]
-            pe = self.pe(self._coords(pos, {"bounds": ctx["bounds"], "scene_index": ctx["scene_index"]}))
-            pe_dir = self.pe(dirs)  # [B, R, 63]: world directions (unit vectors)
+            # in the gateway frame a voxel is its distance times the pixel's (local) direction: no rotation
+            dirs = self.ray_dirs[pix].float()  # [B, R, 3]
+            pos = (ctx["dist"][:, None, :, None] / self.length_unit) * dirs[:, :, None, :]  # [B, R, S, 3]
+            pe = self.pe(self._with_scene(pos, ctx["scene_index"]))
+            pe_dir = self.pe(dirs)  # [B, R, 63]: ray directions (unit vectors, gateway frame)
         q = self.query_voxel(pe) + (self.query_direction(pe_dir) + ctx["target_query"][:, None, :])[:, :, None, :]
         q = q.flatten(1, 2)  # [B, R*S, d]: each target's voxels attend to that target's neighbours
         for blk in self.scene_blocks:
