@@ -4,11 +4,14 @@ For a target transmitter at P and its L neighbours (spectra SS_l at positions P_
 a ray from the gateway; the predicted value of a ray is
 
 1. **Neighbour tokens** (once per neighbour spectrum per batch, never per ray): ``MLP1(ResNet18(SS_l) ⊕
-   PE(norm(P_l)) ⊕ PE(norm(P_l - P)))`` -> ``d_model`` (16) tokens; padded neighbours are masked out.
+   PE(P_l) ⊕ PE(P_l - P))`` -> ``d_model`` (16) tokens; padded neighbours are masked out.
 2. **Voxel latents**: the S voxels along the ray (one wavelength apart unless capped at ``max_samples``,
-   see :mod:`.rays`) are queries ``Linear(PE(norm(x_s)) ⊕ PE(norm(P)))`` that attend to the neighbour
-   tokens through ``scene_blocks`` post-norm cross-attention blocks (1 head of width d), then ``MLP2``.
-3. **Neural ray tracing**: voxel latents + a learned voxel-index embedding go through ``ray_blocks``
+   see :mod:`graf.geometry.rays`) are queries ``Linear(PE(x_s) ⊕ PE(dir) ⊕ PE(P))`` (voxel, ray direction,
+   target) that attend to the neighbour tokens through ``scene_blocks`` post-norm cross-attention blocks
+   (1 head of width d), then ``MLP2``.
+3. **Neural ray tracing**: voxel latents + a code of each voxel's distance from the gateway in wavelengths
+   (``Linear(sinusoidal(dist / wavelength))``: continuous, so it means the same in every scene and band and
+   at any S) go through ``ray_blocks``
    post-norm self-attention blocks (``ray_heads`` heads of ``ray_head_dim``), are mean-pooled over the
    ray, and ``Linear(d, 2)`` gives the received signal ``re + j im``; the prediction is its amplitude
    ``sqrt(re^2 + im^2 + eps)``.
@@ -18,8 +21,11 @@ a ray from the gateway; the predicted value of a ray is
 Linear is zero-initialised, so at initialisation the model *is* KNN.  (Then ``im`` sits at a stationary
 point of ``|.|`` and keeps a zero gradient; ``re`` alone reaches every amplitude, so nothing is lost.)
 
-Positions are normalised by the scene box of each batch item (:func:`.encoding.normalize_positions`);
-``use_scene_index`` appends the scene index as a fourth coordinate of every absolute position (3-D PE: 63
+**Geometry, the same in every scene**: every position (voxels, target, neighbours) and direction is
+expressed in the item's *gateway frame* (origin at the receiving array, its axes;
+:func:`graf.geometry.encoding.to_gateway_frame`) in units of ``length_unit`` metres (4 m by default), so one
+unit is the same length in every scene a model is trained or tested on; offsets ``P_l - P`` are rotated into
+the same axes.  ``use_scene_index`` appends the scene index as a fourth coordinate of every absolute position (3-D PE: 63
 dims, 4-D: 84 dims); offsets stay 3-D.
 
 Training: ``rays_per_step`` random pixels per step, split evenly across the batch's targets (drawn
@@ -41,7 +47,7 @@ from torch import nn
 from graf.models.base import SpectrumModule, adam_exponential_decay
 from graf.models.graf.attention import CrossAttentionBlock, SelfAttentionBlock
 from graf.models.graf.encoder import ResNetEncoder
-from graf.geometry.encoding import PositionalEncoding, to_gateway_axes, to_gateway_frame
+from graf.geometry.encoding import PositionalEncoding, sinusoidal_encoding, to_gateway_axes, to_gateway_frame
 from graf.geometry.grid import local_directions
 from graf.geometry.rays import fp32, num_samples, random_pixels, render_spectra, voxel_distances
 from graf.models.knn.weights import barycentric_weights, idw_weights
@@ -61,6 +67,11 @@ def _mlp(d_in: int, hidden: int, d_out: int) -> nn.Sequential:
 
 
 class GRaFModule(SpectrumModule):
+    LAYOUT = 2
+    LAYOUT_CHANGES = {2: "positions are now metres in the gateway frame (layout 1 normalised them by each scene's "
+                         "box), ray directions are encoded, and voxels are encoded by their distance in wavelengths "
+                         "(layout 1 had a learned voxel-index table sized by max_samples)"}
+    sample_spacing = 1.0  # voxels one wavelength long (seed D), unless max_samples caps S
     """Args (all in ``conf/model/graf.yaml``):
         encoder_widths / encoder_downsample: ResNet-18 stage widths; average pooling of the spectra first.
         d_model: token / voxel latent width (16).
@@ -92,6 +103,8 @@ class GRaFModule(SpectrumModule):
             raise ValueError(f"model.loss must be one of {LOSSES}, got {loss!r}")
         if min(d_model, scene_blocks, ray_heads, ray_head_dim, max_samples, rays_per_step, chunk_rays) < 1:
             raise ValueError("GRaF sizes must be positive")
+        if d_model % 2:
+            raise ValueError(f"model.d_model must be even (the voxel distance encoding is sin/cos pairs), got {d_model}")
         if not length_unit > 0:
             raise ValueError(f"model.length_unit must be > 0 (metres), got {length_unit}")
         encoder_widths = [int(w) for w in encoder_widths]  # plain ints in the checkpoint, not a ListConfig
@@ -115,8 +128,9 @@ class GRaFModule(SpectrumModule):
         self.query_target = nn.Linear(pe_abs, d, bias=False)
         self.scene_blocks = nn.ModuleList(CrossAttentionBlock(d, 1, d, ffn_dim) for _ in range(scene_blocks))
         self.mlp2 = _mlp(d, mlp_dim, d)
-        self.voxel_index = nn.Embedding(self.max_samples, d)
-        nn.init.normal_(self.voxel_index.weight, std=0.02)
+        # each voxel's place on the ray: a learned projection of a sinusoidal code of its distance from the
+        # gateway in wavelengths (the same meaning in every scene and band, at any sample count)
+        self.voxel_distance = nn.Linear(d, d)
         self.ray_blocks = nn.ModuleList(SelfAttentionBlock(d, ray_heads, ray_head_dim, ffn_dim)
                                         for _ in range(ray_blocks))
         self.head = nn.Linear(d, 2)
@@ -170,6 +184,7 @@ class GRaFModule(SpectrumModule):
         """Everything about a batch that does not depend on the rays: computed once per batch."""
         tokens, mask = self.encode_neighbours(batch)
         samples = self.samples_per_ray(batch)
+        dist = voxel_distances(batch["ray_length"].float(), samples)
         S = max(samples)
         smask = torch.arange(S, device=tokens.device)[None, :] < torch.as_tensor(samples, device=tokens.device)[:, None]
         ctx = {
@@ -178,7 +193,9 @@ class GRaFModule(SpectrumModule):
             "target_query": self.query_target(self.pe(self._coords(batch["tgt_pos"].float(), batch))),  # [B, d]
             "samples": samples,
             "sample_mask": None if min(samples) == S else smask,  # [B, S]
-            "dist": voxel_distances(batch["ray_length"].float(), samples),  # [B, S]
+            "dist": dist,  # [B, S] metres
+            "voxel_code": self.voxel_distance(sinusoidal_encoding(dist / batch["wavelength"].float()[:, None],
+                                                                  self.d_model)),  # [B, S, d]
             "scene_index": batch["scene_index"],
         }
         if self.residual:
@@ -201,7 +218,7 @@ class GRaFModule(SpectrumModule):
         q = q.flatten(1, 2)  # [B, R*S, d]: each target's voxels attend to that target's neighbours
         for blk in self.scene_blocks:
             q = blk(q, ctx["tokens"], ctx["key_mask"])
-        v = self.mlp2(q).reshape(B * R, S, self.d_model) + self.voxel_index.weight[:S]
+        v = (self.mlp2(q).view(B, R, S, self.d_model) + ctx["voxel_code"][:, None]).reshape(B * R, S, self.d_model)
         smask = ctx["sample_mask"]
         rmask = None if smask is None else smask[:, None, :].expand(B, R, S).reshape(B * R, S)
         for blk in self.ray_blocks:
