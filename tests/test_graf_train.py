@@ -9,6 +9,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -53,7 +54,14 @@ def test_killed_training_resumes_from_its_last_checkpoint(tmp_path):
     assert p.returncode == 0, p.stderr[-3000:]
     r = json.loads((second / "results.json").read_text())
     assert r["global_step"] == 16  # continued from the checkpoint to the planned length, not restarted
-    assert torch.load(second / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)["global_step"] == 16
+    resumed = torch.load(second / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    assert resumed["global_step"] == 16
+    # ... and ends with the weights of a run that was never interrupted (same batches, neighbours and rays)
+    third = tmp_path / "uninterrupted"
+    p = subprocess.run([exe, *args, f"hydra.run.dir={third}"], capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr[-3000:]
+    whole = torch.load(third / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)["state_dict"]
+    assert all(torch.equal(v, whole[k]) for k, v in resumed["state_dict"].items())
 
 
 def test_bench_models_reports_cost_side_by_side(tmp_path):
@@ -98,3 +106,46 @@ def test_finetune_starts_from_a_checkpoints_weights_and_rejects_another_architec
                                     f"finetune.init_from={tmp_path / 'nope.ckpt'}", *FAST))
     with pytest.raises(CheckpointError, match="nope.ckpt: checkpoint file does not exist"):
         train(missing)
+
+
+def test_eval_of_a_checkpoint_applies_inference_settings_and_refuses_the_rest(compose_cfg, tmp_path):
+    from graf.cli.evaluate import evaluate
+
+    cfg = compose_cfg("train", ("experiment=graf_rfid_s23", "trainer.max_steps=1", "model.residual=true", *FAST))
+    train(cfg)
+    ckpt = Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt"
+    common = ("trainer.limit_test_batches=1", "plot_count=0")
+
+    def run(*overrides, out="e", path=ckpt):
+        ecfg = compose_cfg("eval", (f"ckpt_path={path}", *common, *overrides, f"paths.output_dir={tmp_path / out}"))
+        evaluate(ecfg, overrides=list(overrides))
+        return json.loads((tmp_path / out / "results.json").read_text())
+
+    # an inference setting is applied; the rest of the model is the checkpoint's, not the preset's
+    r = run("model=graf_cpu", "model.chunk_rays=512", "model.residual=true")
+    assert r["method"] == "graf-residual" and r["config"]["model"]["residual"] is True
+    assert r["config"]["model"]["chunk_rays"] == 512 and r["checkpoint"]["applied_overrides"] == {"chunk_rays": 512}
+    assert r["config"]["model"]["max_samples"] == 8 and r["checkpoint"]["global_step"] == 1
+    assert r["ray_sampling"]["rfid_s23"]["capped"] is True  # max_samples=8 < the 17 wavelengths of rfid_s23
+    assert all(np.isfinite(v) for v in r["metrics"].values()) and "val/psnr" in r["metrics"]
+    # without model=... the class comes from the checkpoint (the default model=knn is not used)
+    assert run(out="plain")["method"] == "graf-residual"
+    # a training setting would describe a model that did not run: refused
+    with pytest.raises(CheckpointError, match=r"model.lr=0.1 cannot change the trained checkpoint .*last.ckpt "
+                                              r"\(it was trained with lr=0.0005\); only inference settings may be "
+                                              r"overridden at evaluation: model.chunk_rays"):
+        run("model=graf_cpu", "model.lr=0.1")
+    with pytest.raises(CheckpointError, match=r"holds a graf.models.graf.module.GRaFModule checkpoint, but "
+                                              r"model=knn_dl is graf.models.knn_dl.KNNDLModule"):
+        run("model=knn_dl")
+    # a checkpoint of the old GRaF layout is refused with the reason, for evaluation, resuming and fine-tuning
+    old = torch.load(ckpt, map_location="cpu", weights_only=False)
+    old.pop("graf")
+    torch.save(old, tmp_path / "old.ckpt")
+    why = r"old.ckpt: was written by GRaFModule layout 1; this version reads layout 2 only.*voxel-index table"
+    with pytest.raises(CheckpointError, match=why):
+        run("model=graf_cpu", path=tmp_path / "old.ckpt")
+    for extra in ((f"ckpt_path={tmp_path / 'old.ckpt'}",),
+                  ("finetune=from_checkpoint", f"finetune.init_from={tmp_path / 'old.ckpt'}")):
+        with pytest.raises(CheckpointError, match=why):
+            train(compose_cfg("train", ("experiment=graf_rfid_s23", "trainer.max_steps=2", *extra, *FAST)))

@@ -18,6 +18,7 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 
 import graf.sim  # noqa: F401  (configures Sionna RT's CPU backend)
+from graf.bands import Band
 from graf.cli.common import CONF_DIR
 from graf.cli.evaluate import evaluate
 from graf.data.nerf2_format import DataFormatError, read_nerf2_folder
@@ -87,7 +88,7 @@ def test_graf_eval_reads_the_simulated_scene(reference, tmp_path):
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name="eval", overrides=[
-            "model=knn", "scene=small_room", "band=2.4ghz", f"data_root={reference}", "logger=none",
+            "model=knn", "scene=small_room", "scene.num_tx=96", "band=2.4ghz", f"data_root={reference}", "logger=none",
             f"paths.output_dir={tmp_path}", "trainer.accelerator=cpu", "plot_count=1"])
     GlobalHydra.instance().clear()
     metrics, _ = evaluate(cfg)
@@ -123,3 +124,12 @@ def test_show_scenes_and_bench_sim_commands(reference, tmp_path):
     b = json.loads((tmp_path / "bench" / "results.json").read_text())
     assert b["positions"] == 16 and b["spectra_per_second"] > 0 and "spectra/s" in p.stdout
     assert b["convergence"]["positions"] == 8 and b["convergence"]["psnr_min"] > 0
+
+
+def test_a_limited_dataset_is_read_only_when_asked_for(reference, compose_cfg):
+    band = Band("2.4ghz", 2.412e9)
+    scene = instantiate(compose_cfg("eval", ("scene=small_room",)).scene)
+    with pytest.raises(DataFormatError, match=r"no dataset for scene small_room .* scene.num_tx=N \(N in \[96\]\)"):
+        scene.load(reference, band)  # only 2.4ghz-n96.h5 is there: never used silently
+    asked = instantiate(compose_cfg("eval", ("scene=small_room", "scene.num_tx=96")).scene)
+    assert len(asked.load(reference, band).ids) == 96

@@ -51,6 +51,8 @@ def bench(cfg: DictConfig) -> dict:
             mb = path.stat().st_size / 2 ** 20
         with torch.no_grad():
             model.predict_spectra(batches[0])  # warm-up
+            if device.type == "cuda":
+                torch.cuda.synchronize()  # the warm-up's kernels must not run into the timed window
             t0 = time.perf_counter()
             for b in batches[1:]:
                 model.predict_spectra(b)

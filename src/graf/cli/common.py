@@ -1,9 +1,11 @@
-"""What graf-train and graf-eval share: building the run from the config, testing, and writing results.
+"""What graf-train and graf-eval share: building the run from the config, validating and testing the
+final weights, and writing results.
 
 Every command writes ``results.json`` into its Hydra output folder::
 
     {"method", "scene", "band_hz", "n_train", "n_test",
-     "metrics": {"test/mse", "test/psnr", "test/ssim", "test/lpips"}, "seconds", "config", ...}
+     "metrics": {"val/mse", ..., "test/mse", "test/psnr", "test/ssim", "test/lpips"}, "seconds", "config",
+     "splits", "ray_sampling", ...}
 
 and, with ``save_predictions=true``, ``predictions.npz`` (``pred``, ``target``: float32 [N, 90, 360] in
 [0, 1]; ``ids``: int [N]).  A figure of predicted vs true spectra (``spectra.png``) goes beside them.

@@ -41,7 +41,7 @@ def load_checkpoint_model(cfg: DictConfig, path: str, overrides: Sequence[str]):
     target = (ckpt.get("graf") or {}).get("target")
     if target is None:  # written before checkpoints named their class: trust model=..., check the layout
         target = cfg.model._target_
-    elif choice is not None and cfg.model._target_ != target:
+    elif choice is not None and get_class(cfg.model._target_) is not get_class(target):
         raise CheckpointError(f"{path}: holds a {target} checkpoint, but model={choice} is {cfg.model._target_}; "
                               "drop model=... (graf-eval takes the class from the checkpoint)")
     cls = get_class(target)

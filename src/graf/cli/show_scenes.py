@@ -31,12 +31,12 @@ def show(cfg: DictConfig) -> dict:
     band = hydra.utils.instantiate(cfg.band)
     rows, summary = [], {}
     for name in cfg.scenes:
-        path = Path(cfg.data_root) / "sim" / name / f"{band.name}.h5"
-        limited = sorted(path.parent.glob(f"{band.name}-n*.h5"))
-        if not path.is_file() and limited:  # a quick run (graf-simulate sim.num_tx=N)
-            path = limited[-1]
+        suffix = "" if cfg.get("num_tx") is None else f"-n{int(cfg.num_tx)}"
+        path = Path(cfg.data_root) / "sim" / name / f"{band.name}{suffix}.h5"
         if not path.is_file():
-            raise FileNotFoundError(f"{path}: no dataset; make it with graf-simulate scene={name} band={band.name}")
+            limited = sorted(p.name for p in path.parent.glob(f"{band.name}-n*.h5"))
+            raise FileNotFoundError(f"{path}: no dataset; make it with graf-simulate scene={name} band={band.name}"
+                                    + (f" (limited ones there: {limited}; show them with num_tx=N)" if limited else ""))
         d = read_dataset(path)
         pick = np.linspace(0, len(d.ids) - 1, int(cfg.count)).round().astype(int)
         rows.append((name, d, pick))

@@ -30,14 +30,17 @@ class SimulatedScene:
         tracing: Sionna RT PathSolver settings (max_depth, refraction, diffraction, samples_per_src, ...)
             plus sources_per_call.
         description: free text for people.
+        num_tx: read the limited dataset ``<band>-n<num_tx>.h5`` (made by ``graf-simulate sim.num_tx=N``)
+            instead of the full one; never chosen silently.
     """
 
     kind = "simulated"
 
     def __init__(self, name: str, gateway: dict, transmitters: dict, tracing: dict, array: dict,
                  room: dict | None = None, ground: dict | None = None, objects: dict | None = None,
-                 description: str = ""):
+                 description: str = "", num_tx: int | None = None):
         self.name = name
+        self.num_tx = None if num_tx is None else int(num_tx)
         self.room, self.ground, self.objects = room, ground, objects or {}
         self.gateway, self.transmitters = dict(gateway), dict(transmitters)
         self.tracing, self.array = dict(tracing), dict(array)
@@ -108,15 +111,14 @@ class SimulatedScene:
 
         if data_root is None:
             raise DataFormatError("data_root", "simulated scenes are read from data_root; set data_root=DIR")
+        num_tx = self.num_tx if num_tx is None else num_tx
         path = self.dataset_path(data_root, band, num_tx)
         if not path.is_file():
-            # a limited run (sim.num_tx=N) is used when it is the only one there
+            # a limited run (sim.num_tx=N) is used only when asked for (scene.num_tx=N), never silently
             limited = sorted(path.parent.glob(f"{band.name}-n*.h5")) if num_tx is None else []
-            if len(limited) == 1:
-                path = limited[0]
-            else:
-                raise DataFormatError(path, f"no dataset for scene {self.name} at band {band.name}; make it with "
-                                            f"`graf-simulate scene={self.name} band={band.name} data_root={data_root}`"
-                                      + (f" (found {[p.name for p in limited]}: choose with scene.num_tx)"
-                                         if limited else ""))
+            found = [int(p.stem.rsplit("-n", 1)[1]) for p in limited if p.stem.rsplit("-n", 1)[1].isdigit()]
+            raise DataFormatError(path, f"no dataset for scene {self.name} at band {band.name}; make it with "
+                                        f"`graf-simulate scene={self.name} band={band.name} data_root={data_root}`"
+                                  + (f", or use a limited one that is there with scene.num_tx=N (N in {found})"
+                                     if found else ""))
         return read_dataset(path, name=self.name)

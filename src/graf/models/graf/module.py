@@ -67,6 +67,7 @@ def _mlp(d_in: int, hidden: int, d_out: int) -> nn.Sequential:
 
 
 class GRaFModule(SpectrumModule):
+    INFERENCE_SETTINGS = ("chunk_rays",)  # graf-eval may change these on a trained checkpoint
     LAYOUT = 2
     LAYOUT_CHANGES = {2: "positions are now metres in the gateway frame (layout 1 normalised them by each scene's "
                          "box), ray directions are encoded, and voxels are encoded by their distance in wavelengths "
