@@ -6,6 +6,8 @@ import numpy as np
 import torch
 from lightning.pytorch.callbacks import Callback
 
+from graf.geometry.grid import SPECTRUM_SHAPE
+
 
 class PredictionCollector(Callback):
     """Keeps the test predictions, targets and ids (float32 on CPU) for results files and figures."""
@@ -25,7 +27,7 @@ class PredictionCollector(Callback):
 
     def arrays(self) -> dict[str, np.ndarray]:
         if not self.pred:
-            return {"pred": np.zeros((0, 90, 360), np.float32), "target": np.zeros((0, 90, 360), np.float32),
+            return {"pred": np.zeros((0, *SPECTRUM_SHAPE), np.float32), "target": np.zeros((0, *SPECTRUM_SHAPE), np.float32),
                     "ids": np.zeros((0,), np.int64)}
         return {"pred": torch.cat(self.pred).numpy().astype(np.float32),
                 "target": torch.cat(self.target).numpy().astype(np.float32),

@@ -12,6 +12,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from graf.geometry.grid import SPECTRUM_SHAPE
+
 
 @torch.no_grad()
 def synthesize(model, datamodule, positions: np.ndarray, batch_size: int | None = None) -> torch.Tensor:
@@ -29,4 +31,4 @@ def synthesize(model, datamodule, positions: np.ndarray, batch_size: int | None 
     for batch in datamodule.query_batches(positions, batch_size):
         batch = {k: v.to(device) for k, v in batch.items()}
         out.append(model.predict_spectra(batch).float().clamp(0, 1).cpu())
-    return torch.cat(out) if out else torch.zeros((0, 90, 360))
+    return torch.cat(out) if out else torch.zeros((0, *SPECTRUM_SHAPE))

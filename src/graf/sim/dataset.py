@@ -34,6 +34,7 @@ import torch
 
 from graf.bands import Band
 from graf.data.spectrum_set import DataFormatError, SpectrumSet, warn_flat_spectra
+from graf.geometry.grid import SPECTRUM_SHAPE
 from graf.io import atomic_write_json, atomic_write_npz
 
 log = logging.getLogger(__name__)
@@ -128,7 +129,7 @@ def _assemble(path: Path, parts: Path, chunks, scene, band: Band, positions, ant
     tmp = path.with_name(f".{path.name}.tmp")
     with h5py.File(tmp, "w", track_order=False) as f:
         kw = dict(track_times=False)
-        f.create_dataset("spectra", data=spectra, chunks=(min(64, n), 90, 360), compression="gzip",
+        f.create_dataset("spectra", data=spectra, chunks=(min(64, n), *SPECTRUM_SHAPE), compression="gzip",
                          compression_opts=4, shuffle=True, **kw)
         f.create_dataset("channels", data=channels, **kw)
         f.create_dataset("positions", data=positions.astype(np.float64), **kw)
@@ -167,7 +168,7 @@ def read_dataset(path: str | Path, name: str | None = None) -> SpectrumSet:
             if key not in f:
                 raise DataFormatError(path, f"has no '{key}' dataset")
         spectra = f["spectra"][()]
-        if spectra.ndim != 3 or spectra.shape[1:] != (90, 360) or spectra.dtype != np.uint8:
+        if spectra.ndim != 3 or spectra.shape[1:] != SPECTRUM_SHAPE or spectra.dtype != np.uint8:
             raise DataFormatError(path, f"spectra must be uint8 [N, 90, 360], got {spectra.dtype} {spectra.shape}")
         positions = f["positions"][()]
         if not np.isfinite(positions).all():
