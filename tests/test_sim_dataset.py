@@ -113,7 +113,7 @@ def test_changed_configuration_is_refused_and_missing_dataset_is_explained(tmp_p
 
 
 def test_show_scenes_and_bench_sim_commands(reference, tmp_path):
-    p = subprocess.run([str(BIN / "graf-show-scenes"), f"data_root={reference}", "scenes=[small_room]", "count=2",
+    p = subprocess.run([str(BIN / "graf-show-scenes"), f"data_root={reference}", "scenes=[small_room]", "count=2", "num_tx=96",
                         f"hydra.run.dir={tmp_path / 'show'}"], capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr[-2000:]
     r = json.loads((tmp_path / "show" / "results.json").read_text())
