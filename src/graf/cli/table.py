@@ -36,7 +36,7 @@ from graf.io import atomic_write_bytes, atomic_write_json
 
 log = logging.getLogger("graf")
 
-METRICS = ("test/mse", "test/psnr", "test/ssim", "test/lpips")
+METRICS = ("val/psnr", "val/ssim", "test/mse", "test/psnr", "test/ssim", "test/lpips")  # blank where absent
 IGNORED_PREFIXES = ("paths.", "hydra.", "data_root", "task_name", "logger.", "trainer.default_root_dir", "callbacks.",
                     "save_predictions", "plot_count", "ckpt_path")
 
@@ -98,7 +98,8 @@ def varying_keys(rows: list[dict]) -> list[str]:
 
 def build_table(rows: list[dict]) -> tuple[list[str], list[list]]:
     axes = varying_keys(rows)
-    header = ["method", "scene", *axes, "parameters", "steps", "n_test", "MSE", "PSNR", "SSIM", "LPIPS", "seconds"]
+    header = ["method", "scene", *axes, "parameters", "steps", "n_test", "val PSNR", "val SSIM", "MSE", "PSNR", "SSIM",
+              "LPIPS", "seconds"]
     body, seen = [], set()
     for r in rows:
         flat = _flatten(r.get("config", {}))
@@ -120,8 +121,8 @@ def _fmt(v, col):
     if isinstance(v, float):
         if math.isnan(v):
             return "nan"
-        return {"MSE": f"{v:.4f}", "PSNR": f"{v:.2f}", "SSIM": f"{v:.3f}", "LPIPS": f"{v:.3f}",
-                "seconds": f"{v:.1f}"}.get(col, f"{v:g}")
+        return {"MSE": f"{v:.4f}", "PSNR": f"{v:.2f}", "SSIM": f"{v:.3f}", "LPIPS": f"{v:.3f}", "val PSNR": f"{v:.2f}",
+                "val SSIM": f"{v:.3f}", "seconds": f"{v:.1f}"}.get(col, f"{v:g}")
     return "" if v is None else str(v)
 
 
