@@ -145,7 +145,8 @@ def test_items_with_different_voxel_counts_share_a_batch(tiny):
     pix = torch.arange(0, 32400, 97).expand(2, -1)
     with torch.no_grad():
         ctx = model.prepare(b)
-        assert ctx["samples"][1] > ctx["samples"][0] and ctx["sample_mask"] is not None
+        s0, s1 = model.samples_per_ray(b)
+        assert s1 > s0 and model.mean_samples_per_ray(b)[1] > model.mean_samples_per_ray(b)[0]
         both = model.render(ctx, pix)
         for i in range(2):
             one = model.render(model.prepare({k: v[i:i + 1] for k, v in b.items()}), pix[i:i + 1])
@@ -221,7 +222,11 @@ def test_chunking_and_encoder_calls(rfid):
         assert seen == [int(b["src_mask"].sum())] == [17]  # once per real neighbour spectrum, not per ray
         model.chunk_rays = 40000
         whole = model.predict_spectra(b)
-        assert seen == [17, 17]
+        assert seen == [17]  # evaluation: a spectrum already encoded with these weights is not encoded again
+        model.encoder.stem[0].weight[0].add_(0.5)  # weights changed in place (as an optimiser step does)
+        changed = model.predict_spectra(b)
+        assert seen == [17, 17] and not torch.allclose(changed, whole)
+        model.encoder.stem[0].weight[0].sub_(0.5)
     assert torch.allclose(chunked, whole, atol=1e-5)
     # training: one encoder pass per batch too, and rays_per_step split evenly across the targets
     model.train()
@@ -298,19 +303,21 @@ def _rigid(b: dict, R: torch.Tensor, t: torch.Tensor) -> dict:
 
 
 def test_geometry_is_the_gateway_frame_in_metres(tiny):
-    """Positions are metres in the gateway frame: moving or turning the whole scene, or changing its box
-    (other than the ray length it implies), changes nothing; scaling the scene changes the prediction."""
+    """Positions are metres in the gateway frame: moving or turning the whole scene (its box with it: a
+    quarter turn keeps an axis-aligned box axis-aligned) changes nothing; scaling the scene, or another box
+    (each ray's voxels end where it leaves the box), changes the prediction."""
     model = _small()
     b = _eval_batch(tiny)
     pix = torch.arange(0, 32400, 97).expand(2, -1)
-    c, s = math.cos(0.7), math.sin(0.7)
-    R = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    R = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     with torch.no_grad():
         p0 = model.render(model.prepare(b), pix)
         moved = model.render(model.prepare(_rigid(b, R, torch.tensor([40.0, -7.0, 3.0]))), pix)
         assert (moved - p0).abs().max() < 1e-4
-        bigger_box = {**b, "bounds": b["bounds"] * 3.0}  # same ray_length, the box no longer normalises anything
-        assert torch.equal(model.render(model.prepare(bigger_box), pix), p0)
+        lo, hi = b["bounds"][:, 0], b["bounds"][:, 1]
+        bigger_box = {**b, "bounds": torch.stack([lo - (hi - lo), hi + (hi - lo)], 1)}  # longer rays: more voxels
+        assert model.mean_samples_per_ray(bigger_box)[0] > model.mean_samples_per_ray(b)[0]
+        assert not torch.allclose(model.render(model.prepare(bigger_box), pix), p0)
         twice = {**b, "tgt_pos": b["tgt_pos"] * 2, "src_pos": b["src_pos"] * 2, "gw_pos": b["gw_pos"] * 2}
         assert not torch.allclose(model.render(model.prepare(twice), pix), p0)
         # the ray direction enters each voxel's query
@@ -324,12 +331,17 @@ def test_voxels_are_encoded_by_distance_so_weights_do_not_depend_on_the_cap(tiny
     assert not any("voxel_index" in k for k in a.state_dict())
     b_.load_state_dict(a.state_dict(), strict=True)
     batch = _eval_batch(tiny)
-    need = int(torch.ceil(batch["ray_length"] / batch["wavelength"]).max())
-    assert need <= 8  # the tiny scene at 915 MHz needs fewer voxels than either cap
+    assert max(a.samples_per_ray(batch)) <= 8  # the tiny scene at 915 MHz needs fewer voxels than either cap
     pix = torch.arange(0, 32400, 211).expand(2, -1)
     with torch.no_grad():
         assert torch.equal(a.render(a.prepare(batch), pix), b_.render(b_.prepare(batch), pix))
-        ctx = a.prepare(batch)
+        t = a.ray_table(batch, 0)
+        p = torch.tensor([5, 4000])
+        S = int(t["samples"][p[0]])
+        p = p[t["samples"][p] == S]
+        _, code = a._voxel_inputs(p, t["t_in"][p], t["step"][p], batch["wavelength"][:1].expand(len(p)),
+                                  batch["scene_index"][:1].expand(len(p)), S)
     from graf.geometry.encoding import sinusoidal_encoding
-    expect = a.voxel_distance(sinusoidal_encoding(ctx["dist"] / batch["wavelength"][:, None], a.d_model))
-    assert torch.allclose(ctx["voxel_code"], expect)
+    dist = t["t_in"][p][:, None] + (torch.arange(S) + 0.5) * t["step"][p][:, None]
+    expect = a.voxel_distance(sinusoidal_encoding(dist / batch["wavelength"][0], a.d_model))
+    assert torch.allclose(code, expect)

@@ -114,7 +114,10 @@ def ray_sampling(model, dm) -> dict | None:
     datamodule's scenes; logs a warning where ``max_samples`` caps S (voxels longer than nominal)."""
     out = {}
     for k, d in enumerate(dm.sets):
-        r = model.ray_sampling(float(dm.ray_length[k]), float(dm.wavelength[k]))
+        geometry = {"ray_length": dm.ray_length[k:k + 1], "wavelength": dm.wavelength[k:k + 1],
+                    "gw_pos": dm.gw_pos[k:k + 1], "gw_rot": dm.gw_rot[k:k + 1], "bounds": dm.bounds[k:k + 1],
+                    "scene_index": torch.tensor([k])}
+        r = model.ray_sampling(geometry)
         if r is None:
             return None
         out[d.name] = r

@@ -79,3 +79,42 @@ def render_spectra(render, ctx: dict, batch_size: int, chunk_rays: int, device=N
 def fp32(device: torch.device):
     """Autocast off: ray geometry, positional-encoding phases and rendering stay fp32 under mixed precision."""
     return torch.autocast(device_type=device.type, enabled=False)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Ray-box sampling (GRaF): each ray's voxels from its own entry to its own exit of the scene box.
+
+def box_segments(gw_pos: torch.Tensor, gw_rot: torch.Tensor, bounds: torch.Tensor,
+                 dirs_local: torch.Tensor, eps: float = 1e-12) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where each ray from the gateway is inside the scene box (slab method, float64).
+
+    ``gw_pos [3]``, ``gw_rot [3, 3]`` (local -> world), ``bounds [2, 3]`` (min, max), ``dirs_local [R, 3]``
+    -> ``(t_in [R], t_out [R])`` in metres along the ray, ``0 <= t_in <= t_out``: the ray enters the box at
+    ``t_in`` (0 when the gateway is inside it) and leaves it at ``t_out``.  A ray that misses the box, or
+    leaves it at once (a gateway on a face, looking out), gets ``t_in = t_out`` (a segment of length 0).
+    """
+    p = gw_pos.double()
+    w = dirs_local.double() @ gw_rot.double().T  # [R, 3] world directions
+    lo, hi = bounds[0].double(), bounds[1].double()
+    parallel = w.abs() < eps
+    safe = torch.where(parallel, torch.ones_like(w), w)
+    t1, t2 = (lo - p) / safe, (hi - p) / safe
+    inside = (p >= lo) & (p <= hi)  # per axis: a ray parallel to a slab is in it for all t iff its origin is
+    inf = torch.full_like(t1, float("inf"))
+    near = torch.where(parallel, torch.where(inside, -inf, inf), torch.minimum(t1, t2)).amax(dim=1)
+    far = torch.where(parallel, torch.where(inside, inf, -inf), torch.maximum(t1, t2)).amin(dim=1)
+    t_in = near.clamp_min(0.0)
+    hit = torch.isfinite(far) & (far > t_in)
+    t_in = torch.where(hit, t_in, torch.zeros_like(t_in))
+    t_out = torch.where(hit, far, t_in)
+    return t_in, t_out
+
+
+def segment_samples(t_in: torch.Tensor, t_out: torch.Tensor, voxel: float, max_samples: int
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Voxels of length ``voxel`` (m) over each segment: ``(samples [R] long, step [R])`` with
+    ``samples = clamp(ceil((t_out - t_in) / voxel), 1, max_samples)`` and ``step = (t_out - t_in) / samples``
+    (voxel centres at ``t_in + (s + 0.5) * step``; a length-0 segment is one voxel at ``t_in``)."""
+    length = (t_out - t_in).double()
+    s = torch.ceil(length / float(voxel) - 1e-6).clamp(1, int(max_samples)).long()
+    return s, length / s

@@ -82,14 +82,15 @@ class SpectrumModule(L.LightningModule):
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         check_checkpoint(checkpoint, type(self), "checkpoint")
 
-    def ray_sampling(self, ray_length: float, wavelength: float) -> dict | None:
-        """For ray-rendering methods: samples per ray and the effective sample spacing on a scene whose rays
-        are ``ray_length`` m long at ``wavelength`` m, and whether ``max_samples`` capped them (the spacing is
-        then longer than the method's nominal ``sample_spacing`` wavelengths).  None for other methods."""
+    def ray_sampling(self, geometry: dict) -> dict | None:
+        """For ray-rendering methods: samples per ray and the effective sample spacing on one scene, and whether
+        ``max_samples`` capped them (the spacing is then longer than the method's nominal ``sample_spacing``
+        wavelengths).  ``geometry``: the scene's batch geometry with a batch of one (``ray_length [1]``,
+        ``wavelength [1]``, ``gw_pos [1, 3]``, ``gw_rot [1, 3, 3]``, ``bounds [1, 2, 3]``).  None for other methods."""
         if not hasattr(self, "samples_per_ray"):
             return None
-        fake = {"ray_length": torch.tensor([float(ray_length)]), "wavelength": torch.tensor([float(wavelength)])}
-        S = int(self.samples_per_ray(fake)[0])
+        ray_length, wavelength = float(geometry["ray_length"][0]), float(geometry["wavelength"][0])
+        S = int(self.samples_per_ray(geometry)[0])
         span = float(ray_length) - float(getattr(self, "near", 0.0))
         nominal = float(getattr(self, "sample_spacing", 1.0))
         spacing = span / S / float(wavelength)

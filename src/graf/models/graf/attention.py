@@ -21,9 +21,34 @@ import torch.nn.functional as F
 from torch import nn
 
 
+KERNELS = ("auto", "sdpa", "math")
+MATH_SCORES_PER_PIECE = 1 << 18  # the math kernel's score tensor per piece (1 MB in fp32: stays in cache)
+
+
+def math_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """``softmax(q k^T / sqrt(Dh)) v`` with explicit matmuls, in pieces along the batch axis small enough
+    for the score tensor to stay in cache.  On CPU this beats SDPA's fused kernel when the heads are narrow
+    (GRaF's ray transformer: 10 heads of 8; measured by ``graf-bench`` and scripts/attention_kernels.py)."""
+    B, H, Nq, Dh = q.shape
+    Nk = k.shape[-2]
+    scale = Dh ** -0.5
+    per = max(1, MATH_SCORES_PER_PIECE // max(1, H * Nq * Nk))
+    out = []
+    for s in range(0, B, per):
+        a = torch.matmul(q[s:s + per] * scale, k[s:s + per].transpose(-1, -2))
+        if mask is not None:
+            a = a.masked_fill(~mask[s:s + per], float("-inf"))
+        out.append(torch.matmul(a.softmax(dim=-1), v[s:s + per]))
+    return out[0] if len(out) == 1 else torch.cat(out)
+
+
 class MultiHeadAttention(nn.Module):
-    def __init__(self, d_model: int, num_heads: int = 1, head_dim: int | None = None, dropout: float = 0.0):
+    def __init__(self, d_model: int, num_heads: int = 1, head_dim: int | None = None, dropout: float = 0.0,
+                 kernel: str = "sdpa"):
         super().__init__()
+        if kernel not in KERNELS:
+            raise ValueError(f"attention kernel must be one of {KERNELS}, got {kernel!r}")
+        self.kernel = kernel
         self.num_heads = int(num_heads)
         self.head_dim = int(head_dim) if head_dim is not None else d_model // self.num_heads
         inner = self.num_heads * self.head_dim
@@ -36,21 +61,33 @@ class MultiHeadAttention(nn.Module):
     def _split(self, x: torch.Tensor) -> torch.Tensor:  # [B, N, H*Dh] -> [B, H, N, Dh]
         return x.unflatten(-1, (self.num_heads, self.head_dim)).transpose(1, 2)
 
+    def _use_math(self, q: torch.Tensor) -> bool:
+        if self.kernel == "math":
+            return not (self.dropout and self.training)
+        # auto: explicit matmuls on CPU for many short sequences of narrow heads, where SDPA's fused kernel
+        # is slow (per-sequence overhead); SDPA everywhere else (GPUs, long query axes, dropout)
+        return (self.kernel == "auto" and q.device.type == "cpu" and q.shape[-1] <= 16 and q.shape[-2] <= 256
+                and q.shape[0] > 1 and not (self.dropout and self.training))
+
     def forward(self, x: torch.Tensor, context: torch.Tensor, key_mask: torch.Tensor | None = None) -> torch.Tensor:
         q, k, v = self._split(self.q(x)), self._split(self.k(context)), self._split(self.v(context))
         # [B, 1, 1, Nk], True = attend.  Callers pass None when nothing is padded (keeps SDPA's fused kernels)
         mask = None if key_mask is None else key_mask[:, None, None, :].to(torch.bool)
         # under autocast the projections may come out in different dtypes (a bf16 Linear vs fp32 input)
         dtype = torch.promote_types(torch.promote_types(q.dtype, k.dtype), v.dtype)
-        y = F.scaled_dot_product_attention(q.to(dtype), k.to(dtype), v.to(dtype), attn_mask=mask,
-                                           dropout_p=self.dropout if self.training else 0.0)
+        q, k, v = q.to(dtype), k.to(dtype), v.to(dtype)
+        if self._use_math(q):
+            y = math_attention(q, k, v, mask)
+        else:
+            y = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=self.dropout if self.training else 0.0)
         return self.out(y.transpose(1, 2).flatten(-2))
 
 
 class _PostNormBlock(nn.Module):
-    def __init__(self, d_model: int, num_heads: int, head_dim: int | None, ffn_dim: int, dropout: float = 0.0):
+    def __init__(self, d_model: int, num_heads: int, head_dim: int | None, ffn_dim: int, dropout: float = 0.0,
+                 kernel: str = "sdpa"):
         super().__init__()
-        self.attn = MultiHeadAttention(d_model, num_heads, head_dim, dropout)
+        self.attn = MultiHeadAttention(d_model, num_heads, head_dim, dropout, kernel)
         self.norm1 = nn.LayerNorm(d_model)
         self.ffn = nn.Sequential(nn.Linear(d_model, ffn_dim), nn.ReLU(), nn.Linear(ffn_dim, d_model))
         self.norm2 = nn.LayerNorm(d_model)
@@ -64,8 +101,8 @@ class CrossAttentionBlock(_PostNormBlock):
     """Queries attend to a context (default: one head of width ``d_model``)."""
 
     def __init__(self, d_model: int = 16, num_heads: int = 1, head_dim: int | None = None, ffn_dim: int = 64,
-                 dropout: float = 0.0):
-        super().__init__(d_model, num_heads, head_dim, ffn_dim, dropout)
+                 dropout: float = 0.0, kernel: str = "sdpa"):
+        super().__init__(d_model, num_heads, head_dim, ffn_dim, dropout, kernel)
 
     def forward(self, x: torch.Tensor, context: torch.Tensor, key_mask: torch.Tensor | None = None) -> torch.Tensor:
         return self._block(x, context, key_mask)
@@ -75,8 +112,8 @@ class SelfAttentionBlock(_PostNormBlock):
     """Tokens attend to each other (default: 10 heads of 8 on width 16)."""
 
     def __init__(self, d_model: int = 16, num_heads: int = 10, head_dim: int | None = 8, ffn_dim: int = 64,
-                 dropout: float = 0.0):
-        super().__init__(d_model, num_heads, head_dim, ffn_dim, dropout)
+                 dropout: float = 0.0, kernel: str = "sdpa"):
+        super().__init__(d_model, num_heads, head_dim, ffn_dim, dropout, kernel)
 
     def forward(self, x: torch.Tensor, key_mask: torch.Tensor | None = None) -> torch.Tensor:
         return self._block(x, x, key_mask)

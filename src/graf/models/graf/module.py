@@ -37,6 +37,7 @@ Inference (:meth:`GRaFModule.predict_spectra`): all 32400 rays in chunks of at m
 
 from __future__ import annotations
 
+import hashlib
 import math
 from typing import Sequence
 
@@ -49,7 +50,8 @@ from graf.models.graf.attention import CrossAttentionBlock, SelfAttentionBlock
 from graf.models.graf.encoder import ResNetEncoder
 from graf.geometry.encoding import PositionalEncoding, sinusoidal_encoding, to_gateway_axes, to_gateway_frame
 from graf.geometry.grid import local_directions
-from graf.geometry.rays import fp32, num_samples, random_pixels, render_spectra, voxel_distances
+from graf.geometry.grid import N_AZIMUTH, N_ELEVATION, N_RAYS
+from graf.geometry.rays import box_segments, fp32, random_pixels, segment_samples
 from graf.models.knn.weights import barycentric_weights, idw_weights
 
 WEIGHTINGS = ("idw", "barycentric")
@@ -59,6 +61,11 @@ LOG_MSE_EPS = 1e-6
 # sin(2^k pi n) is 0 and cos(2^k pi n) is 1 for k >= 1, so the PE would carry nothing but n and (-1)^n.
 SCENE_INDEX_SCALE = (math.sqrt(5.0) - 1.0) / 2.0
 AMPLITUDE_EPS = 1e-12
+ATTENTION_KERNELS = ("auto", "sdpa", "math")
+EVAL_CACHE_ITEMS = 16  # scene voxel tables kept at evaluation
+EVAL_CACHE_FEATURES = 50_000  # encoded neighbour spectra kept at evaluation (x 512 floats at paper size)
+SCENE_TABLE_VOXELS = 2_000_000  # scenes with more voxels per spectrum compute them per chunk instead of caching
+SCENE_TABLE_CHUNK = 65_536  # voxels per piece while building a scene's table
 
 
 
@@ -68,11 +75,12 @@ def _mlp(d_in: int, hidden: int, d_out: int) -> nn.Sequential:
 
 class GRaFModule(SpectrumModule):
     INFERENCE_SETTINGS = ("chunk_rays",)  # graf-eval may change these on a trained checkpoint
-    LAYOUT = 2
+    LAYOUT = 3
     LAYOUT_CHANGES = {2: "positions are now metres in the gateway frame (layout 1 normalised them by each scene's "
                          "box), ray directions are encoded, and voxels are encoded by their distance in wavelengths "
-                         "(layout 1 had a learned voxel-index table sized by max_samples)"}
-    sample_spacing = 1.0  # voxels one wavelength long (seed D), unless max_samples caps S
+                         "(layout 1 had a learned voxel-index table sized by max_samples)",
+                      3: "each ray's voxels now run from its own entry to its own exit of the scene box (layout 2 "
+                         "cut every ray at the box's farthest corner), so the same weights see other voxels"}
     """Args (all in ``conf/model/graf.yaml``):
         encoder_widths / encoder_downsample: ResNet-18 stage widths; average pooling of the spectra first.
         d_model: token / voxel latent width (16).
@@ -96,7 +104,8 @@ class GRaFModule(SpectrumModule):
                  ray_head_dim: int = 8, ffn_dim: int = 64, mlp_dim: int = 64, pe_freqs: int = 10,
                  max_samples: int = 128, rays_per_step: int = 5120, chunk_rays: int = 4096, lr: float = 5e-4,
                  lr_decay: float = 0.1, decay_steps: int = 300_000, residual: bool = False,
-                 weighting: str = "idw", use_scene_index: bool = False, loss: str = "mse", length_unit: float = 4.0):
+                 weighting: str = "idw", use_scene_index: bool = False, loss: str = "mse", length_unit: float = 4.0,
+                 voxel_wavelengths: float = 1.0, ray_window: int = 0, attention: str = "auto"):
         super().__init__()
         if weighting not in WEIGHTINGS:
             raise ValueError(f"model.weighting must be one of {WEIGHTINGS}, got {weighting!r}")
@@ -108,6 +117,12 @@ class GRaFModule(SpectrumModule):
             raise ValueError(f"model.d_model must be even (the voxel distance encoding is sin/cos pairs), got {d_model}")
         if not length_unit > 0:
             raise ValueError(f"model.length_unit must be > 0 (metres), got {length_unit}")
+        if not voxel_wavelengths > 0:
+            raise ValueError(f"model.voxel_wavelengths must be > 0, got {voxel_wavelengths}")
+        if ray_window < 0:
+            raise ValueError(f"model.ray_window must be >= 0 (0: attention over the whole ray), got {ray_window}")
+        if attention not in ATTENTION_KERNELS:
+            raise ValueError(f"model.attention must be one of {ATTENTION_KERNELS}, got {attention!r}")
         encoder_widths = [int(w) for w in encoder_widths]  # plain ints in the checkpoint, not a ListConfig
         self.save_hyperparameters()
         self.d_model, self.max_samples = int(d_model), int(max_samples)
@@ -115,6 +130,9 @@ class GRaFModule(SpectrumModule):
         self.lr, self.lr_decay, self.decay_steps = float(lr), float(lr_decay), int(decay_steps)
         self.residual, self.weighting, self.use_scene_index = bool(residual), weighting, bool(use_scene_index)
         self.loss_name, self.length_unit = loss, float(length_unit)
+        self.sample_spacing, self.ray_window = float(voxel_wavelengths), int(ray_window)
+        self._ray_tables: dict = {}  # geometry only: per scene geometry and band, never stale
+        self._eval_cache: dict = {}  # weights-dependent tables of evaluation (see _cached)
         d = self.d_model
         coord_dim = 4 if self.use_scene_index else 3
 
@@ -127,12 +145,12 @@ class GRaFModule(SpectrumModule):
         self.query_voxel = nn.Linear(pe_abs, d)
         self.query_direction = nn.Linear(self.pe.out_dim(3), d, bias=False)
         self.query_target = nn.Linear(pe_abs, d, bias=False)
-        self.scene_blocks = nn.ModuleList(CrossAttentionBlock(d, 1, d, ffn_dim) for _ in range(scene_blocks))
+        self.scene_blocks = nn.ModuleList(CrossAttentionBlock(d, 1, d, ffn_dim, kernel=attention) for _ in range(scene_blocks))
         self.mlp2 = _mlp(d, mlp_dim, d)
         # each voxel's place on the ray: a learned projection of a sinusoidal code of its distance from the
         # gateway in wavelengths (the same meaning in every scene and band, at any sample count)
         self.voxel_distance = nn.Linear(d, d)
-        self.ray_blocks = nn.ModuleList(SelfAttentionBlock(d, ray_heads, ray_head_dim, ffn_dim)
+        self.ray_blocks = nn.ModuleList(SelfAttentionBlock(d, ray_heads, ray_head_dim, ffn_dim, kernel=attention)
                                         for _ in range(ray_blocks))
         self.head = nn.Linear(d, 2)
         if self.residual:
@@ -159,11 +177,106 @@ class GRaFModule(SpectrumModule):
         x = to_gateway_frame(p.float(), batch["gw_pos"].float(), batch["gw_rot"].float()) / self.length_unit
         return self._with_scene(x, batch["scene_index"])
 
+    def knn_weights(self, batch: dict) -> torch.Tensor:
+        """``[B, L]`` convex weights of the residual's KNN base (as :class:`graf.models.knn.KNNModule`)."""
+        args = (batch["tgt_pos"], batch["src_pos"], batch["src_mask"])
+        return idw_weights(*args) if self.weighting == "idw" else barycentric_weights(*args)
+
+    # ------------------------------------------------------------------ rays of a scene (geometry only)
+    def ray_table(self, batch: dict, b: int) -> dict:
+        """Voxels of every pixel's ray in item ``b``'s scene: ``t_in [P]`` (m, where the ray enters the scene
+        box), ``step [P]`` (m, the voxel length), ``samples [P]`` (long) and the pixel order by sample count
+        (``order [P]``); voxel ``s`` of a ray lies ``t_in + (s + 0.5) * step`` from the gateway.  Voxels are
+        ``voxel_wavelengths`` long (1: the seed's wavelength voxel) unless ``max_samples`` caps a ray.  Computed
+        once per scene geometry and band (cached; the key is the geometry itself, not a scene number)."""
+        geo = (batch["gw_pos"][b], batch["gw_rot"][b], batch["bounds"][b])
+        wl = float(batch["wavelength"][b])
+        dev = self.ray_dirs.device
+        key = (tuple(torch.cat([g.detach().double().flatten().cpu() for g in geo]).tolist()), wl,
+               self.sample_spacing, self.max_samples, str(dev))
+        table = self._ray_tables.get(key)
+        if table is None:
+            t_in, t_out = box_segments(*(g.detach().cpu() for g in geo), local_directions(dtype=torch.float64))
+            samples, step = segment_samples(t_in, t_out, self.sample_spacing * wl, self.max_samples)
+            needed = torch.ceil((t_out - t_in) / (self.sample_spacing * wl) - 1e-6).clamp_min(1).long()
+            table = {"t_in": t_in.float().to(dev), "step": step.float().to(dev), "samples": samples.to(dev),
+                     "order": torch.argsort(samples, stable=True).to(dev), "needed": needed,
+                     "offsets": (torch.cumsum(samples, 0) - samples).to(dev), "voxels": int(samples.sum())}
+            self._ray_tables[key] = table
+        return table
+
+    def samples_per_ray(self, batch: dict) -> list[int]:
+        """The most voxels on any ray of each batch item (rays differ: each is cut at its own exit of the box)."""
+        return [int(self.ray_table(batch, b)["samples"].max()) for b in range(batch["gw_pos"].shape[0])]
+
+    def mean_samples_per_ray(self, batch: dict) -> list[float]:
+        """Mean voxels per ray of each batch item (what the cost of a spectrum is proportional to)."""
+        return [float(self.ray_table(batch, b)["samples"].float().mean()) for b in range(batch["gw_pos"].shape[0])]
+
+    def ray_sampling(self, geometry: dict) -> dict:
+        """Voxels per ray on one scene (``geometry``: ``gw_pos [1, 3]``, ``gw_rot [1, 3, 3]``, ``bounds [1, 2, 3]``,
+        ``wavelength [1]``): their most, mean and total, the voxel length, and whether ``max_samples`` capped
+        any ray (its voxels are then longer than ``voxel_wavelengths``)."""
+        t = self.ray_table(geometry, 0)
+        wl = float(geometry["wavelength"][0])
+        capped = t["needed"] > t["samples"].cpu()
+        return {"samples_per_ray": int(t["samples"].max()), "mean_samples_per_ray": float(t["samples"].float().mean()),
+                "voxels_per_spectrum": t["voxels"], "sample_spacing_m": float(t["step"].max()),
+                "sample_spacing_wavelengths": float(t["step"].max()) / wl,
+                "nominal_spacing_wavelengths": self.sample_spacing, "capped": bool(capped.any()),
+                "capped_rays": int(capped.sum()), "uncapped_samples": int(t["needed"].max()),
+                "sampling": "ray-box: each ray from its entry to its exit of the scene box"}
+
+    # ------------------------------------------------------------------ evaluation caches
+    def _weights_stamp(self, *modules: nn.Module) -> tuple:
+        """Changes whenever any parameter of ``modules`` is modified in place (optimiser step, load_state_dict)
+        or replaced: a cache computed from these weights is valid while its stamp is unchanged."""
+        return tuple((p.data_ptr(), p._version) for m in modules for p in m.parameters())
+
+    def _cached(self, name: str, stamp: tuple, key, compute):
+        """Evaluation-only memo (no autograd, eval mode): ``compute()`` once per ``key`` while ``stamp`` holds."""
+        if self.training or torch.is_grad_enabled():
+            return compute()
+        store = self._eval_cache.setdefault(name, {"stamp": None, "items": {}})
+        if store["stamp"] != stamp:
+            store["stamp"], store["items"] = stamp, {}
+        if key not in store["items"]:
+            if len(store["items"]) >= EVAL_CACHE_ITEMS:
+                store["items"].pop(next(iter(store["items"])))
+            store["items"][key] = compute()
+        return store["items"][key]
+
+    def train(self, mode: bool = True):
+        if mode:
+            self._eval_cache = {}  # free evaluation tables while training (they are stale after a step anyway)
+        return super().train(mode)
+
+    def _spectrum_features(self, spectra: torch.Tensor) -> torch.Tensor:
+        """Encoder features ``[N, C]`` of neighbour spectra ``[N, 90, 360]``.  At evaluation each distinct
+        spectrum is encoded once (keyed by its bytes): a test set's targets share most of their neighbours."""
+        if self.training or torch.is_grad_enabled():
+            return self.encoder(spectra.unsqueeze(1).float())
+        stamp = self._weights_stamp(self.encoder)
+        keys = [hashlib.blake2b(x.contiguous().cpu().numpy().tobytes(), digest_size=16).digest() for x in spectra]
+        store = self._eval_cache.get("features")
+        if store is None or store["stamp"] != stamp:
+            store = self._eval_cache["features"] = {"stamp": stamp, "items": {}}
+        items = store["items"]
+        missing = [i for i, k in enumerate(keys) if k not in items]
+        if missing:
+            feats = self.encoder(spectra[missing].unsqueeze(1).float())
+            for i, f in zip(missing, feats):
+                if len(items) >= EVAL_CACHE_FEATURES:
+                    items.pop(next(iter(items)))
+                items[keys[i]] = f
+        return torch.stack([items[k] for k in keys])
+
+    # ------------------------------------------------------------------ a batch
     def encode_neighbours(self, batch: dict) -> tuple[torch.Tensor, torch.Tensor]:
         """``(tokens [B, L, d], mask [B, L])``; the encoder sees only the real neighbours' spectra."""
         spectra, mask = batch["src_spectra"], batch["src_mask"].bool()
         B, L = mask.shape
-        real = self.encoder(spectra[mask].unsqueeze(1).float())  # [N_real, C]
+        real = self._spectrum_features(spectra[mask])  # [N_real, C]
         feats = real.new_zeros(B, L, real.shape[-1])
         feats[mask] = real
         src_pos, tgt_pos = batch["src_pos"].float(), batch["tgt_pos"].float()
@@ -172,31 +285,16 @@ class GRaFModule(SpectrumModule):
         tokens = self.mlp1(torch.cat([feats.float(), pe_pos, pe_off], dim=-1))
         return torch.where(mask[..., None], tokens, torch.zeros_like(tokens)), mask
 
-    def knn_weights(self, batch: dict) -> torch.Tensor:
-        """``[B, L]`` convex weights of the residual's KNN base (as :class:`graf.models.knn.KNNModule`)."""
-        args = (batch["tgt_pos"], batch["src_pos"], batch["src_mask"])
-        return idw_weights(*args) if self.weighting == "idw" else barycentric_weights(*args)
-
-    def samples_per_ray(self, batch: dict) -> list[int]:
-        """Voxels per ray of each batch item: one wavelength apart over the scene's ray length, capped."""
-        return num_samples(batch["ray_length"], batch["wavelength"], self.max_samples)
-
     def prepare(self, batch: dict) -> dict:
         """Everything about a batch that does not depend on the rays: computed once per batch."""
         tokens, mask = self.encode_neighbours(batch)
-        samples = self.samples_per_ray(batch)
-        dist = voxel_distances(batch["ray_length"].float(), samples)
-        S = max(samples)
-        smask = torch.arange(S, device=tokens.device)[None, :] < torch.as_tensor(samples, device=tokens.device)[:, None]
+        B = tokens.shape[0]
         ctx = {
             "tokens": tokens,
             "key_mask": None if bool(mask.all()) else mask,
             "target_query": self.query_target(self.pe(self._coords(batch["tgt_pos"].float(), batch))),  # [B, d]
-            "samples": samples,
-            "sample_mask": None if min(samples) == S else smask,  # [B, S]
-            "dist": dist,  # [B, S] metres
-            "voxel_code": self.voxel_distance(sinusoidal_encoding(dist / batch["wavelength"].float()[:, None],
-                                                                  self.d_model)),  # [B, S, d]
+            "tables": [self.ray_table(batch, b) for b in range(B)],
+            "wavelength": batch["wavelength"].float(),
             "scene_index": batch["scene_index"],
         }
         if self.residual:
@@ -205,32 +303,103 @@ class GRaFModule(SpectrumModule):
             ctx["base_w"], ctx["base_src"] = w, src.masked_fill(~mask[..., None], 0.0)  # [B, L], [B, L, P]
         return ctx
 
-    def render(self, ctx: dict, pix: torch.Tensor) -> torch.Tensor:
-        """Predicted values ``[B, R]`` of the pixels ``pix [B, R]`` (long, ``r * 360 + c``)."""
-        B, R = pix.shape
-        S = max(ctx["samples"])
+    # ------------------------------------------------------------------ rays
+    def _voxel_inputs(self, pix: torch.Tensor, t_in: torch.Tensor, step: torch.Tensor, wl: torch.Tensor,
+                      scene_index: torch.Tensor, S: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(query [n, S, d], distance code [n, S, d])`` of the voxels of ``n`` rays with ``S`` voxels each:
+        ``Linear(PE(voxel)) + Linear(PE(direction))`` and ``Linear(sinusoidal(distance / wavelength))``."""
         with fp32(pix.device):  # geometry in fp32 also under autocast: PE phases reach 2^9 pi x
-            # in the gateway frame a voxel is its distance times the pixel's (local) direction: no rotation
-            dirs = self.ray_dirs[pix].float()  # [B, R, 3]
-            pos = (ctx["dist"][:, None, :, None] / self.length_unit) * dirs[:, :, None, :]  # [B, R, S, 3]
-            pe = self.pe(self._with_scene(pos, ctx["scene_index"]))
-            pe_dir = self.pe(dirs)  # [B, R, 63]: ray directions (unit vectors, gateway frame)
-        q = self.query_voxel(pe) + (self.query_direction(pe_dir) + ctx["target_query"][:, None, :])[:, :, None, :]
-        q = q.flatten(1, 2)  # [B, R*S, d]: each target's voxels attend to that target's neighbours
-        for blk in self.scene_blocks:
-            q = blk(q, ctx["tokens"], ctx["key_mask"])
-        v = (self.mlp2(q).view(B, R, S, self.d_model) + ctx["voxel_code"][:, None]).reshape(B * R, S, self.d_model)
-        smask = ctx["sample_mask"]
-        rmask = None if smask is None else smask[:, None, :].expand(B, R, S).reshape(B * R, S)
+            dist = t_in[:, None] + (torch.arange(S, device=pix.device, dtype=torch.float32) + 0.5) * step[:, None]
+            dirs = self.ray_dirs[pix].float()  # [n, 3] (gateway frame: a voxel is its distance times the direction)
+            pos = (dist[..., None] / self.length_unit) * dirs[:, None, :]  # [n, S, 3]
+            pe = self.pe(self._with_scene(pos, scene_index))
+            pe_dir = self.pe(dirs)
+            code = sinusoidal_encoding(dist / wl[:, None], self.d_model)
+        return self.query_voxel(pe) + self.query_direction(pe_dir)[:, None, :], self.voxel_distance(code)
+
+    def _scene_voxels(self, table: dict, wl: float, scene_index: int, device) -> tuple[torch.Tensor, torch.Tensor]:
+        """``_voxel_inputs`` of every voxel of a scene's spectrum, flat ``[V, d]`` (pixel-major, offsets in the
+        table): computed once per scene and weights at evaluation (the gateway does not move)."""
+        def compute():
+            qs, cs = [], []
+            P = table["samples"].shape[0]
+            for S in torch.unique(table["samples"]).tolist():
+                sel = (table["samples"] == S).nonzero().flatten()
+                for part in sel.split(max(1, SCENE_TABLE_CHUNK // S)):
+                    n = part.numel()
+                    q, c = self._voxel_inputs(part, table["t_in"][part], table["step"][part],
+                                              torch.full((n,), wl, device=device),
+                                              torch.full((n,), scene_index, device=device, dtype=torch.long), S)
+                    qs.append((part, q)), cs.append(c)
+            qf = torch.empty(table["voxels"], self.d_model, device=device, dtype=qs[0][1].dtype)
+            cf = torch.empty(table["voxels"], self.d_model, device=device, dtype=cs[0].dtype)
+            for (part, q), c in zip(qs, cs):
+                idx = (table["offsets"][part][:, None] + torch.arange(q.shape[1], device=device)).flatten()
+                qf[idx], cf[idx] = q.flatten(0, 1), c.flatten(0, 1)
+            assert P == table["offsets"].shape[0]
+            return qf, cf
+        stamp = self._weights_stamp(self.query_voxel, self.query_direction, self.voxel_distance)
+        key = (id(table), scene_index, wl, torch.get_autocast_dtype(device.type) if torch.is_autocast_enabled(device.type) else None)
+        return self._cached("voxels", stamp, key, compute)
+
+    def _ray_transformer(self, v: torch.Tensor) -> torch.Tensor:
+        """The ray blocks over ``v [n, S, d]``: full self-attention along the ray, or, with ``ray_window`` W
+        and S > W, attention within consecutive windows of W voxels (cost linear in S; for large scenes)."""
+        n, S, d = v.shape
+        W = self.ray_window
         for blk in self.ray_blocks:
-            v = blk(v, rmask)
-        v = v.float()
-        if rmask is None:
-            pooled = v.mean(dim=1)
+            if not W or S <= W:
+                v = blk(v)
+            else:
+                k = S // W
+                head = blk(v[:, :k * W].reshape(n * k, W, d)).view(n, k * W, d)
+                v = head if k * W == S else torch.cat([head, blk(v[:, k * W:])], dim=1)
+        return v
+
+    def _render_group(self, ctx: dict, bi: torch.Tensor, pix: torch.Tensor, S: int) -> torch.Tensor:
+        """``[n, 2]`` (re, im) of ``n`` rays with ``S`` voxels each (items ``bi [n]``, pixels ``pix [n]``)."""
+        n = pix.shape[0]
+        tables = ctx["tables"]
+        one_item = bool((bi == bi[0]).all())
+        if one_item and not (self.training or torch.is_grad_enabled()) and tables[int(bi[0])]["voxels"] <= SCENE_TABLE_VOXELS:
+            b = int(bi[0])
+            t = tables[b]
+            qf, cf = self._scene_voxels(t, float(ctx["wavelength"][b]), int(ctx["scene_index"][b]), pix.device)
+            idx = t["offsets"][pix][:, None] + torch.arange(S, device=pix.device)
+            q, code = qf[idx], cf[idx]
         else:
-            m = rmask[..., None].float()
-            pooled = (v * m).sum(dim=1) / m.sum(dim=1)
-        re, im = self.head(pooled).float().view(B, R, 2).unbind(-1)
+            t_in = torch.stack([tables[b]["t_in"] for b in range(len(tables))])[bi, pix]
+            step = torch.stack([tables[b]["step"] for b in range(len(tables))])[bi, pix]
+            q, code = self._voxel_inputs(pix, t_in, step, ctx["wavelength"][bi], ctx["scene_index"][bi], S)
+        q = q + ctx["target_query"][bi][:, None, :]
+        key_mask = ctx["key_mask"]
+        if one_item:  # every voxel of the group attends to the same target's neighbours: one long query axis
+            b = int(bi[0])
+            x = q.reshape(1, n * S, self.d_model)
+            ctx_tokens, km = ctx["tokens"][b:b + 1], None if key_mask is None else key_mask[b:b + 1]
+        else:  # each ray's voxels attend to its own target's neighbours
+            x, ctx_tokens, km = q, ctx["tokens"][bi], None if key_mask is None else key_mask[bi]
+        for blk in self.scene_blocks:
+            x = blk(x, ctx_tokens, km)
+        v = self.mlp2(x).view(n, S, self.d_model) + code
+        v = self._ray_transformer(v)
+        return self.head(v.float().mean(dim=1)).float()
+
+    def render(self, ctx: dict, pix: torch.Tensor) -> torch.Tensor:
+        """Predicted values ``[B, R]`` of the pixels ``pix [B, R]`` (long, ``r * 360 + c``).  Rays are grouped
+        by their voxel count (exactly, no padding or masks); nothing runs per ray in Python."""
+        B, R = pix.shape
+        tables = ctx["tables"]
+        S_all = torch.stack([tables[b]["samples"][pix[b]] for b in range(B)]).flatten()  # [B * R]
+        flat_pix = pix.flatten()
+        bi = torch.arange(B, device=pix.device).repeat_interleave(R)
+        order, outs = [], []
+        for S in torch.unique(S_all).tolist():
+            sel = (S_all == S).nonzero().flatten()
+            order.append(sel)
+            outs.append(self._render_group(ctx, bi[sel], flat_pix[sel], int(S)))
+        out = torch.cat(outs)[torch.argsort(torch.cat(order))]  # back to (b, r) order
+        re, im = out.view(B, R, 2).unbind(-1)
         if self.residual:
             with fp32(pix.device):
                 src = ctx["base_src"].gather(2, pix[:, None, :].expand(-1, ctx["base_src"].shape[1], -1))
@@ -239,8 +408,16 @@ class GRaFModule(SpectrumModule):
 
     # ------------------------------------------------------------------ Lightning API
     def predict_spectra(self, batch: dict) -> torch.Tensor:
+        """Whole spectra ``[B, 90, 360]``: each item's pixels in order of voxel count, in chunks of at most
+        ``chunk_rays`` rays over the batch (memory bounded by the chunk), so a chunk holds few groups."""
         ctx = self.prepare(batch)
-        return render_spectra(self.render, ctx, batch["tgt_pos"].shape[0], self.chunk_rays, ctx["tokens"].device)
+        B = ctx["tokens"].shape[0]
+        order = torch.stack([t["order"] for t in ctx["tables"]])  # [B, P]
+        per = max(1, self.chunk_rays // B)
+        out = torch.cat([self.render(ctx, order[:, s:s + per]) for s in range(0, N_RAYS, per)], dim=1)
+        spectra = torch.empty_like(out)
+        spectra.scatter_(1, order, out)
+        return spectra.view(B, N_ELEVATION, N_AZIMUTH).float()
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         B = batch["tgt_pos"].shape[0]
