@@ -13,8 +13,7 @@ scene = sys.argv[1] if len(sys.argv) > 1 else "rfid_s23"
 model_name = sys.argv[2] if len(sys.argv) > 2 else "graf"
 extra = sys.argv[3:]
 with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
-    cfg = compose("bench_models", overrides=[f"scene={scene}", "data_root=data"] + [e for e in extra if not e.startswith("model.")])
-cfg.models = {}
+    cfg = compose("eval", overrides=[f"scene={scene}", "data_root=data"] + [e for e in extra if not e.startswith("model.")])
 mcfg = compose  # noqa
 with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
     m = compose("train", overrides=[f"model={model_name}", f"scene={scene}"] + [e for e in extra if e.startswith("model.")]).model

@@ -37,7 +37,7 @@ def test_commands_read_the_configs_shipped_in_the_package():
     GlobalHydra.instance().clear()
     with initialize_config_module(config_module="graf.conf", version_base="1.3"):
         for name in ("train", "eval", "simulate", "table", "oracle", "synthesize", "show_scenes",
-                     "bench_sim", "bench_models"):
+                     "bench_sim", "bench", "pareto"):
             assert compose(config_name=name) is not None
         assert compose(config_name="eval").scene._target_
     GlobalHydra.instance().clear()

@@ -64,22 +64,6 @@ def test_killed_training_resumes_from_its_last_checkpoint(tmp_path):
     assert all(torch.equal(v, whole[k]) for k, v in resumed["state_dict"].items())
 
 
-def test_bench_models_reports_cost_side_by_side(tmp_path):
-    exe = str(Path(sys.executable).parent / "graf-bench-models")
-    p = subprocess.run([exe, "bench.spectra=1", "~models.graf", "~models.nerf2", "models.graf_cpu.max_samples=4",
-                        "models.nerf2_cpu.max_samples=2", f"hydra.run.dir={tmp_path}"], capture_output=True, text=True,
-                       timeout=600)
-    assert p.returncode == 0, p.stderr[-3000:]
-    r = json.loads((tmp_path / "results.json").read_text())
-    assert set(r["models"]) == {"graf_cpu", "nerf2_cpu", "knn_dl", "knn"}
-    g = r["models"]["graf_cpu"]
-    assert g["parameters"] > 100_000 and g["checkpoint_mb"] > 0.5 and g["s_per_spectrum"] > 0
-    assert g["samples_per_ray"] == 4 and r["models"]["knn"]["parameters"] == 0
-    assert r["models"]["nerf2_cpu"]["parameters"] == 690_564 and r["models"]["nerf2_cpu"]["samples_per_ray"] == 2
-    assert r["models"]["knn_dl"]["samples_per_ray"] is None and 0 < r["models"]["knn_dl"]["parameters"] < 50_000
-    assert "time ratio" in p.stdout
-
-
 def test_finetune_starts_from_a_checkpoints_weights_and_rejects_another_architecture(compose_cfg, tmp_path):
     cfg = compose_cfg("train", ("experiment=graf_rfid_s23", "trainer.max_steps=2", *FAST))
     train(cfg)

@@ -104,7 +104,7 @@ def build(cfg: DictConfig) -> dict:
                if isinstance(c, DictConfig) and "_target_" in c]
     callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()
                  if isinstance(c, DictConfig) and "_target_" in c]
-    trainer = hydra.utils.instantiate(cfg.trainer, logger=loggers or False, callbacks=callbacks)
+    trainer = hydra.utils.instantiate(trainer_args(cfg), logger=loggers or False, callbacks=callbacks)
     return {"band": band, "scene": scene, "neighbors": neighbors, "datamodule": datamodule, "model": model,
             "loggers": loggers, "trainer": trainer, "output_dir": out}
 
@@ -129,11 +129,21 @@ def ray_sampling(model, dm) -> dict | None:
     return out
 
 
+def trainer_args(cfg: DictConfig) -> DictConfig:
+    """``cfg.trainer`` without the keys that are not Trainer arguments, after applying them:
+    ``float32_matmul_precision`` (``highest`` | ``high`` = TF32 on NVIDIA GPUs | ``medium``; null: torch's)."""
+    t = OmegaConf.to_container(cfg.trainer, resolve=True)
+    fmp = t.pop("float32_matmul_precision", None)
+    if fmp:
+        torch.set_float32_matmul_precision(str(fmp))
+    return OmegaConf.create(t)
+
+
 def evaluation_trainer(cfg: DictConfig, loggers=(), callbacks=()) -> L.Trainer:
     """The trainer of the final evaluations (validation and test of the final weights).  Both evaluate
     ``trainer.limit_test_batches`` of their split; validation during training (off by default) is the fit
     trainer's business."""
-    t = cfg.trainer
+    t = trainer_args(cfg)
     limit = t.get("limit_test_batches", 1.0)
     return L.Trainer(accelerator=t.get("accelerator", "auto"), devices=t.get("devices", 1),
                      precision=t.get("precision", "32-true"), logger=list(loggers) or False,
@@ -142,14 +152,20 @@ def evaluation_trainer(cfg: DictConfig, loggers=(), callbacks=()) -> L.Trainer:
                      limit_test_batches=limit, default_root_dir=t.get("default_root_dir"))
 
 
-def evaluate_model(cfg: DictConfig, model, dm, loggers=()) -> tuple[dict, dict]:
-    """Validation then test metrics of ``model`` (``{val/..., test/...}``) and the test predictions."""
+def evaluate_model(cfg: DictConfig, model, dm, loggers=(), timing: dict | None = None) -> tuple[dict, dict]:
+    """Validation then test metrics of ``model`` (``{val/..., test/...}``) and the test predictions; with
+    ``timing`` (a dict), the wall seconds of each loop go into it (``val_s``, ``test_s``)."""
     collector = PredictionCollector()
     trainer = evaluation_trainer(cfg, loggers, [collector])
+    t0 = time.perf_counter()
     trainer.validate(model=model, datamodule=dm, verbose=False)
+    t1 = time.perf_counter()
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("val/")}
     trainer.test(model=model, datamodule=dm, verbose=False)
+    t2 = time.perf_counter()
     metrics.update({k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")})
+    if timing is not None:
+        timing.update(val_s=round(t1 - t0, 3), test_s=round(t2 - t1, 3))
     return {k: metrics.get(k) for k in EVAL_METRICS}, collector.arrays()
 
 
@@ -157,7 +173,8 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -
     """Validate and test the model, then write results.json (+ predictions.npz, spectra.png).  Returns the
     metrics (``val/...`` and ``test/...``)."""
     trainer, model, dm = objects["trainer"], objects["model"], objects["datamodule"]
-    metrics, arrays = evaluate_model(cfg, model, dm, objects["loggers"])
+    timing = dict(objects.get("timing") or {})
+    metrics, arrays = evaluate_model(cfg, model, dm, objects["loggers"], timing)
     out: Path = objects["output_dir"]
     config = OmegaConf.to_container(cfg, resolve=True)
     if objects.get("checkpoint"):  # graf-eval of a checkpoint: the model that ran is the checkpoint's
@@ -181,6 +198,10 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -
         "device": str(model.device),
         "versions": {"graf": graf.__version__, "torch": torch.__version__, "python": platform.python_version()},
     }
+    n_test = int(len(arrays["ids"]))
+    if n_test:  # the whole test loop (prediction and the four metrics) per spectrum
+        timing["test_s_per_spectrum"] = round(timing["test_s"] / n_test, 4)
+    results["timing"] = timing
     sampling = ray_sampling(model, dm)
     if sampling is not None:
         results["ray_sampling"] = sampling
@@ -204,9 +225,13 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -
     if len(rows) > 1:
         results["baselines"] = {r["method"]: {"metrics": r["metrics"], "seconds": r["seconds"],
                                               "trainable_parameters": r["trainable_parameters"]} for r in rows[1:]}
+    if cfg.get("regime"):
+        results["regime"] = str(cfg.regime)
     atomic_write_json(out / "results.json", results)
     log.info("results: %s", out / "results.json")
     print(format_metrics_table(rows))
+    if cfg.get("regime"):
+        print(f"regime: {cfg.regime}")
     return metrics
 
 

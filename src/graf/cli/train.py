@@ -26,7 +26,11 @@ def train(cfg: DictConfig) -> tuple[dict, dict]:
         check_checkpoint(read_checkpoint(cfg.ckpt_path), type(model), cfg.ckpt_path)
     if getattr(model, "has_trainable_parameters", True):
         # resumes from ckpt_path (e.g. <old run>/checkpoints/last.ckpt) when given
+        step0, t0 = trainer.global_step, time.perf_counter()
         trainer.fit(model=model, datamodule=objects["datamodule"], ckpt_path=cfg.get("ckpt_path"))
+        fit_s, steps = time.perf_counter() - t0, max(0, trainer.global_step - step0)
+        objects["timing"] = {"fit_s": round(fit_s, 3), "fit_steps": int(steps),
+                             "fit_s_per_step": round(fit_s / steps, 4) if steps else None}
     else:
         log.info("%s has no trainable parameters: nothing to fit, testing directly", type(model).__name__)
     # the final weights are validated and tested (nothing is chosen on the test split)

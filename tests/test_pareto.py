@@ -1,0 +1,52 @@
+"""graf-pareto: fronts, a tiny real sweep (train points, an evaluation point on the base checkpoint, a failing
+point that does not stop the others), and resuming without re-running finished points."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+from hydra import compose, initialize_config_dir
+
+from graf.cli.common import CONF_DIR
+from graf.cli.pareto import pareto_front
+
+
+def test_pareto_front_keeps_only_undominated_points():
+    rows = [{"t": 1.0, "val_psnr": 10.0}, {"t": 2.0, "val_psnr": 12.0}, {"t": 3.0, "val_psnr": 11.0},
+            {"t": 2.0, "val_psnr": 12.0}, {"t": None, "val_psnr": 30.0}, {"t": 0.5, "val_psnr": 9.0}]
+    assert pareto_front(rows, "t") == {0, 1, 3, 5}  # 2 is slower and worse than 1; 4 has no time
+
+
+def test_config_has_five_knobs_on_two_scenes():
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        cfg = compose("pareto")
+    knobs = {p.knob for p in cfg.points.values()} | {p.knob for p in cfg.eval_points.values()}
+    assert len(knobs - {"base"}) >= 5 and len(cfg.scenes) >= 2
+
+
+def test_tiny_sweep_runs_records_failures_and_resumes(tmp_path):
+    out = tmp_path / "sweep"
+    tiny = ["trainer.max_steps=2", "model.decay_steps=2", "logger=none", "plot_count=0", "model.max_samples=4",
+            "model.rays_per_step=64", "data.batch_size=2", "trainer.limit_test_batches=2", "baselines={}",
+            "callbacks.model_checkpoint.every_n_train_steps=2"]
+    q = lambda items: "[" + ",".join(f"'{i}'" for i in items) + "]"  # noqa: E731 (quoted: values hold '=')
+    args = [sys.executable, "-m", "graf.cli.pareto", f"out={out}", f"hydra.run.dir={tmp_path / 'h'}", "threads=1",
+            "only_scenes=[rfid_s23_sparse]", "only_points=[base,voxel_2,broken,L_test_3]", "base=" + q(tiny),
+            "+points.broken={knob: broken, value: x, overrides: " + q(["model.voxel_wavelengths=-1"]) + "}"]
+    p = subprocess.run(args, capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr[-3000:]
+    r = json.loads((out / "results.json").read_text())
+    points = {row["point"]: row for row in r["rows"]}
+    assert set(points) == {"base", "voxel_2", "L_test_3"}
+    assert [f["point"] for f in r["failed"]] == ["broken"] and "voxel_wavelengths" in r["failed"][0]["log"]
+    for row in points.values():
+        assert row["infer_s_per_spectrum"] > 0 and row["train_s"] > 0 and row["val_psnr"] is not None
+    assert points["L_test_3"]["train_s"] == points["base"]["train_s"]  # evaluated on the base checkpoint
+    assert any(row["front_infer"] for row in r["rows"]) and (out / "pareto.png").stat().st_size > 0
+    assert (out / "pareto.md").read_text().count("| rfid_s23_sparse |") == 3
+    # resuming: finished points are skipped (their results are not rewritten)
+    before = (out / "rfid_s23_sparse" / "base" / "results.json").stat().st_mtime_ns
+    p = subprocess.run(args, capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0 and (out / "rfid_s23_sparse" / "base" / "results.json").stat().st_mtime_ns == before
