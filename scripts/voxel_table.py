@@ -1,49 +1,58 @@
-"""Samples per ray and effective voxel size of the GRaF presets on every scene and band (README table).
+"""Voxels per ray of the GRaF presets on every scene and band (README table).
 
     .venv/bin/python scripts/voxel_table.py
 
-S = min(max_samples, ceil(ray_length / wavelength)); ray_length is the farthest corner of the scene's box
-from its gateway (what the datamodule computes).  A run records the same figures in results.json
-("ray_sampling") and logs a warning when max_samples caps S.
+Each ray of the 90 x 360 grid is cut into voxels of ``voxel_wavelengths`` (1) wavelengths from its entry to
+its exit of the scene's box (``GRaFModule.ray_table``, ray-box intersection), at most ``max_samples`` per
+ray.  Printed per preset: the most and the mean voxels per ray, the voxels of a whole spectrum (what its cost
+is proportional to), and how many rays ``max_samples`` caps (their voxels are then longer than a wavelength).
+A run records the same figures in results.json ("ray_sampling").
 """
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
+import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 from graf.cli.common import CONF_DIR
+from graf.sim.array import rotation_from_axes
 
 SCENES = ["rfid_s23", "small_room", "bedroom", "conference_v1", "office_v1", "outdoor"]
-PRESETS = {"graf": 128, "graf_cpu": 32}
+PRESETS = ("graf", "graf_cpu")
 
 
 def main() -> None:
-    print("| band | scene | ray length (m) | S needed | " + " | ".join(f"`{p}` S, voxel" for p in PRESETS) + " |")
-    print("|---|---|---|---|" + "---|" * len(PRESETS))
+    print("| band | scene | box (m) | " + " | ".join(f"`{p}` max / mean S, voxels, capped rays" for p in PRESETS) + " |")
+    print("|---|---|---|" + "---|" * len(PRESETS))
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        models = {p: instantiate(compose(config_name="train", overrides=[f"model={p}"]).model) for p in PRESETS}
         for band_name in ("915mhz", "2.4ghz", "3ghz"):
             for name in SCENES:
                 cfg = compose(config_name="train", overrides=[f"scene={name}", f"band={band_name}"])
                 scene, band = instantiate(cfg.scene), instantiate(cfg.band)
-                caps = {p: compose(config_name="train", overrides=[f"model={p}"]).model.max_samples for p in PRESETS}
                 if hasattr(scene, "geometry"):
                     bounds, gw = np.asarray(scene.geometry.bounds), np.asarray(scene.gateway["position"], float)
+                    rot = rotation_from_axes(scene.gateway["normal"], scene.gateway["x_axis"]).as_matrix()
                 else:
+                    from scipy.spatial.transform import Rotation
+
                     d = scene.load(None, band)
                     bounds, gw = d.bounds(), d.gateway_position
-                corners = np.array([[bounds[i, 0], bounds[j, 1], bounds[k, 2]] for i in (0, 1) for j in (0, 1)
-                                    for k in (0, 1)])
-                length, lam = float(np.linalg.norm(corners - gw, axis=1).max()), band.wavelength
-                need = math.ceil(length / lam - 1e-6)
+                    rot = Rotation.from_quat(d.gateway_orientation).as_matrix()
+                geo = {"gw_pos": torch.tensor(gw, dtype=torch.float32)[None],
+                       "gw_rot": torch.tensor(rot, dtype=torch.float32)[None],
+                       "bounds": torch.tensor(bounds, dtype=torch.float32)[None],
+                       "wavelength": torch.tensor([band.wavelength]), "ray_length": torch.tensor([0.0]),
+                       "scene_index": torch.tensor([0])}
                 cells = []
-                for p, cap in caps.items():
-                    S = min(need, cap)
-                    cells.append(f"{S}, {length / S / lam:.2f} λ" + (" (capped)" if need > cap else ""))
-                print(f"| {band_name} | {name} | {length:.2f} | {need} | " + " | ".join(cells) + " |")
+                for p, model in models.items():
+                    r = model.ray_sampling(geo)
+                    cells.append(f"{r['samples_per_ray']} / {r['mean_samples_per_ray']:.1f}, "
+                                 f"{r['voxels_per_spectrum']:,}, {r['capped_rays']:,}")
+                size = " x ".join(f"{x:.1f}" for x in (bounds[1] - bounds[0]))
+                print(f"| {band_name} | {name} | {size} | " + " | ".join(cells) + " |")
 
 
 if __name__ == "__main__":

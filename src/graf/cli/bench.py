@@ -476,6 +476,8 @@ def bench(cfg: DictConfig) -> dict:
               "rows": [], "config": OmegaConf.to_container(cfg, resolve=True)}
     rows = result["rows"]
     rps = cfg.bench.get("rays_per_step")
+    skip = set(cfg.bench.get("quick_skip") or []) if quick else set()
+    result["skipped"] = [f"{k}/{m}" for k in scene_keys for m in model_keys if f"{k}/{m}" in skip]
     for key in scene_keys:
         started = time.perf_counter()
         try:
@@ -494,6 +496,9 @@ def bench(cfg: DictConfig) -> dict:
         log.info("scene %s (%s): %d test spectra, %d training batches of %d targets prepared", scene_name, band_name,
                  len(infer), len(train), int(train[0]["tgt_pos"].shape[0]))
         for m in model_keys:
+            if f"{key}/{m}" in skip:
+                log.info("%s on %s: skipped (quick=true, bench.quick_skip)", m, scene_name)
+                continue
             started = time.perf_counter()
             row = {"scene": scene_name, "scene_key": key, "band": band_name, "preset": m, "method": None}
             try:

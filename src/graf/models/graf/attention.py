@@ -33,12 +33,14 @@ def math_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, mask: torc
     Nk = k.shape[-2]
     scale = Dh ** -0.5
     per = max(1, MATH_SCORES_PER_PIECE // max(1, H * Nq * Nk))
+    # torch.split, not slicing: a slice's backward fills a zero tensor of the whole input per piece
+    masks = [None] * -(-B // per) if mask is None else mask.expand(B, *mask.shape[1:]).split(per)
     out = []
-    for s in range(0, B, per):
-        a = torch.matmul(q[s:s + per] * scale, k[s:s + per].transpose(-1, -2))
-        if mask is not None:
-            a = a.masked_fill(~mask[s:s + per], float("-inf"))
-        out.append(torch.matmul(a.softmax(dim=-1), v[s:s + per]))
+    for qs, ks, vs, ms in zip(q.split(per), k.split(per), v.split(per), masks):
+        a = torch.matmul(qs * scale, ks.transpose(-1, -2))
+        if ms is not None:
+            a = a.masked_fill(~ms, float("-inf"))
+        out.append(torch.matmul(a.softmax(dim=-1), vs))
     return out[0] if len(out) == 1 else torch.cat(out)
 
 
