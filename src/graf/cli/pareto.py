@@ -224,6 +224,7 @@ def sweep(cfg: DictConfig) -> dict:
                 atomic_write_json(failed_path, failed)
                 continue
         common = list(sc.get("common") or [])
+        skip = set(sc.get("skip_points") or [])
         jobs = [(name, p, [py, "-m", "graf.cli.train", *sc.get("train", []), *common, *cfg.base, *p.overrides])
                 for name, p in _selected(cfg, "points", "only_points").items()]
         ckpt = out / scene / "base" / "checkpoints" / "last.ckpt"
@@ -232,6 +233,9 @@ def sweep(cfg: DictConfig) -> dict:
                  for name, p in _selected(cfg, "eval_points", "only_points").items()]
         for name, p, cmd in jobs:
             folder = out / scene / name
+            if name in skip:
+                log.info("%s / %s: skipped (scenes.%s.skip_points)", scene, name, scene)
+                continue
             if (folder / "results.json").exists():
                 log.info("%s / %s: done before, skipped", scene, name)
                 continue
