@@ -126,7 +126,8 @@ def test_eval_of_a_checkpoint_applies_inference_settings_and_refuses_the_rest(co
     old = torch.load(ckpt, map_location="cpu", weights_only=False)
     old.pop("graf")
     torch.save(old, tmp_path / "old.ckpt")
-    why = r"old.ckpt: was written by GRaFModule layout 1; this version reads layout 2 only.*voxel-index table"
+    why = (r"old.ckpt: was written by GRaFModule layout 1; this version reads layout 3 only.*"
+           r"layout 2: .*voxel-index table.*; layout 3: each ray's voxels now run from its own entry")
     with pytest.raises(CheckpointError, match=why):
         run("model=graf_cpu", path=tmp_path / "old.ckpt")
     for extra in ((f"ckpt_path={tmp_path / 'old.ckpt'}",),

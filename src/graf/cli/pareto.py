@@ -151,6 +151,7 @@ def plot(path: Path, rows: list[dict]) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
     knobs = list(dict.fromkeys(r["knob"] for r in rows))
@@ -176,6 +177,9 @@ def plot(path: Path, rows: list[dict]) -> None:
             if knn is not None:
                 ax.axhline(knn, color="gray", lw=1, ls=":", label="KNN")
             ax.set_xscale("log")
+            ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+            ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+            ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
             ax.set_xlabel(label)
             ax.set_ylabel("test PSNR (dB)")
             ax.set_title(f"{scene}")

@@ -53,7 +53,8 @@ def check_checkpoint(ckpt: dict, cls: type, path) -> None:
     layout = int(info.get("layout", 1))
     want = int(getattr(cls, "LAYOUT", 1))
     if layout != want:
-        why = getattr(cls, "LAYOUT_CHANGES", {}).get(want, "")
+        changes = getattr(cls, "LAYOUT_CHANGES", {})
+        why = "; ".join(f"layout {v}: {changes[v]}" for v in sorted(changes) if layout < v <= want)
         raise CheckpointError(f"{path}: was written by {cls.__name__} layout {layout}; this version reads layout "
                               f"{want} only, and the weights do not carry over{': ' + why if why else ''}. "
                               "Retrain (or use the version that wrote it).")

@@ -322,7 +322,6 @@ class GRaFModule(SpectrumModule):
         table): computed once per scene and weights at evaluation (the gateway does not move)."""
         def compute():
             qs, cs = [], []
-            P = table["samples"].shape[0]
             for S in torch.unique(table["samples"]).tolist():
                 sel = (table["samples"] == S).nonzero().flatten()
                 for part in sel.split(max(1, SCENE_TABLE_CHUNK // S)):
@@ -336,7 +335,6 @@ class GRaFModule(SpectrumModule):
             for (part, q), c in zip(qs, cs):
                 idx = (table["offsets"][part][:, None] + torch.arange(q.shape[1], device=device)).flatten()
                 qf[idx], cf[idx] = q.flatten(0, 1), c.flatten(0, 1)
-            assert P == table["offsets"].shape[0]
             return qf, cf
         stamp = self._weights_stamp(self.query_voxel, self.query_direction, self.voxel_distance)
         key = (id(table), scene_index, wl, torch.get_autocast_dtype(device.type) if torch.is_autocast_enabled(device.type) else None)
