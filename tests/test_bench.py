@@ -135,8 +135,8 @@ def test_unknown_models_and_scenes_are_config_errors(bench_cfg):
     with pytest.raises(HydraException, match="no_such_model"):
         bench_cfg("model@models.graf=no_such_model")
     with pytest.raises(HydraException, match="no_such_scene"):
-        bench_cfg("scene@scenes.room=no_such_scene")
+        bench_cfg("scene_catalog@scenes.room=no_such_scene")
     with pytest.raises(ConfigError, match="nope"):
         bench(bench_cfg("bench.models=[nope]"))
     with pytest.raises(ConfigError, match=r"\+band@bands.office"):
-        bench(bench_cfg("+scene@scenes.office=office_v1"))
+        bench(bench_cfg("+scene_catalog@scenes.office=office_v1"))

@@ -15,7 +15,7 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from graf.cli.common import CONF_DIR, CONF_PATH, ConfigError
+from graf.cli.common import CONF_DIR, CONF_PATH, ConfigError, instantiate_scene, scene_band_config, scene_configs
 from graf.cli.evaluate import evaluate
 from graf.cli.table import make_table
 from graf.cli.train import train
@@ -39,41 +39,55 @@ def test_commands_read_the_configs_shipped_in_the_package():
         for name in ("train", "eval", "simulate", "table", "oracle", "synthesize", "show_scenes",
                      "bench_sim", "bench", "pareto"):
             assert compose(config_name=name) is not None
-        assert compose(config_name="eval").scene._target_
+        assert compose(config_name="eval").scene.rfid_s23._target_
     GlobalHydra.instance().clear()
 
 
 def test_every_config_group_option_composes():
-    groups = ["scene", "band", "neighbors", "model", "trainer", "logger", "experiment"]
+
+    groups = ["scene", "eval_scene", "band", "neighbors", "model", "trainer", "logger", "experiment"]
     for config_name in ("train", "eval", "simulate"):
         for group in groups:
             for f in sorted((CONF_DIR / group).glob("*.yaml")):
-                if config_name == "simulate" and group in ("neighbors", "model", "trainer", "logger"):
+                if config_name == "simulate" and group in ("eval_scene", "neighbors", "model", "trainer", "logger"):
                     continue
                 if group == "experiment" and (config_name == "simulate") != f.stem.startswith("sim_"):
                     continue  # experiments named sim_* are graf-simulate's
                 GlobalHydra.instance().clear()
                 with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-                    overrides = [f"{group}={f.stem}"] + (["scene.path=x", "band=2.4ghz"] if f.stem == "nerf2" else [])
+                    overrides = [f"{group}={f.stem}"] + ([f"{group}.nerf2.path=x", "band=2.4ghz"] if f.stem == "nerf2" and group in ("scene", "eval_scene") else [])
                     cfg = compose(config_name=config_name, overrides=overrides)
-                assert cfg.scene._target_ and cfg.band.frequency_hz > 0
-                if group in ("scene", "band", "neighbors", "model"):
-                    instantiate(cfg[group])  # every option also builds its object
+                (scene,) = scene_configs(cfg.scene)
+                assert scene._target_ and instantiate(scene_band_config(scene, cfg.get("band"))).frequency_hz > 0
+                if group in ("scene", "eval_scene"):  # every option also builds its object
+                    assert len(scene_configs(cfg[group])) == (f.stem != "same")
+                    for c in scene_configs(cfg[group]):
+                        instantiate_scene(c)
+                elif group in ("band", "neighbors", "model"):
+                    instantiate(cfg[group])
     GlobalHydra.instance().clear()
 
 
 def test_a_nerf2_folder_needs_its_band(compose_cfg, make_scene):
     folder = make_scene(n=12)
-    cfg = compose_cfg("eval", ("scene=nerf2", f"scene.path={folder}"))
+    cfg = compose_cfg("eval", ("scene=nerf2", f"scene.nerf2.path={folder}"))
     with pytest.raises(ConfigError, match=r"does not say its carrier frequency: add band=<one of 1.8ghz, 2.4ghz, "
                                           r"3ghz, 915mhz>"):
         evaluate(cfg)
-    assert compose_cfg("eval", ("scene=conference_v1",)).band.name == "2.4ghz"  # simulated scenes: the paper's band
+
+    def band_of(*overrides):
+        cfg = compose_cfg("eval", overrides)
+        return scene_band_config(scene_configs(cfg.scene)[0], cfg.get("band")).name
+
+    assert band_of("scene=conference_v1") == "2.4ghz"  # simulated scenes: the paper's band unless band=...
+    assert band_of("scene=conference_v1", "band=915mhz") == "915mhz"
 
 
-def test_rfid_scene_defaults_to_915mhz_and_band_overrides_it(compose_cfg):
-    assert compose_cfg("eval").band.frequency_hz == 915e6
-    assert compose_cfg("eval", ("band=2.4ghz",)).band.frequency_hz == 2.412e9
+def test_rfid_scene_is_915mhz_whatever_the_run_band(compose_cfg):
+
+    for overrides in ((), ("band=2.4ghz",)):  # measured data exists at its band only (fixed_band)
+        cfg = compose_cfg("eval", overrides)
+        assert scene_band_config(cfg.scene.rfid_s23, cfg.get("band")).frequency_hz == 915e6
 
 
 def test_eval_knn_rfid_s23_writes_results_and_predictions(compose_cfg):
@@ -120,7 +134,7 @@ def test_train_with_knn_skips_fit_and_tests(compose_cfg):
 
 def test_user_scene_folder_without_code(compose_cfg, make_scene):
     folder = make_scene(n=16, index=False)
-    cfg = compose_cfg("eval", ("scene=nerf2", f"scene.path={folder}", "band=2.4ghz", "neighbors=fixed", "neighbors.L=2"))
+    cfg = compose_cfg("eval", ("scene=nerf2", f"scene.nerf2.path={folder}", "band=2.4ghz", "neighbors=fixed", "neighbors.L=2"))
     evaluate(cfg)
     r = _results(cfg)
     assert (r["n_train"], r["n_test"]) == (13, 3) and r["band_hz"] == 2.412e9
@@ -129,13 +143,13 @@ def test_user_scene_folder_without_code(compose_cfg, make_scene):
 
 def test_relative_scene_path_is_found_under_data_root(compose_cfg, make_scene, tmp_path):
     folder = make_scene(n=12, name="data/mine")
-    cfg = compose_cfg("eval", ("scene=nerf2", "band=2.4ghz", "scene.path=mine", f"data_root={folder.parent}", "plot_count=0"))
+    cfg = compose_cfg("eval", ("scene=nerf2", "band=2.4ghz", "scene.nerf2.path=mine", f"data_root={folder.parent}", "plot_count=0"))
     evaluate(cfg)
     assert _results(cfg)["n_test"] == 3
 
 
 def test_bad_scene_path_is_a_clear_error(compose_cfg, tmp_path):
-    cfg = compose_cfg("eval", ("scene=nerf2", "band=2.4ghz", f"scene.path={tmp_path / 'missing'}"))
+    cfg = compose_cfg("eval", ("scene=nerf2", "band=2.4ghz", f"scene.nerf2.path={tmp_path / 'missing'}"))
     with pytest.raises(DataFormatError, match="missing: scene folder does not exist"):
         evaluate(cfg)
 
@@ -178,7 +192,7 @@ def test_console_scripts_run_end_to_end(tmp_path, make_scene):
     env = dict(os.environ, WANDB_MODE="offline")
     for cmd in ("graf-eval", "graf-train"):
         out = tmp_path / cmd
-        proc = subprocess.run([str(bindir / cmd), "scene=nerf2", f"scene.path={folder}", "band=2.4ghz",
+        proc = subprocess.run([str(bindir / cmd), "scene=nerf2", f"scene.nerf2.path={folder}", "band=2.4ghz",
                                "neighbors=fixed", "neighbors.L=2", "trainer.accelerator=cpu", f"hydra.run.dir={out}"],
                               capture_output=True, text=True, env=env, timeout=300)
         assert proc.returncode == 0, proc.stderr[-2000:]
@@ -212,7 +226,7 @@ def test_the_comparison_study_composes_one_job_per_method_on_the_same_neighbours
     methods = {j: instantiate(c.model).method for j, c in cfgs.items()}
     assert sorted(methods.values()) == ["graf", "knn", "knn-dl", "nerf2"]
     for c in cfgs.values():
-        assert c.scene.name == "rfid_s23" and c.neighbors.exclude_within == 0.25 and c.baselines is None
+        assert c.scene.rfid_s23.name == "rfid_s23" and c.neighbors.exclude_within == 0.25 and c.baselines is None
         assert c.neighbors.L == 10 and list(c.neighbors.L_train) == [3, 10]
     steps = {methods[j]: c.trainer.max_steps for j, c in cfgs.items()}
     assert steps["graf"] == 3500 and steps["nerf2"] == 500 and steps["knn-dl"] == 2000

@@ -18,7 +18,7 @@ from graf.cli.common import build_datamodule
 @pytest.fixture
 def tiny(compose_cfg, make_scene):
     folder = make_scene(n=16)
-    cfg = compose_cfg("eval", ("scene=nerf2", f"scene.path={folder}", "band=2.4ghz", "neighbors=fixed", "neighbors.L=6"))
+    cfg = compose_cfg("eval", ("scene=nerf2", f"scene.nerf2.path={folder}", "band=2.4ghz", "neighbors=fixed", "neighbors.L=6"))
     _, _, _, dm = build_datamodule(cfg)
     dm.setup()
     return dm

@@ -88,7 +88,7 @@ def test_graf_eval_reads_the_simulated_scene(reference, tmp_path):
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name="eval", overrides=[
-            "model=knn", "scene=small_room", "scene.num_tx=96", "band=2.4ghz", f"data_root={reference}", "logger=none",
+            "model=knn", "scene=small_room", "scene.small_room.num_tx=96", "band=2.4ghz", f"data_root={reference}", "logger=none",
             f"paths.output_dir={tmp_path}", "trainer.accelerator=cpu", "plot_count=1"])
     GlobalHydra.instance().clear()
     metrics, _ = evaluate(cfg)
@@ -128,8 +128,8 @@ def test_show_scenes_and_bench_sim_commands(reference, tmp_path):
 
 def test_a_limited_dataset_is_read_only_when_asked_for(reference, compose_cfg):
     band = Band("2.4ghz", 2.412e9)
-    scene = instantiate(compose_cfg("eval", ("scene=small_room",)).scene)
-    with pytest.raises(DataFormatError, match=r"no dataset for scene small_room .* scene.num_tx=N \(N in \[96\]\)"):
+    scene = instantiate(compose_cfg("eval", ("scene=small_room",)).scene.small_room)
+    with pytest.raises(DataFormatError, match=r"no dataset for scene small_room .* scene.small_room.num_tx=N \(N in \[96\]\)"):
         scene.load(reference, band)  # only 2.4ghz-n96.h5 is there: never used silently
-    asked = instantiate(compose_cfg("eval", ("scene=small_room", "scene.num_tx=96")).scene)
+    asked = instantiate(compose_cfg("eval", ("scene=small_room", "scene.small_room.num_tx=96")).scene.small_room)
     assert len(asked.load(reference, band).ids) == 96

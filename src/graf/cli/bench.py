@@ -79,7 +79,8 @@ import lightning as L
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from graf.cli.common import CONF_DIR, CONF_PATH, ConfigError, _output_dir, build_datamodule, task_wrapper
+from graf.cli.common import (CONF_DIR, CONF_PATH, ConfigError, _output_dir, build_datamodule, instantiate_scene,
+                             task_wrapper)
 from graf.cli.simulate import simulate
 from graf.io import atomic_write_bytes, atomic_write_json
 
@@ -351,7 +352,7 @@ def scene_and_band(cfg: DictConfig, key: str) -> tuple[DictConfig, DictConfig]:
 def ensure_simulated(cfg: DictConfig, key: str, scene_cfg: DictConfig, band_cfg: DictConfig) -> Path | None:
     """For a simulated scene: its dataset file; made first (graf-simulate's code, ``sim.num_tx`` = the
     scene's ``num_tx``) when it is not under ``data_root``.  None for other scenes (nothing to make)."""
-    scene = hydra.utils.instantiate(scene_cfg)
+    scene = instantiate_scene(scene_cfg)
     if not hasattr(scene, "dataset_path"):
         return None
     band = hydra.utils.instantiate(band_cfg)
@@ -379,7 +380,8 @@ def prepare_scene(cfg: DictConfig, key: str, spectra: int, train_steps: int):
     dcfg = OmegaConf.create({"scene": scene_cfg, "band": band_cfg, "data_root": cfg.get("data_root"),
                              "neighbors": OmegaConf.to_container(cfg.neighbors, resolve=True),
                              "data": OmegaConf.to_container(cfg.data, resolve=True)})
-    band, _, _, dm = build_datamodule(dcfg)
+    bands, _, _, dm = build_datamodule(dcfg)
+    band = bands[0]
     dm.setup("fit")
     idx, mask = dm.eval_neighbors()
     rows = dm.eval_rows[: spectra + 1]

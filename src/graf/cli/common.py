@@ -77,18 +77,82 @@ METRIC_NAMES = ("mse", "psnr", "ssim", "lpips")
 EVAL_METRICS = tuple(f"{s}/{m}" for s in ("val", "test") for m in METRIC_NAMES)
 
 
-def build_datamodule(cfg: DictConfig):
-    """Band, scene, neighbour selector and the datamodule that joins them (``cfg.data``)."""
-    if cfg.get("band") is None:
+def scene_configs(node) -> list[DictConfig]:
+    """The scene configs a ``scene`` or ``eval_scene`` node selects, in order.  ``scene=conference_v1`` composes
+    to ``scene.conference_v1: {...}`` and ``scene=[conference_v1,office_v1]`` to one entry per scene (Hydra's
+    list selection; each option places ``scene_catalog/<name>`` under its own name); a flat config with a
+    ``_target_`` (graf-bench's ``scenes.<key>``) is one scene."""
+    if node is None:
+        return []
+    if isinstance(node, DictConfig) and "_target_" in node:
+        return [node]
+    return [v for v in node.values() if isinstance(v, DictConfig) and "_target_" in v]
+
+
+def single_scene_config(cfg: DictConfig, command: str) -> DictConfig:
+    """The one scene of a command that works on one scene (graf-simulate, graf-oracle, graf-synthesize)."""
+    scenes = scene_configs(cfg.get("scene"))
+    if len(scenes) != 1:
+        raise ConfigError(f"{command} works on one scene; scene= selects {len(scenes)} "
+                          f"({', '.join(str(s.get('name')) for s in scenes) or 'none'})")
+    return scenes[0]
+
+
+def load_band_config(name: str) -> DictConfig:
+    path = CONF_DIR / "band" / f"{name}.yaml"
+    if not path.is_file():
         choices = sorted(p.stem for p in (CONF_DIR / "band").glob("*.yaml"))
-        raise ConfigError(f"scene {cfg.scene.get('name', '?')!r} does not say its carrier frequency: add "
-                          f"band=<one of {', '.join(choices)}> (the band its spectra were measured at)")
-    band = hydra.utils.instantiate(cfg.band)
-    scene = hydra.utils.instantiate(cfg.scene)
+        raise ConfigError(f"unknown band {name!r}: one of {', '.join(choices)}")
+    return OmegaConf.load(path)
+
+
+def scene_band_config(scene_cfg: DictConfig, run_band: DictConfig | None) -> DictConfig:
+    """A scene's band: its own when fixed (measured data: rfid_s23 is 915 MHz whatever the run says), else the
+    run's ``band=...``, else the scene's default (simulated scenes: 2.4 GHz, the paper's band)."""
+    own = scene_cfg.get("band")
+    if scene_cfg.get("fixed_band") and own:
+        return load_band_config(own)
+    if run_band is not None:
+        return run_band
+    if own:
+        return load_band_config(own)
+    choices = sorted(p.stem for p in (CONF_DIR / "band").glob("*.yaml"))
+    raise ConfigError(f"scene {scene_cfg.get('name', '?')!r} does not say its carrier frequency: add "
+                      f"band=<one of {', '.join(choices)}> (the band its spectra were measured at)")
+
+
+def instantiate_scene(scene_cfg: DictConfig):
+    """The scene object of a scene config."""
+    return hydra.utils.instantiate(scene_cfg)
+
+
+def build_datamodule(cfg: DictConfig, which: str = "scene", scene_indices=None):
+    """Bands, scenes, neighbour selector and the datamodule that joins them (``cfg.data``), for the scenes
+    of ``cfg[which]`` (``scene``: what is trained on; ``eval_scene``: what is tested)."""
+    configs = scene_configs(cfg.get(which))
+    if not configs:
+        raise ConfigError(f"{which}= selects no scene")
+    band_cfgs = [scene_band_config(c, cfg.get("band")) for c in configs]
+    bands = [hydra.utils.instantiate(b) for b in band_cfgs]
+    scenes = [instantiate_scene(c) for c in configs]
     neighbors = hydra.utils.instantiate(cfg.neighbors)
-    datamodule = hydra.utils.instantiate(cfg.data, scene=scene, band=band, neighbors=neighbors,
-                                         data_root=cfg.get("data_root"))
-    return band, scene, neighbors, datamodule
+    make = hydra.utils.instantiate(cfg.data, _partial_=True)  # lists of objects must not pass through OmegaConf
+    datamodule = make(scene=scenes, band=bands, neighbors=neighbors, data_root=cfg.get("data_root"),
+                      scene_indices=scene_indices)
+    return bands, scenes, neighbors, datamodule
+
+
+def eval_scene_indices(train_names: list[str], eval_names: list[str]) -> list[int]:
+    """The scene index of each test scene: its training index when the model was trained on it, else a new
+    index after the training scenes' (an unseen scene)."""
+    out, new = [], len(train_names)
+    for n in eval_names:
+        if n in train_names:
+            out.append(train_names.index(n))
+        else:
+            out.append(new)
+            new += 1
+    return out
 
 
 def build(cfg: DictConfig) -> dict:
@@ -97,16 +161,45 @@ def build(cfg: DictConfig) -> dict:
         L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     out = _output_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
-    band, scene, neighbors, datamodule = build_datamodule(cfg)
+    bands, scenes, neighbors, datamodule = build_datamodule(cfg)
     datamodule.setup("fit")
+    evaluations = eval_datamodules(cfg, datamodule)
     model = hydra.utils.instantiate(cfg.model)
     loggers = [hydra.utils.instantiate(c) for c in (cfg.get("logger") or {}).values()
                if isinstance(c, DictConfig) and "_target_" in c]
     callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()
                  if isinstance(c, DictConfig) and "_target_" in c]
     trainer = hydra.utils.instantiate(trainer_args(cfg), logger=loggers or False, callbacks=callbacks)
-    return {"band": band, "scene": scene, "neighbors": neighbors, "datamodule": datamodule, "model": model,
+    return {"band": bands[0], "bands": bands, "scenes": scenes, "neighbors": neighbors, "datamodule": datamodule,
+            "evaluations": evaluations, "model": model,
             "loggers": loggers, "trainer": trainer, "output_dir": out}
+
+
+def eval_datamodules(cfg: DictConfig, train_dm) -> list[dict]:
+    """What the final evaluations test: ``[{"eval_scene", "datamodule", "within_scene"}]``.  Without
+    ``eval_scene`` (``eval_scene=same``) the training datamodule itself (within-scene).  Otherwise one
+    datamodule per test scene, its targets from that scene's splits and their neighbours from that scene's
+    training split; a test scene the model was trained on keeps its training scene index and is reported
+    as within-scene, an unseen one gets a new index."""
+    configs = scene_configs(cfg.get("eval_scene"))
+    if not configs:
+        return [{"eval_scene": train_dm.scene_name, "datamodule": train_dm, "within_scene": True}]
+    train_names = [d.name for d in train_dm.sets]
+    names = [str(c.get("name")) for c in configs]
+    indices = eval_scene_indices(train_names, names)
+    out = []
+    for c, name, k in zip(configs, names, indices):
+        sub = OmegaConf.create({k: OmegaConf.to_container(v, resolve=True) if isinstance(v, DictConfig) else v
+                                for k, v in (("eval_scene", OmegaConf.create({name: c})), ("band", cfg.get("band")),
+                                             ("neighbors", cfg.neighbors), ("data", cfg.data),
+                                             ("data_root", cfg.get("data_root")))})
+        _, _, _, dm = build_datamodule(sub, "eval_scene", scene_indices=[k])
+        dm.setup("test")
+        within = name in train_names
+        log.info("test scene %s: %s (scene index %d)", name, "within-scene (also trained on)" if within
+                 else "unseen in training (zero-shot)", k)
+        out.append({"eval_scene": name, "datamodule": dm, "within_scene": within})
+    return out
 
 
 def ray_sampling(model, dm) -> dict | None:
@@ -116,7 +209,7 @@ def ray_sampling(model, dm) -> dict | None:
     for k, d in enumerate(dm.sets):
         geometry = {"ray_length": dm.ray_length[k:k + 1], "wavelength": dm.wavelength[k:k + 1],
                     "gw_pos": dm.gw_pos[k:k + 1], "gw_rot": dm.gw_rot[k:k + 1], "bounds": dm.bounds[k:k + 1],
-                    "scene_index": torch.tensor([k])}
+                    "scene_index": dm.scene_index[k:k + 1]}
         r = model.ray_sampling(geometry)
         if r is None:
             return None
@@ -172,9 +265,17 @@ def evaluate_model(cfg: DictConfig, model, dm, loggers=(), timing: dict | None =
 def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -> dict:
     """Validate and test the model, then write results.json (+ predictions.npz, spectra.png).  Returns the
     metrics (``val/...`` and ``test/...``)."""
-    trainer, model, dm = objects["trainer"], objects["model"], objects["datamodule"]
+    trainer, model, train_dm = objects["trainer"], objects["model"], objects["datamodule"]
+    evaluations = objects.get("evaluations") or [{"eval_scene": train_dm.scene_name, "datamodule": train_dm,
+                                                   "within_scene": True}]
     timing = dict(objects.get("timing") or {})
-    metrics, arrays = evaluate_model(cfg, model, dm, objects["loggers"], timing)
+    done = []
+    for ev in evaluations:  # each test scene on its own (the first one's figures are the run's headline)
+        t = dict(timing)
+        m, a = evaluate_model(cfg, model, ev["datamodule"], objects["loggers"] if not done else (), t)
+        done.append((ev, m, a, t))
+    (first, metrics, arrays, timing) = done[0]
+    dm = first["datamodule"]
     out: Path = objects["output_dir"]
     config = OmegaConf.to_container(cfg, resolve=True)
     if objects.get("checkpoint"):  # graf-eval of a checkpoint: the model that ran is the checkpoint's
@@ -182,7 +283,11 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -
     results = {
         "method": getattr(model, "method", type(model).__name__),
         "scene": dm.scene_name,
-        "band_hz": float(objects["band"].frequency_hz),
+        "train_scenes": [d.name for d in train_dm.sets],
+        "eval_scene": first["eval_scene"],
+        "within_scene": bool(first["within_scene"]),
+        "band_hz": float(dm.bands[0].frequency_hz),
+        "train_bands_hz": [float(b.frequency_hz) for b in train_dm.bands],
         "n_train": dm.n_train,
         "n_test": int(len(arrays["ids"])),
         "metrics": metrics,
@@ -217,14 +322,24 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -
         for lg in objects["loggers"]:
             if hasattr(lg, "log_image"):
                 lg.log_image(key="test/spectra", images=[str(fig)])
-    rows = [results]
-    for name, bcfg in (cfg.get("baselines") or {}).items():
-        if not isinstance(bcfg, DictConfig) or "_target_" not in bcfg or bcfg == cfg.model:
-            continue
-        rows.append(_test_baseline(cfg, name, bcfg, dm))
-    if len(rows) > 1:
-        results["baselines"] = {r["method"]: {"metrics": r["metrics"], "seconds": r["seconds"],
-                                              "trainable_parameters": r["trainable_parameters"]} for r in rows[1:]}
+    baselines = [(name, bcfg) for name, bcfg in (cfg.get("baselines") or {}).items()
+                 if isinstance(bcfg, DictConfig) and "_target_" in bcfg and bcfg != cfg.model]
+    rows, per_eval = [], []
+    for i, (ev, m, a, t) in enumerate(done):  # every test scene: the model, then its baselines on the same data
+        head = results if i == 0 else {"method": results["method"], "scene": ev["eval_scene"],
+                                       "n_test": int(len(a["ids"])), "metrics": m}
+        brows = [_test_baseline(cfg, name, bcfg, ev["datamodule"]) for name, bcfg in baselines]
+        rows += [head, *brows]
+        per_eval.append({r["method"]: {"metrics": r["metrics"], "seconds": r["seconds"],
+                                       "trainable_parameters": r["trainable_parameters"]} for r in brows})
+    if per_eval[0]:
+        results["baselines"] = per_eval[0]
+    if len(done) > 1 or not first["within_scene"] or first["eval_scene"] != train_dm.scene_name:
+        results["evaluations"] = [
+            {"eval_scene": ev["eval_scene"], "within_scene": bool(ev["within_scene"]), "metrics": m,
+             "n_test": int(len(a["ids"])), "band_hz": float(ev["datamodule"].bands[0].frequency_hz),
+             "scene_index": int(ev["datamodule"].scene_index[0]), "splits": ev["datamodule"].split_summary(),
+             "timing": t, "baselines": b} for (ev, m, a, t), b in zip(done, per_eval)]
     if cfg.get("regime"):
         results["regime"] = str(cfg.regime)
     atomic_write_json(out / "results.json", results)

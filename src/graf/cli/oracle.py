@@ -16,7 +16,7 @@ import time
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from graf.cli.common import CONF_PATH, _output_dir, build_datamodule, task_wrapper
+from graf.cli.common import CONF_PATH, _output_dir, build_datamodule, single_scene_config, task_wrapper
 from graf.io import atomic_write_json
 
 
@@ -43,7 +43,9 @@ def run(cfg: DictConfig) -> dict:
 
     started = time.perf_counter()
     oc = cfg.oracle
-    band, _, neighbors, dm = build_datamodule(cfg)
+    single_scene_config(cfg, "graf-oracle")
+    bands, _, neighbors, dm = build_datamodule(cfg)
+    band = bands[0]
     dm.setup()
     rows, src_index, src_mask = select_targets(dm, oc.split)
     fit = run_oracle(dm.data.spectra, dm.positions, rows, src_index, src_mask, list(oc.lrs), oc.iterations,

@@ -17,7 +17,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from graf.cli.common import CONF_PATH, _output_dir, build_datamodule, task_wrapper
+from graf.cli.common import CONF_PATH, _output_dir, build_datamodule, single_scene_config, task_wrapper
 from graf.io import atomic_write_json
 
 
@@ -28,7 +28,9 @@ def run(cfg: DictConfig) -> dict:
 
     started = time.perf_counter()
     positions, had_header = _read_positions(Path(cfg.positions))
-    band, scene, neighbors, dm = build_datamodule(cfg)
+    single_scene_config(cfg, "graf-synthesize")
+    bands, _, neighbors, dm = build_datamodule(cfg)
+    band = bands[0]
     model_cls = hydra.utils.get_class(cfg.model._target_)
     if cfg.get("ckpt_path"):
         from graf.models.base import check_checkpoint, read_checkpoint

@@ -15,7 +15,9 @@ A batch (IBRNet/GNT style: source views on one axis with a mask)::
     wavelength   float [B]              of the item's band (m): GRaF's voxel size
     ray_length   float [B]              farthest corner of the item's scene bounds from its gateway (m)
     bounds       float [B, 2, 3]        the item's scene box (min, max)
-    scene_index  long  [B]              which of the datamodule's scenes the item belongs to
+    scene_index  long  [B]              the item's scene index (a model's 4-D positions): its position in the
+                                        list of scenes, or ``scene_indices[k]`` when given (a test scene
+                                        keeps the index it was trained with; an unseen one gets a new one)
 
 Every per-item geometry value is gathered through the item's scene index from per-scene tables, so scenes
 of different sizes and bands can share a batch.
@@ -148,11 +150,13 @@ class SpectrumDataModule(L.LightningDataModule):
         seed: seeds the training stream (target order, L and neighbour draws).
         val_fraction / val_seed: the validation part of each scene's training split (seeded by ``val_seed``,
             independent of ``seed``).
+        scene_indices: the scene index each scene's items carry (default ``0 .. n_scenes - 1``).
     """
 
     def __init__(self, scene, band: Band | Sequence[Band], neighbors: NeighborSelector,
                  data_root: str | Path | None = None, batch_size: int = 4, num_workers: int = 0,
-                 eval_split: str = "test", seed: int = 0, val_fraction: float = 0.1, val_seed: int = 0):
+                 eval_split: str = "test", seed: int = 0, val_fraction: float = 0.1, val_seed: int = 0,
+                 scene_indices: Sequence[int] | None = None):
         super().__init__()
         if eval_split not in EVAL_SPLITS:
             raise ValueError(f"data.eval_split must be one of {EVAL_SPLITS}, got {eval_split!r}")
@@ -166,6 +170,10 @@ class SpectrumDataModule(L.LightningDataModule):
         self.eval_split, self.seed = eval_split, int(seed)
         self.val_fraction, self.val_seed = float(val_fraction), int(val_seed)
         self.sets: list[SpectrumSet] = []
+        idx = list(range(len(self.scenes))) if scene_indices is None else [int(i) for i in scene_indices]
+        if len(idx) != len(self.scenes):
+            raise ValueError(f"{len(idx)} scene indices given for {len(self.scenes)} scenes")
+        self.scene_index = torch.as_tensor(idx, dtype=torch.long)
 
     # ------------------------------------------------------------------ setup
     def setup(self, stage: str | None = None) -> None:
@@ -293,7 +301,7 @@ class SpectrumDataModule(L.LightningDataModule):
             "wavelength": self.wavelength[k],
             "ray_length": self.ray_length[k],
             "bounds": self.bounds[k],
-            "scene_index": k,
+            "scene_index": self.scene_index[k],
         }
 
     def _eval_collate(self, name: str):

@@ -20,7 +20,7 @@ def resolve_scene_path(path: str, data_root: str | Path | None) -> Path:
     """``embedded:NAME`` is a folder shipped inside the package; an absolute path is used as is; a
     relative path is looked up under ``data_root`` first, then the working directory."""
     if path is None or str(path) in ("", "???"):
-        raise DataFormatError("scene.path", "no scene folder given: set scene.path=DIR")
+        raise DataFormatError("scene.path", "no scene folder given: set scene.<name>.path=DIR (scene=nerf2 scene.nerf2.path=DIR)")
     path = str(path)
     if path.startswith(EMBEDDED_PREFIX):
         p = EMBEDDED_DIR / path[len(EMBEDDED_PREFIX):]
@@ -43,12 +43,15 @@ class NeRF2Scene:
         name: scene name written into results.
         path: the folder (``embedded:rfid_s23_200`` for the shipped slice).
         split_seed / train_fraction: used only when the folder has no index files.
+        band / fixed_band: the band name a run uses for this scene (fixed: whatever the run's band= says, as
+            for measured data); read by the run, see :func:`graf.cli.common.scene_band_config`.
     """
 
     kind = "nerf2_folder"
 
-    def __init__(self, name: str, path: str, split_seed: int = 0, train_fraction: float = 0.8):
-        self.name, self.path = name, path
+    def __init__(self, name: str, path: str, split_seed: int = 0, train_fraction: float = 0.8,
+                 band: str | None = None, fixed_band: bool = False):
+        self.name, self.path, self.band, self.fixed_band = name, path, band, bool(fixed_band)
         self.split_seed, self.train_fraction = split_seed, train_fraction
 
     def load(self, data_root: str | Path | None, band: Band) -> SpectrumSet:

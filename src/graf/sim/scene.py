@@ -38,8 +38,10 @@ class SimulatedScene:
 
     def __init__(self, name: str, gateway: dict, transmitters: dict, tracing: dict, array: dict,
                  room: dict | None = None, ground: dict | None = None, objects: dict | None = None,
-                 description: str = "", num_tx: int | None = None):
+                 description: str = "", num_tx: int | None = None, band: str | None = None,
+                 fixed_band: bool = False):
         self.name = name
+        self.band, self.fixed_band = band, bool(fixed_band)  # the run's band choice (graf.cli.common.scene_band_config)
         self.num_tx = None if num_tx is None else int(num_tx)
         self.room, self.ground, self.objects = room, ground, objects or {}
         self.gateway, self.transmitters = dict(gateway), dict(transmitters)
@@ -114,11 +116,11 @@ class SimulatedScene:
         num_tx = self.num_tx if num_tx is None else num_tx
         path = self.dataset_path(data_root, band, num_tx)
         if not path.is_file():
-            # a limited run (sim.num_tx=N) is used only when asked for (scene.num_tx=N), never silently
+            # a limited run (sim.num_tx=N) is used only when asked for (scene.<name>.num_tx=N), never silently
             limited = sorted(path.parent.glob(f"{band.name}-n*.h5")) if num_tx is None else []
             found = [int(p.stem.rsplit("-n", 1)[1]) for p in limited if p.stem.rsplit("-n", 1)[1].isdigit()]
             raise DataFormatError(path, f"no dataset for scene {self.name} at band {band.name}; make it with "
                                         f"`graf-simulate scene={self.name} band={band.name} data_root={data_root}`"
-                                  + (f", or use a limited one that is there with scene.num_tx=N (N in {found})"
+                                  + (f", or use a limited one that is there with scene.{self.name}.num_tx=N (N in {found})"
                                      if found else ""))
         return read_dataset(path, name=self.name)

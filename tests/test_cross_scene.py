@@ -1,0 +1,87 @@
+"""Cross-scene runs: several training scenes of different bands in one run, test scenes apart from them."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+
+from graf.cli.common import CONF_DIR, build_datamodule, eval_scene_indices
+from graf.cli.evaluate import evaluate
+from graf.cli.simulate import simulate
+from graf.cli.train import train
+
+FAST = ["model.rays_per_step=64", "model.max_samples=8", "data.batch_size=2", "baselines={}", "plot_count=0",
+        "trainer.limit_test_batches=1", "trainer.enable_progress_bar=false", "model=graf_cpu",
+        "model.encoder_widths=[4,8,8,8]", "callbacks.model_checkpoint.every_n_train_steps=2"]
+
+
+@pytest.fixture(scope="module")
+def data_root(tmp_path_factory):
+    """24 ray-traced positions of small_room at 2.4 GHz (graf-simulate's code)."""
+    root = tmp_path_factory.mktemp("data")
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose("simulate", ["scene=small_room", "band=2.4ghz", "sim.num_tx=24", f"data_root={root}",
+                                   f"paths.output_dir={root / 'sim_out'}", "sim.progress=false"])
+    GlobalHydra.instance().clear()
+    simulate(cfg)
+    return root
+
+
+def _results(cfg) -> dict:
+    return json.loads((Path(cfg.paths.output_dir) / "results.json").read_text())
+
+
+def test_two_scenes_of_different_bands_and_samples_per_ray_train_two_steps(compose_cfg, data_root):
+    cfg = compose_cfg("train", ("scene=[rfid_s23,small_room]", "scene.small_room.num_tx=24", f"data_root={data_root}",
+                                "band=2.4ghz", "model.use_scene_index=true", "trainer.max_steps=2", *FAST, "model.max_samples=32"))
+    train(cfg)
+    r = _results(cfg)
+    assert r["train_scenes"] == ["rfid_s23", "small_room"] and r["eval_scene"] == "rfid_s23+small_room"
+    assert r["train_bands_hz"] == [915e6, 2.412e9]  # rfid_s23 keeps its measured band; the room takes band=
+    s = r["ray_sampling"]
+    assert s["rfid_s23"]["samples_per_ray"] != s["small_room"]["samples_per_ray"]
+    assert all(v == v for v in r["metrics"].values()) and r["global_step"] == 2
+
+
+def test_neighbours_never_cross_scenes_and_never_are_the_target(compose_cfg, data_root):
+    cfg = compose_cfg("train", ("scene=[rfid_s23,small_room]", "scene.small_room.num_tx=24", f"data_root={data_root}",
+                                "model=knn", "data.batch_size=6"))
+    _, _, _, dm = build_datamodule(cfg)
+    dm.setup("fit")
+    for k in range(200):  # training draws: L varies, the pool is the fit split of the target's scene
+        b = dm.train_batch(k)
+        tgt_scene = dm.row_scene[b["tgt_index"]]
+        for i in range(len(b["tgt_index"])):
+            src = b["src_index"][i][b["src_mask"][i]]
+            assert len(src) > 0 and (dm.row_scene[src] == tgt_scene[i]).all()
+            assert (src != b["tgt_index"][i]).all() and bool(torch.isin(src, dm.fit_rows).all())
+    for split in ("val", "test"):
+        rows, idx, mask = dm.split_neighbors(split)
+        for i in range(len(rows)):
+            src = idx[i][mask[i]]
+            assert (dm.row_scene[src] == dm.row_scene[rows[i]]).all() and (src != rows[i]).all()
+
+
+def test_a_checkpoint_is_tested_zero_shot_on_a_scene_it_was_not_trained_on(compose_cfg, data_root, tmp_path):
+    cfg = compose_cfg("train", ("scene=rfid_s23", "trainer.max_steps=2", "model.use_scene_index=true", *FAST))
+    train(cfg)
+    ckpt = Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt"
+    ecfg = compose_cfg("eval", (f"ckpt_path={ckpt}", "eval_scene=small_room",
+                                "eval_scene.small_room.num_tx=24", f"data_root={data_root}", "plot_count=0",
+                                "trainer.limit_test_batches=1", f"paths.output_dir={tmp_path / 'e'}"))
+    evaluate(ecfg, overrides=[])
+    r = json.loads((tmp_path / "e" / "results.json").read_text())
+    assert r["train_scenes"] == ["rfid_s23"] and r["eval_scene"] == "small_room" and r["within_scene"] is False
+    (ev,) = r["evaluations"]
+    assert ev["scene_index"] == 1 and ev["band_hz"] == 2.412e9 and ev["n_test"] > 0
+    assert r["band_hz"] == 2.412e9 and all(v == v for v in ev["metrics"].values())
+
+
+def test_test_scene_indices_keep_training_indices_and_give_unseen_scenes_new_ones():
+    assert eval_scene_indices(["a", "b"], ["b", "c", "a", "d"]) == [1, 2, 0, 3]
