@@ -102,7 +102,7 @@ def test_changed_configuration_is_refused_and_missing_dataset_is_explained(tmp_p
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name="simulate", overrides=["scene=small_room", "band=2.4ghz"])
     GlobalHydra.instance().clear()
-    scene, band = instantiate(cfg.scene), instantiate(cfg.band)
+    scene, band = instantiate(cfg.scene.small_room), instantiate(cfg.band)
     parts = scene.dataset_path(tmp_path, band, 16).with_name("2.4ghz-n16.h5.parts")
     parts.mkdir(parents=True)
     (parts / "manifest.json").write_text(json.dumps({"fingerprint": "something-else"}))
