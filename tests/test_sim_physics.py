@@ -114,7 +114,7 @@ def test_default_sample_budget_is_converged_on_a_small_scene():
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name="simulate", overrides=["scene=small_room", "band=2.4ghz"])
     GlobalHydra.instance().clear()
-    scene, band = instantiate(cfg.scene), instantiate(cfg.band)
+    scene, band = instantiate(cfg.scene.small_room), instantiate(cfg.band)
     pos = scene.positions(32)
     runs = []
     for factor in (1, 2):
@@ -135,7 +135,7 @@ def test_low_and_high_bands_follow_the_wavelength(band_name):
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name="simulate", overrides=["scene=small_room", f"band={band_name}"])
     GlobalHydra.instance().clear()
-    scene, band = instantiate(cfg.scene), instantiate(cfg.band)
+    scene, band = instantiate(cfg.scene.small_room), instantiate(cfg.band)
     pitch = np.diff(np.unique(scene.antenna_positions(band)[:, 0]))
     np.testing.assert_allclose(pitch, band.wavelength / 2)
     tracer = scene.tracer(band)
