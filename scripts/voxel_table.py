@@ -16,7 +16,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from graf.cli.common import CONF_DIR, instantiate_scene, scene_band_config, single_scene_config
+from graf.cli.common import CONF_DIR, scene_band_config, single_scene_config
 from graf.sim.array import rotation_from_axes
 
 SCENES = ["rfid_s23", "small_room", "bedroom", "conference_v1", "office_v1", "outdoor"]
@@ -32,7 +32,7 @@ def main() -> None:
             for name in SCENES:
                 cfg = compose(config_name="train", overrides=[f"scene={name}", f"band={band_name}"])
                 scene_cfg = single_scene_config(cfg, "voxel_table")
-                scene, band = instantiate_scene(scene_cfg), instantiate(scene_band_config(scene_cfg, cfg.get("band")))
+                scene, band = instantiate(scene_cfg), instantiate(scene_band_config(scene_cfg, cfg.get("band")))
                 if hasattr(scene, "geometry"):
                     bounds, gw = np.asarray(scene.geometry.bounds), np.asarray(scene.gateway["position"], float)
                     rot = rotation_from_axes(scene.gateway["normal"], scene.gateway["x_axis"]).as_matrix()

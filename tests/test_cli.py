@@ -15,7 +15,7 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from graf.cli.common import CONF_DIR, CONF_PATH, ConfigError, instantiate_scene, scene_band_config, scene_configs
+from graf.cli.common import CONF_DIR, CONF_PATH, ConfigError, scene_band_config, scene_configs
 from graf.cli.evaluate import evaluate
 from graf.cli.table import make_table
 from graf.cli.train import train
@@ -62,7 +62,7 @@ def test_every_config_group_option_composes():
                 if group in ("scene", "eval_scene"):  # every option also builds its object
                     assert len(scene_configs(cfg[group])) == (f.stem != "same")
                     for c in scene_configs(cfg[group]):
-                        instantiate_scene(c)
+                        instantiate(c)
                 elif group in ("band", "neighbors", "model"):
                     instantiate(cfg[group])
     GlobalHydra.instance().clear()

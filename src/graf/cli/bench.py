@@ -79,7 +79,7 @@ import lightning as L
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from graf.cli.common import (CONF_DIR, CONF_PATH, ConfigError, _output_dir, build_datamodule, instantiate_scene,
+from graf.cli.common import (CONF_DIR, CONF_PATH, ConfigError, _output_dir, band_choices, build_datamodule,
                              task_wrapper)
 from graf.cli.simulate import simulate
 from graf.io import atomic_write_bytes, atomic_write_json
@@ -340,8 +340,7 @@ def scene_and_band(cfg: DictConfig, key: str) -> tuple[DictConfig, DictConfig]:
     sets none) and its band ``bands.<key>``."""
     bands = cfg.get("bands") or {}
     if key not in bands:
-        choices = sorted(p.stem for p in (CONF_DIR / "band").glob("*.yaml"))
-        raise ConfigError(f"scene {key!r} has no band: add +band@bands.{key}=<one of {', '.join(choices)}>")
+        raise ConfigError(f"scene {key!r} has no band: add +band@bands.{key}=<one of {', '.join(band_choices())}>")
     scene_cfg = OmegaConf.create(OmegaConf.to_container(cfg.scenes[key], resolve=True))
     n = cfg.bench.get("sim_num_tx")
     if "num_tx" in scene_cfg and scene_cfg.num_tx is None and n is not None:
@@ -352,7 +351,7 @@ def scene_and_band(cfg: DictConfig, key: str) -> tuple[DictConfig, DictConfig]:
 def ensure_simulated(cfg: DictConfig, key: str, scene_cfg: DictConfig, band_cfg: DictConfig) -> Path | None:
     """For a simulated scene: its dataset file; made first (graf-simulate's code, ``sim.num_tx`` = the
     scene's ``num_tx``) when it is not under ``data_root``.  None for other scenes (nothing to make)."""
-    scene = instantiate_scene(scene_cfg)
+    scene = hydra.utils.instantiate(scene_cfg)
     if not hasattr(scene, "dataset_path"):
         return None
     band = hydra.utils.instantiate(band_cfg)

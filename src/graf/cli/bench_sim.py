@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from graf.cli.common import CONF_PATH, _output_dir, instantiate_scene, scene_band_config, single_scene_config, task_wrapper
+from graf.cli.common import CONF_PATH, _output_dir, scene_band_config, single_scene_config, task_wrapper
 from graf.io import atomic_write_json
 
 PAPER_SECONDS_PER_SPECTRUM = 59.5
@@ -43,7 +43,7 @@ def bench(cfg: DictConfig) -> dict:
 
     scene_cfg = single_scene_config(cfg, "graf-bench-sim")
     band = hydra.utils.instantiate(scene_band_config(scene_cfg, cfg.get("band")))
-    scene = instantiate_scene(scene_cfg)
+    scene = hydra.utils.instantiate(scene_cfg)
     device = "cuda" if torch.cuda.is_available() else "cpu"
     n = int(cfg.bench.num_tx)
     spc = int(scene.tracing.get("sources_per_call", 256))

@@ -98,11 +98,15 @@ def single_scene_config(cfg: DictConfig, command: str) -> DictConfig:
     return scenes[0]
 
 
+def band_choices() -> list[str]:
+    """The options of the ``band`` config group."""
+    return sorted(p.stem for p in (CONF_DIR / "band").glob("*.yaml"))
+
+
 def load_band_config(name: str) -> DictConfig:
     path = CONF_DIR / "band" / f"{name}.yaml"
     if not path.is_file():
-        choices = sorted(p.stem for p in (CONF_DIR / "band").glob("*.yaml"))
-        raise ConfigError(f"unknown band {name!r}: one of {', '.join(choices)}")
+        raise ConfigError(f"unknown band {name!r}: one of {', '.join(band_choices())}")
     return OmegaConf.load(path)
 
 
@@ -116,14 +120,8 @@ def scene_band_config(scene_cfg: DictConfig, run_band: DictConfig | None) -> Dic
         return run_band
     if own:
         return load_band_config(own)
-    choices = sorted(p.stem for p in (CONF_DIR / "band").glob("*.yaml"))
     raise ConfigError(f"scene {scene_cfg.get('name', '?')!r} does not say its carrier frequency: add "
-                      f"band=<one of {', '.join(choices)}> (the band its spectra were measured at)")
-
-
-def instantiate_scene(scene_cfg: DictConfig):
-    """The scene object of a scene config."""
-    return hydra.utils.instantiate(scene_cfg)
+                      f"band=<one of {', '.join(band_choices())}> (the band its spectra were measured at)")
 
 
 def build_datamodule(cfg: DictConfig, which: str = "scene", scene_indices=None):
@@ -134,7 +132,7 @@ def build_datamodule(cfg: DictConfig, which: str = "scene", scene_indices=None):
         raise ConfigError(f"{which}= selects no scene")
     band_cfgs = [scene_band_config(c, cfg.get("band")) for c in configs]
     bands = [hydra.utils.instantiate(b) for b in band_cfgs]
-    scenes = [instantiate_scene(c) for c in configs]
+    scenes = [hydra.utils.instantiate(c) for c in configs]
     neighbors = hydra.utils.instantiate(cfg.neighbors)
     make = hydra.utils.instantiate(cfg.data, _partial_=True)  # lists of objects must not pass through OmegaConf
     datamodule = make(scene=scenes, band=bands, neighbors=neighbors, data_root=cfg.get("data_root"),
@@ -161,7 +159,7 @@ def build(cfg: DictConfig) -> dict:
         L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     out = _output_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
-    bands, scenes, neighbors, datamodule = build_datamodule(cfg)
+    _, _, neighbors, datamodule = build_datamodule(cfg)
     datamodule.setup("fit")
     evaluations = eval_datamodules(cfg, datamodule)
     model = hydra.utils.instantiate(cfg.model)
@@ -170,8 +168,7 @@ def build(cfg: DictConfig) -> dict:
     callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()
                  if isinstance(c, DictConfig) and "_target_" in c]
     trainer = hydra.utils.instantiate(trainer_args(cfg), logger=loggers or False, callbacks=callbacks)
-    return {"band": bands[0], "bands": bands, "scenes": scenes, "neighbors": neighbors, "datamodule": datamodule,
-            "evaluations": evaluations, "model": model,
+    return {"neighbors": neighbors, "datamodule": datamodule, "evaluations": evaluations, "model": model,
             "loggers": loggers, "trainer": trainer, "output_dir": out}
 
 
@@ -189,8 +186,8 @@ def eval_datamodules(cfg: DictConfig, train_dm) -> list[dict]:
     indices = eval_scene_indices(train_names, names)
     out = []
     for c, name, k in zip(configs, names, indices):
-        sub = OmegaConf.create({k: OmegaConf.to_container(v, resolve=True) if isinstance(v, DictConfig) else v
-                                for k, v in (("eval_scene", OmegaConf.create({name: c})), ("band", cfg.get("band")),
+        sub = OmegaConf.create({key: OmegaConf.to_container(v, resolve=True) if isinstance(v, DictConfig) else v
+                                for key, v in (("eval_scene", OmegaConf.create({name: c})), ("band", cfg.get("band")),
                                              ("neighbors", cfg.neighbors), ("data", cfg.data),
                                              ("data_root", cfg.get("data_root")))})
         _, _, _, dm = build_datamodule(sub, "eval_scene", scene_indices=[k])

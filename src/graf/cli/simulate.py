@@ -14,7 +14,7 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from graf.cli.common import CONF_PATH, _output_dir, instantiate_scene, scene_band_config, single_scene_config, task_wrapper
+from graf.cli.common import CONF_PATH, _output_dir, scene_band_config, single_scene_config, task_wrapper
 from graf.io import atomic_write_json
 
 log = logging.getLogger("graf")
@@ -28,7 +28,7 @@ def simulate(cfg: DictConfig) -> dict:
     started = time.perf_counter()
     scene_cfg = single_scene_config(cfg, "graf-simulate")
     band = hydra.utils.instantiate(scene_band_config(scene_cfg, cfg.get("band")))
-    scene = instantiate_scene(scene_cfg)
+    scene = hydra.utils.instantiate(scene_cfg)
     if not isinstance(scene, SimulatedScene):
         raise ValueError(f"scene {getattr(scene, 'name', scene_cfg.get('name'))} is not a simulated scene: graf-simulate needs "
                          "a scene config with _target_: graf.sim.scene.SimulatedScene")
