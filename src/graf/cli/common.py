@@ -124,33 +124,78 @@ def scene_band_config(scene_cfg: DictConfig, run_band: DictConfig | None) -> Dic
                       f"band=<one of {', '.join(band_choices())}> (the band its spectra were measured at)")
 
 
-def build_datamodule(cfg: DictConfig, which: str = "scene", scene_indices=None):
+def build_datamodule(cfg: DictConfig, which: str = "scene", scene_indices=None, band=None):
     """Bands, scenes, neighbour selector and the datamodule that joins them (``cfg.data``), for the scenes
-    of ``cfg[which]`` (``scene``: what is trained on; ``eval_scene``: what is tested)."""
+    of ``cfg[which]`` (``scene``: what is trained on; ``eval_scene``: what is tested).  ``band``: the band
+    config of the run (default ``cfg.band``).  The fine-tuning settings (``cfg.finetune``: measured fraction,
+    its seed, the test neighbour pool) apply to the scenes trained on."""
     configs = scene_configs(cfg.get(which))
     if not configs:
         raise ConfigError(f"{which}= selects no scene")
-    band_cfgs = [scene_band_config(c, cfg.get("band")) for c in configs]
+    run_band = cfg.get("band") if band is None else band
+    band_cfgs = [scene_band_config(c, run_band) for c in configs]
     bands = [hydra.utils.instantiate(b) for b in band_cfgs]
     scenes = [hydra.utils.instantiate(c) for c in configs]
     neighbors = hydra.utils.instantiate(cfg.neighbors)
+    ft = cfg.get("finetune") or {}
+    measured = {"measured_fraction": ft.get("fraction"), "measured_seed": int(ft.get("seed") or 0),
+                "test_pool": ft.get("test_pool") or "measured"} if which == "scene" else {}
     make = hydra.utils.instantiate(cfg.data, _partial_=True)  # lists of objects must not pass through OmegaConf
     datamodule = make(scene=scenes, band=bands, neighbors=neighbors, data_root=cfg.get("data_root"),
-                      scene_indices=scene_indices)
+                      scene_indices=scene_indices, **measured)
     return bands, scenes, neighbors, datamodule
+
+
+def assign_scene_indices(known: dict[str, int], names: list[str]) -> list[int]:
+    """The scene index of each scene in ``names``: its index in ``known`` (the scenes a model was trained on,
+    name -> index) when there, else a new index after every known one (an unseen scene)."""
+    out, new = [], (max(known.values()) + 1) if known else 0
+    for n in names:
+        if n in known:
+            out.append(int(known[n]))
+        else:
+            out.append(new)
+            new += 1
+    return out
 
 
 def eval_scene_indices(train_names: list[str], eval_names: list[str]) -> list[int]:
     """The scene index of each test scene: its training index when the model was trained on it, else a new
     index after the training scenes' (an unseen scene)."""
-    out, new = [], len(train_names)
-    for n in eval_names:
-        if n in train_names:
-            out.append(train_names.index(n))
-        else:
-            out.append(new)
-            new += 1
-    return out
+    return assign_scene_indices({n: i for i, n in enumerate(train_names)}, eval_names)
+
+
+def checkpoint_scenes(cfg: DictConfig) -> tuple[str | None, dict]:
+    """``(path, {scene name: {"index", "band_hz"}})`` of the checkpoint a run starts from or tests
+    (``finetune.init_from``, else ``ckpt_path``): the scenes it was trained on (empty for a checkpoint written
+    before checkpoints recorded them, or when there is none)."""
+    from graf.models.base import read_checkpoint
+
+    path = (cfg.get("finetune") or {}).get("init_from") or cfg.get("ckpt_path")
+    if not path:
+        return None, {}
+    ckpt = read_checkpoint(path)
+    return str(path), dict((ckpt.get("graf") or {}).get("scenes") or {})
+
+
+def _hz(v: float) -> str:
+    return f"{v / 1e9:.3g} GHz" if v >= 1e9 else f"{v / 1e6:.4g} MHz"
+
+
+def check_bands(cfg: DictConfig, trained: dict, dm, source: str) -> None:
+    """Refuse a scene at a band the model was not trained at (``trained``: name -> {"band_hz"}) unless
+    ``cross_band=true``: the seed trains one model per band (E.5), so a cross-band run is a transfer study,
+    not an accident."""
+    if not trained or cfg.get("cross_band"):
+        return
+    bands = {round(float(v["band_hz"])) for v in trained.values() if v.get("band_hz")}
+    for d, b in zip(dm.sets, dm.bands):
+        if bands and round(float(b.frequency_hz)) not in bands:
+            raise ConfigError(
+                f"{source} was trained at {', '.join(_hz(x) for x in sorted(bands))} (scenes "
+                f"{', '.join(sorted(trained))}), but scene {d.name} is at {_hz(b.frequency_hz)} in this run: a "
+                "cross-band transfer.  Set cross_band=true to run it anyway (the bands and unseen_layouts studies "
+                "do), or band=... to match")
 
 
 def build(cfg: DictConfig) -> dict:
@@ -159,42 +204,62 @@ def build(cfg: DictConfig) -> dict:
         L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     out = _output_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
-    _, _, neighbors, datamodule = build_datamodule(cfg)
+    source, known = checkpoint_scenes(cfg)
+    names = [str(c.get("name")) for c in scene_configs(cfg.get("scene"))]
+    indices = assign_scene_indices({n: v["index"] for n, v in known.items()}, names) if known else None
+    _, _, neighbors, datamodule = build_datamodule(cfg, scene_indices=indices)
     datamodule.setup("fit")
-    evaluations = eval_datamodules(cfg, datamodule)
+    if (cfg.get("finetune") or {}).get("init_from"):  # fine-tuning on the run's scenes at a new band: a transfer
+        check_bands(cfg, known, datamodule, source)
+    table = dict(known)
+    for d, b, k in zip(datamodule.sets, datamodule.bands, datamodule.scene_index.tolist()):
+        table.setdefault(d.name, {"index": int(k), "band_hz": float(b.frequency_hz)})
+    evaluations = eval_datamodules(cfg, datamodule, table)
+    for ev in evaluations:
+        if ev["datamodule"] is not datamodule:
+            check_bands(cfg, table, ev["datamodule"], source or "the model")
     model = hydra.utils.instantiate(cfg.model)
+    model.scene_table = dict(known)  # what the checkpoints it writes record, with the run's own scenes added
     loggers = [hydra.utils.instantiate(c) for c in (cfg.get("logger") or {}).values()
                if isinstance(c, DictConfig) and "_target_" in c]
     callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()
                  if isinstance(c, DictConfig) and "_target_" in c]
     trainer = hydra.utils.instantiate(trainer_args(cfg), logger=loggers or False, callbacks=callbacks)
     return {"neighbors": neighbors, "datamodule": datamodule, "evaluations": evaluations, "model": model,
-            "loggers": loggers, "trainer": trainer, "output_dir": out}
+            "loggers": loggers, "trainer": trainer, "output_dir": out, "scene_table": table}
 
 
-def eval_datamodules(cfg: DictConfig, train_dm) -> list[dict]:
+def eval_datamodules(cfg: DictConfig, train_dm, table: dict | None = None) -> list[dict]:
     """What the final evaluations test: ``[{"eval_scene", "datamodule", "within_scene"}]``.  Without
-    ``eval_scene`` (``eval_scene=same``) the training datamodule itself (within-scene).  Otherwise one
-    datamodule per test scene, its targets from that scene's splits and their neighbours from that scene's
-    training split; a test scene the model was trained on keeps its training scene index and is reported
-    as within-scene, an unseen one gets a new index."""
+    ``eval_scene`` (``eval_scene=same``) and ``eval_band`` the training datamodule itself (within-scene).
+    Otherwise one datamodule per test scene (``eval_scene=same`` with an ``eval_band``: the training scenes at
+    that band), its targets from that scene's splits and their neighbours from that scene's training split
+    (all of it: the measured fraction of a fine-tuning run applies to the scenes it trains on).  ``table``:
+    the scenes the model knows (name -> {"index"}; default: the training datamodule's), so a test scene the
+    model was trained on keeps its scene index and is reported as within-scene, and an unseen one gets a new
+    index."""
     configs = scene_configs(cfg.get("eval_scene"))
-    if not configs:
+    eval_band = cfg.get("eval_band")
+    if not configs and not eval_band:
         return [{"eval_scene": train_dm.scene_name, "datamodule": train_dm, "within_scene": True}]
-    train_names = [d.name for d in train_dm.sets]
+    if not configs:
+        configs = scene_configs(cfg.get("scene"))
+    band = load_band_config(str(eval_band)) if eval_band else cfg.get("band")
+    if table is None:
+        table = {d.name: {"index": int(k)} for d, k in zip(train_dm.sets, train_dm.scene_index.tolist())}
     names = [str(c.get("name")) for c in configs]
-    indices = eval_scene_indices(train_names, names)
+    indices = assign_scene_indices({n: v["index"] for n, v in table.items()}, names)
     out = []
     for c, name, k in zip(configs, names, indices):
         sub = OmegaConf.create({key: OmegaConf.to_container(v, resolve=True) if isinstance(v, DictConfig) else v
-                                for key, v in (("eval_scene", OmegaConf.create({name: c})), ("band", cfg.get("band")),
+                                for key, v in (("eval_scene", OmegaConf.create({name: OmegaConf.to_container(c, resolve=True)})), ("band", band),
                                              ("neighbors", cfg.neighbors), ("data", cfg.data),
                                              ("data_root", cfg.get("data_root")))})
         _, _, _, dm = build_datamodule(sub, "eval_scene", scene_indices=[k])
         dm.setup("test")
-        within = name in train_names
-        log.info("test scene %s: %s (scene index %d)", name, "within-scene (also trained on)" if within
-                 else "unseen in training (zero-shot)", k)
+        within = name in table
+        log.info("test scene %s at %s: %s (scene index %d)", name, dm.bands[0].name,
+                 "within-scene (the model was trained on it)" if within else "unseen in training (zero-shot)", k)
         out.append({"eval_scene": name, "datamodule": dm, "within_scene": within})
     return out
 
@@ -326,6 +391,11 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -
         head = results if i == 0 else {"method": results["method"], "scene": ev["eval_scene"],
                                        "n_test": int(len(a["ids"])), "metrics": m}
         brows = [_test_baseline(cfg, name, bcfg, ev["datamodule"]) for name, bcfg in baselines]
+        if int(cfg.get("save_samples") or 0) > 0:
+            for method, arr in [(results["method"], a)] + [(r["method"], r.pop("_arrays")) for r in brows]:
+                save_samples(out, ev["eval_scene"], method, arr, int(cfg.save_samples))
+        for r in brows:
+            r.pop("_arrays", None)
         rows += [head, *brows]
         per_eval.append({r["method"]: {"metrics": r["metrics"], "seconds": r["seconds"],
                                        "trainable_parameters": r["trainable_parameters"]} for r in brows})
@@ -337,6 +407,10 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -
              "n_test": int(len(a["ids"])), "band_hz": float(ev["datamodule"].bands[0].frequency_hz),
              "scene_index": int(ev["datamodule"].scene_index[0]), "splits": ev["datamodule"].split_summary(),
              "timing": t, "baselines": b} for (ev, m, a, t), b in zip(done, per_eval)]
+    if objects.get("finetune"):
+        results["finetune"] = objects["finetune"]
+    if objects.get("scene_table"):
+        results["scene_table"] = objects["scene_table"]
     if cfg.get("regime"):
         results["regime"] = str(cfg.regime)
     atomic_write_json(out / "results.json", results)
@@ -354,7 +428,21 @@ def _test_baseline(cfg: DictConfig, name: str, bcfg: DictConfig, dm) -> dict:
     metrics, arrays = evaluate_model(cfg, model, dm)
     return {"method": getattr(model, "method", name), "scene": dm.scene_name, "n_test": int(len(arrays["ids"])),
             "trainable_parameters": int(sum(p.numel() for p in model.parameters() if p.requires_grad)),
-            "metrics": metrics, "seconds": round(time.perf_counter() - started, 3)}
+            "metrics": metrics, "seconds": round(time.perf_counter() - started, 3), "_arrays": arrays}
+
+
+def save_samples(out: Path, scene: str, method: str, arrays: dict, n: int) -> Path:
+    """The first ``n`` test spectra of an evaluation (lowest ids: the same positions for every method on a
+    scene) as ``samples/<scene>__<method>.npz`` (``pred``, ``target``: uint8 [n, 90, 360]; ``ids``), for
+    graf-report's true-vs-predicted grids."""
+    import numpy as np
+
+    order = np.argsort(np.asarray(arrays["ids"]))[:n]
+    q = lambda x: np.clip(np.rint(np.asarray(x)[order] * 255.0), 0, 255).astype(np.uint8)  # noqa: E731
+    path = out / "samples" / f"{scene}__{method}.npz"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_npz(path, pred=q(arrays["pred"]), target=q(arrays["target"]), ids=np.asarray(arrays["ids"])[order])
+    return path
 
 
 def format_metrics_table(rows: list[dict]) -> str:

@@ -1,14 +1,28 @@
-"""graf-train: fit the model when it has parameters, then test it; writes results.json."""
+"""graf-train: fit the model when it has parameters, then test it; writes results.json.
+
+Fine-tuning (``conf/finetune``): ``finetune.init_from=CKPT`` starts from a checkpoint's weights with a fresh
+optimiser and schedule, ``finetune.max_steps`` steps at ``finetune.lr``, on the measured fraction of the
+run's scenes (``finetune=f05 ... f100``); with ``finetune=none`` the checkpoint is tested zero-shot (no step
+trained).  ``finetune.base`` trains the checkpoint first when it is missing (studies).
+
+Study jobs set ``skip_finished=true``: a job whose output folder already holds its ``results.json`` (or a
+``skipped.json``) returns that result without running again, so an interrupted multirun started again with
+the same command runs only the jobs that have not finished.
+"""
 
 from __future__ import annotations
 
+import json
 import logging
 import time
+from pathlib import Path
 
 import hydra
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf, open_dict
 
-from graf.cli.common import CONF_PATH, build, sweep_value, task_wrapper, test_and_report
+from graf.cli.common import (CONF_PATH, ConfigError, _output_dir, build, scene_configs, sweep_value, task_wrapper,
+                             test_and_report)
+from graf.io import atomic_write_json
 from graf.models.base import CheckpointError, check_checkpoint, read_checkpoint
 
 log = logging.getLogger("graf")
@@ -17,14 +31,34 @@ log = logging.getLogger("graf")
 @task_wrapper
 def train(cfg: DictConfig) -> tuple[dict, dict]:
     started = time.perf_counter()
+    out = _output_dir(cfg)
+    if cfg.get("skip_finished"):
+        done = finished_result(out)
+        if done is not None:
+            log.info("%s: finished before (%s); not run again", out, done.get("skipped") or "results.json")
+            return done.get("metrics", {}), {"output_dir": out, "finished_before": True}
+    reason = skip_reason(cfg)
+    if reason:
+        out.mkdir(parents=True, exist_ok=True)
+        atomic_write_json(out / "skipped.json", {"skipped": reason})
+        log.info("%s: skipped: %s", out, reason)
+        return {}, {"output_dir": out, "skipped": reason}
+    cfg = resolve_base(cfg)
+    ft = cfg.get("finetune") or {}
+    if ft.get("init_from"):
+        ensure_base(cfg)
+        cfg = finetune_config(cfg)
     objects = build(cfg)
     model, trainer = objects["model"], objects["trainer"]
-    init_from = (cfg.get("finetune") or {}).get("init_from")
+    init_from = ft.get("init_from")
+    zero_shot = bool(init_from) and ft.get("fraction") is None  # finetune=none
     if init_from:
         load_weights(model, init_from)
     if cfg.get("ckpt_path"):  # resume: refuse another class's or an old layout's checkpoint up front
         check_checkpoint(read_checkpoint(cfg.ckpt_path), type(model), cfg.ckpt_path)
-    if getattr(model, "has_trainable_parameters", True):
+    if zero_shot:
+        log.info("finetune=none: testing %s zero-shot (no step trained)", init_from)
+    elif getattr(model, "has_trainable_parameters", True):
         # resumes from ckpt_path (e.g. <old run>/checkpoints/last.ckpt) when given
         step0, t0 = trainer.global_step, time.perf_counter()
         trainer.fit(model=model, datamodule=objects["datamodule"], ckpt_path=cfg.get("ckpt_path"))
@@ -33,9 +67,140 @@ def train(cfg: DictConfig) -> tuple[dict, dict]:
                              "fit_s_per_step": round(fit_s / steps, 4) if steps else None}
     else:
         log.info("%s has no trainable parameters: nothing to fit, testing directly", type(model).__name__)
+    if init_from:
+        dm, start = objects["datamodule"], read_checkpoint(init_from)
+        objects["finetune"] = {
+            "init_from": str(init_from), "mode": "zero-shot" if zero_shot else "fine-tune",
+            "fraction": ft.get("fraction"), "seed": int(ft.get("seed") or 0), "test_pool": dm.test_pool,
+            "n_measured": int(len(dm.measured_rows)), "n_train": dm.n_train,
+            "steps": 0 if zero_shot else int(objects.get("timing", {}).get("fit_steps", 0)),
+            "lr": ft.get("lr"), "base_steps": int(start.get("global_step", 0)),
+            "base_scenes": (start.get("graf") or {}).get("scenes")}
     # the final weights are validated and tested (nothing is chosen on the test split)
     metrics = test_and_report(cfg, objects, started, task="train")
     return metrics, objects
+
+
+def finished_result(out: Path) -> dict | None:
+    """The finished result in a job folder (``results.json``, or ``skipped.json``), or None."""
+    for name in ("results.json", "skipped.json"):
+        f = out / name
+        if f.is_file():
+            try:
+                return json.loads(f.read_text())
+            except json.JSONDecodeError:
+                log.warning("%s is unreadable: running the job again", f)
+    return None
+
+
+def skip_reason(cfg: DictConfig) -> str | None:
+    """Why a study job is not run (None: it is).  ``finetune.base.band=scene`` (start from a model trained at
+    the new scene's own band) differs from the run's band only for a scene with a fixed band (measured data:
+    rfid_s23 at 915 MHz); for a simulated scene it would repeat the job with the run's band."""
+    base = (cfg.get("finetune") or {}).get("base") or {}
+    if base.get("band") != "scene":
+        return None
+    scenes = scene_configs(cfg.get("scene"))
+    if not any(s.get("fixed_band") for s in scenes):
+        return ("finetune.base.band=scene on a scene simulated at any band: the same job as the one with the "
+                "run's band")
+    return None
+
+
+def resolve_base(cfg: DictConfig) -> DictConfig:
+    """With ``finetune.base``: the base run's folder (``base.dir``, or ``base.dir/<band>`` when ``base.band``
+    names one; ``scene``: the band of the run's scene, e.g. 915mhz for rfid_s23) as ``finetune.base.folder``,
+    and ``finetune.init_from=base`` (or null) as its last checkpoint."""
+    base = (cfg.get("finetune") or {}).get("base")
+    if not base or not base.get("dir"):
+        if (cfg.get("finetune") or {}).get("init_from") == "base":
+            raise ConfigError("finetune.init_from=base needs finetune.base (dir, overrides): the run to train first")
+        return cfg
+    band = base.get("band")
+    if band == "scene":
+        scenes = scene_configs(cfg.get("scene"))
+        band = scenes[0].get("band") if scenes else None
+        if not band:
+            raise ConfigError("finetune.base.band=scene: the run's scene names no band of its own")
+    folder = Path(str(base.dir)) / str(band) if band else Path(str(base.dir))
+    cfg = cfg.copy()
+    with open_dict(cfg):
+        cfg.finetune.base.folder = str(folder)
+        cfg.finetune.base.band_name = band
+        if cfg.finetune.get("init_from") in (None, "base"):
+            cfg.finetune.init_from = str(folder / "checkpoints" / "last.ckpt")
+    return cfg
+
+
+def finetune_config(cfg: DictConfig) -> DictConfig:
+    """The run's config with the fine-tuning steps and learning rate applied (``trainer.max_steps``,
+    ``model.lr``); a zero-shot run (``finetune=none``) trains nothing, so neither applies."""
+    ft = cfg.finetune
+    if ft.get("fraction") is None:
+        return cfg
+    cfg = cfg.copy()
+    with open_dict(cfg):
+        if ft.get("max_steps") is not None:
+            cfg.trainer.max_steps = int(ft.max_steps)
+            cfg.trainer.max_epochs = -1
+        if ft.get("lr") is not None:
+            if "lr" not in cfg.model:
+                raise ConfigError(f"finetune.lr={ft.lr}: model {cfg.model._target_} has no lr setting")
+            cfg.model.lr = float(ft.lr)
+    return cfg
+
+
+# command-line settings of a study job that describe the job itself, not the base model it starts from
+JOB_SPECIFIC = ("experiment", "model", "scene", "eval_scene", "eval_band", "band", "neighbors", "finetune", "hydra",
+                "skip_finished", "ckpt_path", "paths")
+
+
+def job_overrides() -> list[str]:
+    """The command-line settings of the running Hydra job that a base model shares (budgets, data_root,
+    sim_num_tx, seed, trainer, ...): all but the job-specific ones (``JOB_SPECIFIC``)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return []
+    out = []
+    for o in HydraConfig.get().overrides.task:
+        key = o.split("=", 1)[0].lstrip("+~")
+        if not any(key == k or key.startswith(k + ".") for k in JOB_SPECIFIC):
+            out.append(o)
+    return out
+
+
+def ensure_base(cfg: DictConfig) -> None:
+    """Train ``finetune.init_from`` first when ``finetune.base`` says how and it is not finished: a graf-train
+    run composed from the job's shared settings (:func:`job_overrides`) and ``finetune.base.overrides`` into
+    ``finetune.base.folder`` (resumed from its last checkpoint when an earlier attempt was killed).  A base
+    folder trained with other settings is refused, not silently reused."""
+    base = cfg.finetune.get("base")
+    if not base or not base.get("folder"):
+        return
+    folder = Path(str(base.folder))
+    overrides = job_overrides() + [str(o) for o in (base.get("overrides") or [])]
+    if base.get("band_name"):
+        overrides.append(f"band={base.band_name}")
+    overrides += ["finetune=none", "finetune.init_from=null", "finetune.base=null", f"paths.output_dir={folder}",
+                  "skip_finished=false"]
+    record = folder / "base_overrides.json"
+    if record.is_file():
+        before = json.loads(record.read_text())
+        if before != overrides:
+            raise ConfigError(f"{folder}: a base model trained with other settings is there ({' '.join(before)}); "
+                              f"this job needs {' '.join(overrides)}: remove that folder or use another "
+                              "hydra.sweep.dir")
+    if (folder / "results.json").is_file():
+        return
+    folder.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(record, overrides)
+    last = folder / "checkpoints" / "last.ckpt"
+    log.info("training the base model of this job first, in %s: %s", folder, " ".join(overrides))
+    from hydra import compose
+
+    base_cfg = compose(config_name="train", overrides=overrides + ([f"ckpt_path={last}"] if last.is_file() else []))
+    train(base_cfg)
 
 
 def load_weights(model, path) -> None:
@@ -43,12 +208,20 @@ def load_weights(model, path) -> None:
     missing, was written by another class or layout, or holds another architecture."""
     ckpt = read_checkpoint(path)
     check_checkpoint(ckpt, type(model), path)
+    saved = ckpt.get("hyper_parameters") or {}
+    want = getattr(model, "hparams", {}).get("use_scene_index")
+    if "use_scene_index" in saved and want is not None and bool(saved["use_scene_index"]) != bool(want):
+        raise CheckpointError(
+            f"finetune.init_from: {path} was trained with use_scene_index={saved['use_scene_index']} "
+            f"({'4' if saved['use_scene_index'] else '3'}-D positions), but this run's model has "
+            f"use_scene_index={want}: set model.use_scene_index={saved['use_scene_index']}")
     try:
         model.load_state_dict(ckpt["state_dict"], strict=True)
     except RuntimeError as exc:
         first = str(exc).splitlines()[0:3]
         raise CheckpointError(f"finetune.init_from: {path} holds weights of another architecture than "
                               f"{type(model).__name__} as configured: {' '.join(first)}") from None
+    model.scene_table = {**dict((ckpt.get("graf") or {}).get("scenes") or {}), **getattr(model, "scene_table", {})}
     log.info("fine-tuning %s from the weights of %s", type(model).__name__, path)
 
 

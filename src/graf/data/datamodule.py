@@ -34,6 +34,12 @@ least one spectrum) and the *fit* part (the rest):
 
 The validation and test splits never share a spectrum; nothing is ever chosen on the test split.
 
+**Measured fraction** (fine-tuning, ``conf/finetune``).  With ``measured_fraction`` (e.g. 0.2), only a seeded
+part of each scene's training split counts as measured (``measured_seed``; at least 2 spectra, else an error):
+the validation and fit parts are cut from it, and it is the pool test neighbours come from.  With
+``test_pool="train_split"`` test neighbours come from the whole training split instead (the seed's zero-shot
+protocol), while fitting still sees the measured part only.  The test split is never touched.
+
 **Training batches are a pure function of (seed, batch number).**  Batch ``k`` belongs to epoch
 ``k // batches_per_epoch``, whose order is a permutation seeded by ``(seed, epoch)``; its neighbour
 counts and draws come from a generator seeded by ``(seed, k)``.  The loader starts at the trainer's
@@ -61,6 +67,22 @@ from graf.neighbors import Neighbors, NeighborSelector
 log = logging.getLogger(__name__)
 
 EVAL_SPLITS = ("test", "val", "train")
+TEST_POOLS = ("measured", "train_split")
+
+
+def measured_part(train_rows: np.ndarray, fraction: float | None, seed: int, where: str) -> np.ndarray:
+    """The seeded ``fraction`` of ``train_rows`` that is measured (rounded, at least 2: one to validate on, one
+    to fit and take neighbours from); all of them when ``fraction`` is None."""
+    n = len(train_rows)
+    if fraction is None or fraction >= 1.0:
+        return np.sort(train_rows)
+    k = int(round(n * fraction))
+    if k < 2:
+        raise DataFormatError(where, f"a measured fraction of {fraction:g} of its {n} training spectra leaves {k}: at "
+                                     "least 2 are needed (one to validate on, one to fit and take neighbours from); "
+                                     "use a larger fraction or more spectra")
+    perm = np.random.default_rng(int(seed)).permutation(n)
+    return np.sort(train_rows[perm[:k]])
 
 
 def mixed_seed(*parts: int) -> int:
@@ -151,13 +173,26 @@ class SpectrumDataModule(L.LightningDataModule):
         val_fraction / val_seed: the validation part of each scene's training split (seeded by ``val_seed``,
             independent of ``seed``).
         scene_indices: the scene index each scene's items carry (default ``0 .. n_scenes - 1``).
+        measured_fraction: the part of each scene's training split that is measured (null: all of it).
+        measured_seed: draws the measured part.
+        test_pool: where test neighbours come from: ``measured`` (the measured part: default) or
+            ``train_split`` (the whole training split, measured or not).
+        simulate_missing: a simulated scene whose dataset file is missing is ray-traced first (studies).
     """
 
     def __init__(self, scene, band: Band | Sequence[Band], neighbors: NeighborSelector,
                  data_root: str | Path | None = None, batch_size: int = 4, num_workers: int = 0,
                  eval_split: str = "test", seed: int = 0, val_fraction: float = 0.1, val_seed: int = 0,
-                 scene_indices: Sequence[int] | None = None):
+                 scene_indices: Sequence[int] | None = None, measured_fraction: float | None = None,
+                 measured_seed: int = 0, test_pool: str = "measured", simulate_missing: bool = False):
         super().__init__()
+        if test_pool not in TEST_POOLS:
+            raise ValueError(f"test_pool must be one of {TEST_POOLS}, got {test_pool!r}")
+        if measured_fraction is not None and not 0.0 < float(measured_fraction) <= 1.0:
+            raise ValueError(f"the measured fraction must be in (0, 1], got {measured_fraction}")
+        self.measured_fraction = None if measured_fraction is None else float(measured_fraction)
+        self.measured_seed, self.test_pool = int(measured_seed), test_pool
+        self.simulate_missing = bool(simulate_missing)
         if eval_split not in EVAL_SPLITS:
             raise ValueError(f"data.eval_split must be one of {EVAL_SPLITS}, got {eval_split!r}")
         self.scenes = list(scene) if isinstance(scene, (list, tuple)) else [scene]
@@ -181,15 +216,22 @@ class SpectrumDataModule(L.LightningDataModule):
             return
         from scipy.spatial.transform import Rotation
 
+        if self.simulate_missing:
+            for s, b in zip(self.scenes, self.bands):
+                if hasattr(s, "ensure_dataset"):
+                    s.ensure_dataset(self.data_root, b)
         self.sets = [s.load(self.data_root, b) for s, b in zip(self.scenes, self.bands)]
-        spectra, pos, ids, scene_of, splits = [], [], [], [], {"train": [], "fit": [], "val": [], "test": []}
+        spectra, pos, ids, scene_of = [], [], [], []
+        splits = {"train": [], "measured": [], "fit": [], "val": [], "test": []}
         gw_pos, gw_rot, wl, ray_len, bounds = [], [], [], [], []
         offset = 0
         for k, (d, band) in enumerate(zip(self.sets, self.bands)):
             n = len(d.ids)
             train = np.asarray(d.train_idx, np.int64) + offset
-            fit, val = carve_validation(train, self.val_fraction, self.val_seed, d.source)
-            splits["train"].append(train), splits["fit"].append(fit), splits["val"].append(val)
+            measured = measured_part(train, self.measured_fraction, self.measured_seed, d.source)
+            fit, val = carve_validation(measured, self.val_fraction, self.val_seed, d.source)
+            splits["train"].append(train), splits["measured"].append(measured)
+            splits["fit"].append(fit), splits["val"].append(val)
             splits["test"].append(np.asarray(d.test_idx, np.int64) + offset)
             spectra.append(d.spectra), pos.append(np.asarray(d.positions, np.float64))
             ids.append(np.asarray(d.ids, np.int64)), scene_of.append(np.full(n, k, np.int64))
@@ -200,16 +242,17 @@ class SpectrumDataModule(L.LightningDataModule):
             gw_pos.append(p), bounds.append(b), wl.append(band.wavelength)
             gw_rot.append(torch.as_tensor(Rotation.from_quat(d.gateway_orientation).as_matrix()))
             ray_len.append(float((corners - p).norm(dim=1).max()))
-            log.info("scene %s (index %d): %d train (%d fit + %d validation) / %d test spectra (%s), band %s "
-                     "(%.4f m)", d.name, k, d.n_train, len(fit), len(val), d.n_test, d.split_source, band.name,
-                     band.wavelength)
+            log.info("scene %s (index %d): %d train (%s%d fit + %d validation) / %d test spectra (%s), band %s "
+                     "(%.4f m)", d.name, int(self.scene_index[k]), d.n_train,
+                     "" if len(measured) == len(train) else f"{len(measured)} measured: ", len(fit), len(val),
+                     d.n_test, d.split_source, band.name, band.wavelength)
             offset += n
         self.spectra = spectra[0] if len(spectra) == 1 else torch.cat(spectra)
         self.positions = torch.as_tensor(np.concatenate(pos))
         self.ids = torch.as_tensor(np.concatenate(ids))
         self.row_scene = torch.as_tensor(np.concatenate(scene_of))
-        self.train_rows, self.fit_rows, self.val_rows, self.test_rows = (
-            torch.as_tensor(np.concatenate(splits[s])) for s in ("train", "fit", "val", "test"))
+        self.train_rows, self.measured_rows, self.fit_rows, self.val_rows, self.test_rows = (
+            torch.as_tensor(np.concatenate(splits[s])) for s in ("train", "measured", "fit", "val", "test"))
         # per-scene tables, gathered per batch item through its scene index
         self.gw_pos = torch.stack(gw_pos).float()
         self.gw_rot = torch.stack(gw_rot).float()
@@ -264,7 +307,8 @@ class SpectrumDataModule(L.LightningDataModule):
 
     def _split(self, name: str) -> tuple[torch.Tensor, torch.Tensor]:
         """``(target rows, neighbour pool)`` of an evaluation split."""
-        return {"test": (self.test_rows, self.train_rows), "val": (self.val_rows, self.fit_rows),
+        pool = self.measured_rows if self.test_pool == "measured" else self.train_rows
+        return {"test": (self.test_rows, pool), "val": (self.val_rows, self.fit_rows),
                 "train": (self.fit_rows, self.fit_rows)}[name]
 
     def split_neighbors(self, name: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -358,14 +402,19 @@ class SpectrumDataModule(L.LightningDataModule):
         """What results.json records about the splits."""
         return {"n_train": self.n_train, "n_fit": int(len(self.fit_rows)), "n_val": int(len(self.val_rows)),
                 "n_test": int(len(self.test_rows)), "val_fraction": self.val_fraction, "val_seed": self.val_seed,
-                "val_ids": [int(i) for i in self.ids[self.val_rows]]}
+                "val_ids": [int(i) for i in self.ids[self.val_rows]],
+                "measured_fraction": self.measured_fraction, "measured_seed": self.measured_seed,
+                "n_measured": int(len(self.measured_rows)), "test_pool": self.test_pool,
+                "measured_ids": ([int(i) for i in self.ids[self.measured_rows]]
+                                 if self.measured_fraction is not None else "all training spectra")}
 
     def query_batches(self, positions, batch_size: int | None = None):
         """Batches for new transmitter positions ``[N, 3]`` of the (single) scene (no measured spectrum:
         ``tgt_spectrum`` is zeros), with neighbours from the training split as at test.  Used by graf-synthesize."""
         pos = torch.as_tensor(positions, dtype=torch.float64)
-        nb = self.neighbors.select(pos, self.positions[self.train_rows], self.band.wavelength, train=False)
-        src = self.train_rows[nb.index]
+        pool = self._split("test")[1]
+        nb = self.neighbors.select(pos, self.positions[pool], self.band.wavelength, train=False)
+        src = pool[nb.index]
         bs = batch_size or self.batch_size
         for s in range(0, len(pos), bs):
             rows = torch.zeros(len(pos[s:s + bs]), dtype=torch.long)

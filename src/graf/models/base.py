@@ -5,7 +5,8 @@ A method implements :meth:`predict_spectra` (batch -> ``[B, 90, 360]``) and, if 
 and ``configure_optimizers``.  Validation and test metrics are per-spectrum means over the evaluated split
 (``val/...`` and ``test/...``: ``mse``, ``psnr``, ``ssim``, ``lpips``); predictions are clamped to [0, 1] first.
 
-Every checkpoint carries ``checkpoint["graf"] = {"target": <class path>, "layout": <LAYOUT>}``.  A class
+Every checkpoint carries ``checkpoint["graf"] = {"target": <class path>, "layout": <LAYOUT>, "scenes": {name:
+{"index", "band_hz"}}}`` (the scenes it was trained on).  A class
 bumps ``LAYOUT`` when its weights change meaning (and says why in ``LAYOUT_CHANGES``); loading a checkpoint
 of another layout, or of another class, is refused with a message that names the file and the reason
 (:func:`check_checkpoint`).
@@ -78,7 +79,20 @@ class SpectrumModule(L.LightningModule):
         self.test_metrics = spectrum_metrics("test/")
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
-        checkpoint["graf"] = {"target": class_path(type(self)), "layout": int(self.LAYOUT)}
+        checkpoint["graf"] = {"target": class_path(type(self)), "layout": int(self.LAYOUT),
+                              "scenes": self.trained_scenes()}
+
+    def trained_scenes(self) -> dict:
+        """``{scene name: {"index", "band_hz"}}``: the scenes this model was trained on, with the scene index
+        and band each had (those of the checkpoint it was fine-tuned from, ``scene_table``, and the training
+        datamodule's).  Checkpoints record it, so a later run gives a known scene its index back and an
+        unseen one a new index, and can tell a cross-band transfer."""
+        table = dict(getattr(self, "scene_table", None) or {})
+        trainer = getattr(self, "_trainer", None)
+        dm = getattr(trainer, "datamodule", None) if trainer is not None else None
+        for d, b, k in zip(getattr(dm, "sets", []), getattr(dm, "bands", []), getattr(dm, "scene_index", [])):
+            table.setdefault(d.name, {"index": int(k), "band_hz": float(b.frequency_hz)})
+        return table
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         check_checkpoint(checkpoint, type(self), "checkpoint")

@@ -108,6 +108,25 @@ class SimulatedScene:
         suffix = "" if num_tx is None else f"-n{int(num_tx)}"
         return Path(data_root) / "sim" / self.name / f"{band.name}{suffix}.h5"
 
+    def ensure_dataset(self, data_root: str | Path | None, band: Band) -> Path:
+        """Ray-trace this scene's dataset at ``band`` (``num_tx`` positions) unless its file is there (studies
+        set ``data.simulate_missing=true``); resumable as ``graf-simulate`` is."""
+        from graf.sim.dataset import generate
+
+        if data_root is None:
+            raise DataFormatError("data_root", "simulated scenes are read from data_root; set data_root=DIR")
+        path = self.dataset_path(data_root, band, self.num_tx)
+        if not path.is_file():
+            import logging
+
+            import torch
+
+            logging.getLogger(__name__).info("simulating %s at %s (%s positions) into %s", self.name, band.name,
+                                             self.num_tx or "all", path)
+            generate(self, band, data_root, num_tx=self.num_tx, progress=False,
+                     device="cuda" if torch.cuda.is_available() else "cpu")
+        return path
+
     def load(self, data_root: str | Path | None, band: Band, num_tx: int | None = None) -> SpectrumSet:
         from graf.sim.dataset import read_dataset
 
