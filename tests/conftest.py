@@ -61,3 +61,19 @@ def compose_cfg(tmp_path):
         return cfg
 
     return _compose
+
+
+@pytest.fixture(scope="session")
+def small_room_root(tmp_path_factory):
+    """A data_root holding 24 ray-traced positions of small_room at 2.4 GHz (graf-simulate's code):
+    ``scene.small_room.num_tx=24`` (or ``sim_num_tx=24``) reads them."""
+    from graf.cli.simulate import simulate
+
+    root = tmp_path_factory.mktemp("data")
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose("simulate", ["scene=small_room", "band=2.4ghz", "sim.num_tx=24", f"data_root={root}",
+                                   f"paths.output_dir={root / 'sim_out'}", "sim.progress=false"])
+    GlobalHydra.instance().clear()
+    simulate(cfg)
+    return root

@@ -7,12 +7,9 @@ from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
 
-from graf.cli.common import CONF_DIR, build_datamodule, eval_scene_indices
+from graf.cli.common import build_datamodule, eval_scene_indices
 from graf.cli.evaluate import evaluate
-from graf.cli.simulate import simulate
 from graf.cli.train import train
 
 FAST = ["model.rays_per_step=64", "model.max_samples=8", "data.batch_size=2", "baselines={}", "plot_count=0",
@@ -20,17 +17,10 @@ FAST = ["model.rays_per_step=64", "model.max_samples=8", "data.batch_size=2", "b
         "model.encoder_widths=[4,8,8,8]", "callbacks.model_checkpoint.every_n_train_steps=2"]
 
 
-@pytest.fixture(scope="module")
-def data_root(tmp_path_factory):
-    """24 ray-traced positions of small_room at 2.4 GHz (graf-simulate's code)."""
-    root = tmp_path_factory.mktemp("data")
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose("simulate", ["scene=small_room", "band=2.4ghz", "sim.num_tx=24", f"data_root={root}",
-                                   f"paths.output_dir={root / 'sim_out'}", "sim.progress=false"])
-    GlobalHydra.instance().clear()
-    simulate(cfg)
-    return root
+@pytest.fixture
+def data_root(small_room_root):
+    """24 ray-traced positions of small_room at 2.4 GHz (conftest)."""
+    return small_room_root
 
 
 def _results(cfg) -> dict:

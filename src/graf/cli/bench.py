@@ -79,7 +79,7 @@ import lightning as L
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from graf.cli.common import (CONF_DIR, CONF_PATH, ConfigError, _output_dir, band_choices, build_datamodule,
+from graf.cli.common import (CONF_DIR, CONF_PATH, ConfigError, _output_dir, band_choices, build_datamodule, cli_errors,
                              task_wrapper)
 from graf.cli.simulate import simulate
 from graf.io import atomic_write_bytes, atomic_write_json
@@ -542,6 +542,7 @@ def bench(cfg: DictConfig) -> dict:
 
 
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="bench")
+@cli_errors
 def main(cfg: DictConfig) -> None:
     bench(cfg)
 

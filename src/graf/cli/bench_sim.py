@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from graf.cli.common import CONF_PATH, _output_dir, scene_band_config, single_scene_config, task_wrapper
+from graf.cli.common import CONF_PATH, cli_errors, _output_dir, scene_band_config, single_scene_config, task_wrapper
 from graf.io import atomic_write_json
 
 PAPER_SECONDS_PER_SPECTRUM = 59.5
@@ -117,6 +117,7 @@ def bench(cfg: DictConfig) -> dict:
 
 
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="bench_sim")
+@cli_errors
 def main(cfg: DictConfig) -> None:
     bench(cfg)
 

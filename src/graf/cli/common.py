@@ -16,7 +16,9 @@ from __future__ import annotations
 import functools
 import logging
 import math
+import os
 import platform
+import sys
 import time
 from pathlib import Path
 
@@ -47,8 +49,11 @@ def task_wrapper(task):
     def wrapped(cfg: DictConfig, *args, **kwargs):
         try:
             return task(cfg, *args, **kwargs)
-        except Exception:
-            log.exception("%s failed; output folder: %s", cfg.get("task_name", "task"), _output_dir(cfg))
+        except Exception as exc:
+            if is_user_error(exc) and os.environ.get("HYDRA_FULL_ERROR") != "1":
+                log.error("%s failed: %s (output folder: %s)", cfg.get("task_name", "task"), exc, _output_dir(cfg))
+            else:
+                log.exception("%s failed; output folder: %s", cfg.get("task_name", "task"), _output_dir(cfg))
             raise
         finally:
             try:
@@ -71,6 +76,43 @@ def _output_dir(cfg: DictConfig) -> Path:
 
 class ConfigError(ValueError):
     """A configuration that cannot run as given; the message says what to set."""
+
+
+def is_user_error(exc: BaseException) -> bool:
+    """Errors in what the user gave (data, config values, checkpoints), whose message says what is wrong:
+    :class:`ConfigError`, ``DataFormatError``, ``CheckpointError``, a mandatory config value left unset, and a
+    constructor refusing a config value (Hydra's instantiation error)."""
+    from hydra.errors import InstantiationException
+    from omegaconf.errors import MissingMandatoryValue
+
+    from graf.data.spectrum_set import DataFormatError
+    from graf.models.base import CheckpointError
+
+    return isinstance(exc, (ConfigError, DataFormatError, CheckpointError, MissingMandatoryValue,
+                            InstantiationException))
+
+
+def cli_errors(main):
+    """For a command's ``main`` (beneath ``@hydra.main``): a user error (:func:`is_user_error`) ends the command
+    with its message alone on stderr and exit code 2, instead of a page of traceback; ``HYDRA_FULL_ERROR=1``
+    shows the full traceback.  In a multirun the error is raised as usual, so the sweep records the failed
+    job and goes on with the others."""
+
+    @functools.wraps(main)
+    def wrapped(cfg: DictConfig, *args, **kwargs):
+        try:
+            return main(cfg, *args, **kwargs)
+        except Exception as exc:
+            from hydra.core.hydra_config import HydraConfig
+            from hydra.types import RunMode
+
+            multirun = HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+            if not is_user_error(exc) or multirun or os.environ.get("HYDRA_FULL_ERROR") == "1":
+                raise
+            print(f"error: {exc}\n(HYDRA_FULL_ERROR=1 shows the full traceback)", file=sys.stderr)
+            sys.exit(2)
+
+    return wrapped
 
 
 METRIC_NAMES = ("mse", "psnr", "ssim", "lpips")
@@ -251,8 +293,9 @@ def eval_datamodules(cfg: DictConfig, train_dm, table: dict | None = None) -> li
     indices = assign_scene_indices({n: v["index"] for n, v in table.items()}, names)
     out = []
     for c, name, k in zip(configs, names, indices):
+        scene = OmegaConf.create({name: OmegaConf.to_container(c, resolve=True)})  # resolved in the run's config
         sub = OmegaConf.create({key: OmegaConf.to_container(v, resolve=True) if isinstance(v, DictConfig) else v
-                                for key, v in (("eval_scene", OmegaConf.create({name: OmegaConf.to_container(c, resolve=True)})), ("band", band),
+                                for key, v in (("eval_scene", scene), ("band", band),
                                              ("neighbors", cfg.neighbors), ("data", cfg.data),
                                              ("data_root", cfg.get("data_root")))})
         _, _, _, dm = build_datamodule(sub, "eval_scene", scene_indices=[k])

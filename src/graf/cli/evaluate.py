@@ -18,7 +18,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 
-from graf.cli.common import CONF_PATH, build, sweep_value, task_wrapper, test_and_report
+from graf.cli.common import CONF_PATH, build, cli_errors, sweep_value, task_wrapper, test_and_report
 from graf.models.base import CheckpointError, check_checkpoint, read_checkpoint
 
 
@@ -80,6 +80,7 @@ def evaluate(cfg: DictConfig, overrides: Sequence[str] | None = None) -> tuple[d
 
 
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="eval")
+@cli_errors
 def main(cfg: DictConfig) -> float:
     metrics, _ = evaluate(cfg)
     return sweep_value(cfg, metrics)

@@ -16,7 +16,7 @@ import time
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from graf.cli.common import CONF_PATH, _output_dir, build_datamodule, single_scene_config, task_wrapper
+from graf.cli.common import CONF_PATH, build_datamodule, cli_errors, _output_dir, single_scene_config, task_wrapper
 from graf.io import atomic_write_json
 
 
@@ -79,6 +79,7 @@ def run(cfg: DictConfig) -> dict:
 
 
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="oracle")
+@cli_errors
 def main(cfg: DictConfig) -> None:
     run(cfg)
 

@@ -34,7 +34,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from graf.cli.common import CONF_PATH, _output_dir, task_wrapper
+from graf.cli.common import CONF_PATH, cli_errors, _output_dir, task_wrapper
 from graf.io import atomic_write_json, atomic_write_text
 
 log = logging.getLogger("graf")
@@ -264,6 +264,7 @@ def sweep(cfg: DictConfig) -> dict:
 
 
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="pareto")
+@cli_errors
 def main(cfg: DictConfig) -> None:
     sweep(cfg)
 

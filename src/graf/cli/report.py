@@ -38,7 +38,7 @@ import numpy as np
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-from graf.cli.common import CONF_PATH, ConfigError, task_wrapper
+from graf.cli.common import CONF_PATH, ConfigError, cli_errors, task_wrapper
 from graf.io import atomic_write_bytes, atomic_write_json
 
 log = logging.getLogger("graf")
@@ -116,7 +116,7 @@ def rows_of(result: dict, job: str) -> list[dict]:
                     **{k: (ev.get("metrics") or {}).get(k) for k, _, _ in METRICS}})
         for name, b in (ev.get("baselines") or {}).items():
             # a baseline is not trained: it is the same whatever the job trained on
-            out.append({**base, "trained_on": "-", "train_band": "-", "method": name, "steps": "0",
+            out.append({**base, "trained_on": "-", "train_band": "-", "within_scene": None, "method": name, "steps": "0",
                         **{k: (b.get("metrics") or {}).get(k) for k, _, _ in METRICS}})
     return out
 
@@ -422,6 +422,7 @@ class StudyReport(Callback):
 
 
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="report")
+@cli_errors
 def main(cfg: DictConfig) -> None:
     report(cfg)
 

@@ -19,7 +19,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
-from graf.cli.common import CONF_PATH, _output_dir, task_wrapper  # noqa: E402
+from graf.cli.common import CONF_PATH, cli_errors, _output_dir, task_wrapper  # noqa: E402
 from graf.io import atomic_write_json  # noqa: E402
 from graf.plotting import save_figure  # noqa: E402
 
@@ -67,6 +67,7 @@ def show(cfg: DictConfig) -> dict:
 
 
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="show_scenes")
+@cli_errors
 def main(cfg: DictConfig) -> None:
     show(cfg)
 

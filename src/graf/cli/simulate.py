@@ -14,7 +14,7 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from graf.cli.common import CONF_PATH, _output_dir, scene_band_config, single_scene_config, task_wrapper
+from graf.cli.common import CONF_PATH, cli_errors, _output_dir, scene_band_config, single_scene_config, task_wrapper
 from graf.io import atomic_write_json
 
 log = logging.getLogger("graf")
@@ -52,6 +52,7 @@ def simulate(cfg: DictConfig) -> dict:
 
 
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="simulate")
+@cli_errors
 def main(cfg: DictConfig) -> None:
     simulate(cfg)
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from graf.cli.common import CONF_PATH, _output_dir, build_datamodule, single_scene_config, task_wrapper
+from graf.cli.common import CONF_PATH, build_datamodule, cli_errors, _output_dir, single_scene_config, task_wrapper
 from graf.io import atomic_write_json
 
 
@@ -57,6 +57,7 @@ def run(cfg: DictConfig) -> dict:
 
 
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="synthesize")
+@cli_errors
 def main(cfg: DictConfig) -> None:
     run(cfg)
 

@@ -31,7 +31,7 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, ListConfig
 
-from graf.cli.common import CONF_PATH, _output_dir, task_wrapper
+from graf.cli.common import CONF_PATH, cli_errors, _output_dir, task_wrapper
 from graf.io import atomic_write_bytes, atomic_write_json
 
 log = logging.getLogger("graf")
@@ -187,6 +187,7 @@ class SweepTable(Callback):
 
 
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="table")
+@cli_errors
 def main(cfg: DictConfig) -> None:
     make_table(cfg)
 

@@ -20,8 +20,8 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from graf.cli.common import (CONF_PATH, ConfigError, _output_dir, build, scene_configs, sweep_value, task_wrapper,
-                             test_and_report)
+from graf.cli.common import (CONF_PATH, ConfigError, _output_dir, build, cli_errors, scene_configs, sweep_value,
+                             task_wrapper, test_and_report)
 from graf.io import atomic_write_json
 from graf.models.base import CheckpointError, check_checkpoint, read_checkpoint
 
@@ -45,6 +45,10 @@ def train(cfg: DictConfig) -> tuple[dict, dict]:
         return {}, {"output_dir": out, "skipped": reason}
     cfg = resolve_base(cfg)
     ft = cfg.get("finetune") or {}
+    if ft and OmegaConf.is_missing(ft, "init_from"):
+        raise ConfigError(f"finetune={_choice(cfg, 'finetune')} fine-tunes a checkpoint: set finetune.init_from=CKPT "
+                          "(e.g. <run>/checkpoints/last.ckpt), or finetune.init_from=null to train from scratch on "
+                          "the fraction")
     if ft.get("init_from"):
         ensure_base(cfg)
         cfg = finetune_config(cfg)
@@ -79,6 +83,14 @@ def train(cfg: DictConfig) -> tuple[dict, dict]:
     # the final weights are validated and tested (nothing is chosen on the test split)
     metrics = test_and_report(cfg, objects, started, task="train")
     return metrics, objects
+
+
+def _choice(cfg: DictConfig, group: str) -> str:
+    from hydra.core.hydra_config import HydraConfig
+
+    if HydraConfig.initialized():
+        return str(HydraConfig.get().runtime.choices.get(group))
+    return "..."
 
 
 def finished_result(out: Path) -> dict | None:
@@ -226,6 +238,7 @@ def load_weights(model, path) -> None:
 
 
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="train")
+@cli_errors
 def main(cfg: DictConfig) -> float:
     metrics, _ = train(cfg)
     return sweep_value(cfg, metrics)

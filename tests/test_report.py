@@ -1,0 +1,108 @@
+"""graf-report on small study folders: every table and figure, with the numbers of the results.json files
+in them (handmade results of known values; tests/test_studies.py runs a real study end to end)."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from graf.cli.common import ConfigError
+from graf.cli.report import make_report
+from graf.io import atomic_write_json
+
+GHZ24, MHZ915 = 2.412e9, 915e6
+
+
+def _metrics(psnr: float) -> dict:
+    return {"test/psnr": psnr, "test/ssim": psnr / 100, "test/lpips": 1 - psnr / 100, "test/mse": 10 ** (-psnr / 10)}
+
+
+def _result(folder: Path, method: str, trained: list[str], evals: list[tuple], L: int = 10, finetune=None,
+            knn: dict | None = None, train_hz: float = GHZ24, steps: int = 300) -> None:
+    """A results.json as graf-train writes it (the keys graf-report reads); ``evals``: (scene, psnr, band_hz)."""
+    r = {"method": method, "train_scenes": trained, "train_bands_hz": [train_hz], "global_step": steps,
+         "config": {"neighbors": {"L": L}}, "finetune": finetune,
+         "evaluations": [{"eval_scene": s, "within_scene": s in trained, "metrics": _metrics(p), "n_test": 30,
+                          "band_hz": hz, "baselines": {"knn": {"metrics": _metrics(knn[s])}} if knn else {}}
+                         for s, p, hz in evals]}
+    folder.mkdir(parents=True)
+    atomic_write_json(folder / "results.json", r)
+
+
+def _samples(folder: Path, scene: str, method: str, value: int) -> None:
+    (folder / "samples").mkdir(parents=True, exist_ok=True)
+    t = np.full((2, 90, 360), 100, np.uint8)
+    np.savez(folder / "samples" / f"{scene}__{method}.npz", pred=np.full_like(t, value), target=t, ids=np.array([3, 5]))
+
+
+def test_cross_scene_matrix_tables_heatmaps_and_spectra(tmp_path):
+    knn = {"a_v1": 15.0, "a_v2": 14.0, "b_v1": 13.0}
+    _result(tmp_path / "j0", "graf", ["a_v1"], [("a_v1", 20.0, GHZ24), ("a_v2", 18.0, GHZ24), ("b_v1", 12.0, GHZ24)], knn=knn)
+    _result(tmp_path / "j1", "graf", ["b_v1"], [("a_v1", 11.0, GHZ24), ("a_v2", 10.5, GHZ24), ("b_v1", 19.0, GHZ24)], knn=knn)
+    _result(tmp_path / "j2", "nerf2", ["a_v1"], [("a_v1", 16.0, GHZ24), ("a_v2", 4.0, GHZ24), ("b_v1", 3.0, GHZ24)])
+    _result(tmp_path / "base" / "x", "graf", ["zzz"], [("zzz", 99.0, GHZ24)])  # a study's base model: left out
+    _samples(tmp_path / "j0", "a_v2", "graf", 110)
+    _samples(tmp_path / "j0", "a_v2", "knn", 150)
+    s = make_report(tmp_path, tmp_path / "out")
+    assert s["n_results"] == 3 and s["axes"] == ["trained_on", "eval_scene"]
+    m = s["matrix"]
+    assert m["graf"]["PSNR"]["rows"] == ["a_v1", "b_v1"] and m["graf"]["PSNR"]["cols"] == ["a_v1", "a_v2", "b_v1"]
+    assert m["graf"]["PSNR"]["values"] == [[20.0, 18.0, 12.0], [11.0, 10.5, 19.0]]
+    assert m["nerf2"]["PSNR"]["values"][0] == [16.0, 4.0, 3.0] and np.isnan(m["nerf2"]["PSNR"]["values"][1]).all()
+    assert m["knn"]["PSNR"]["values"] == [[15.0, 14.0, 13.0]]  # tested in two jobs on the same data: once
+    assert m["graf"]["LPIPS"]["values"][0][0] == pytest.approx(0.8)
+    for name in ("matrix_psnr.png", "matrix_ssim.png", "matrix_lpips.png", "matrix_mse.png", "spectra_a_v2.png"):
+        assert (tmp_path / "out" / name).stat().st_size > 5000
+    rows = list(csv.DictReader((tmp_path / "out" / "report.csv").open()))
+    assert len(rows) == 3 + 3 + 3 + 3  # graf x 2 training scenes, nerf2, knn: 3 test scenes each
+    g = [r for r in rows if r["method"] == "graf" and r["trained_on"] == "b_v1" and r["eval_scene"] == "a_v2"]
+    assert len(g) == 1 and float(g[0]["PSNR"]) == 10.5 and g[0]["n_test"] == "30" and g[0]["steps"] == "300"
+    md = (tmp_path / "out" / "report.md").read_text()
+    assert "| b_v1 | a_v2 | graf | 30 | 300 | 0.0891 | 0.895 | 10.50 | 0.105 |" in md
+    tex = (tmp_path / "out" / "report.tex").read_text()
+    assert r"b\_v1 & a\_v2 & graf & 30 & 300 & 0.0891 & 0.895 & 10.50 & 0.105 \\" in tex
+
+
+def test_neighbour_count_curve_averages_the_same_family_pairs(tmp_path):
+    for L, (c2, c3, o2) in {2: (10.0, 12.0, 5.0), 10: (20.0, 22.0, 6.0)}.items():
+        # trained on a conference layout: tested on its family (averaged) and on another (left out of the curve)
+        _result(tmp_path / f"L{L}", "graf", ["conference_v1"], [("conference_v2", c2, GHZ24),
+                                                                ("conference_v3", c3, GHZ24), ("office_v2", o2, GHZ24)], L=L)
+    s = make_report(tmp_path, tmp_path)
+    assert s["axes"] == ["L", "eval_scene"]
+    assert s["vs_L"]["graf"][2]["PSNR"] == pytest.approx(11.0) and s["vs_L"]["graf"][10]["PSNR"] == pytest.approx(21.0)
+    assert s["vs_L"]["graf"][10]["n_pairs"] == 2
+    assert (tmp_path / "vs_L.png").stat().st_size > 5000
+
+
+def test_finetune_fraction_curves_and_band_matrix(tmp_path):
+    base = {"conference_v1": {"index": 0, "band_hz": GHZ24}}
+    for label, frac, psnr in (("zero-shot", None, 5.0), ("f20", 0.2, 12.0), ("f100", 1.0, 16.0)):
+        ft = {"mode": "zero-shot" if frac is None else "fine-tune", "fraction": frac, "base_scenes": base,
+              "base_steps": 300, "steps": 0 if frac is None else 100, "test_pool": "measured"}
+        _result(tmp_path / "ft" / label, "graf", ["bedroom"], [("bedroom", psnr, GHZ24)], finetune=ft)
+    s = make_report(tmp_path / "ft", tmp_path / "ft")
+    curve = s["vs_fraction"]["bedroom | trained at 2.412 GHz"]["graf"]
+    assert {k: v["PSNR"] for k, v in curve.items()} == {0.0: 5.0, 0.2: 12.0, 1.0: 16.0}
+    assert "| f20 | graf | 30 | 300+100 |" in (tmp_path / "ft" / "report.md").read_text()
+
+    bands = tmp_path / "bands"
+    for i, (th, name) in enumerate(((MHZ915, "915"), (GHZ24, "24"))):
+        _result(bands / f"t{name}", "graf", ["conference_v1"], [("conference_v1", 20.0 - 5 * i, MHZ915),
+                                                                ("conference_v1", 10.0 + 5 * i, GHZ24)], train_hz=th)
+    s = make_report(bands, bands)
+    bm = s["band_matrix"]["graf"]
+    assert bm["rows"] == ["915 MHz", "2.412 GHz"] and bm["cols"] == ["915 MHz", "2.412 GHz"]
+    assert bm["psnr"] == [[20.0, 10.0], [15.0, 15.0]]
+    assert (bands / "band_matrix.png").stat().st_size > 5000
+
+
+def test_a_folder_without_results_is_a_clear_error(tmp_path):
+    with pytest.raises(ConfigError, match="no results.json under"):
+        make_report(tmp_path, tmp_path)
+    with pytest.raises(ConfigError, match="does not exist"):
+        make_report(tmp_path / "nope", tmp_path)

@@ -1,0 +1,76 @@
+"""A study end to end, as a user runs it: one Hydra multirun (base model trained first, zero-shot jobs of
+it), resumed after an interruption without recomputing finished jobs, with graf-report's tables at the end;
+and user errors that end a command with their message alone."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+EXE = Path(sys.executable).parent
+
+
+def _run(args: list[str], cwd: Path, env: dict | None = None) -> subprocess.CompletedProcess:
+    e = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
+    e.update({"OMP_NUM_THREADS": "1", **(env or {})})
+    return subprocess.run([str(EXE / args[0]), *args[1:]], cwd=cwd, capture_output=True, text=True, timeout=900, env=e)
+
+
+def test_a_study_multirun_trains_its_base_once_resumes_and_reports(small_room_root, tmp_path):
+    sweep = tmp_path / "nc"
+    cmd = ["graf-train", "experiment=neighbour_count", "model=knn_dl", "scene=small_room", "eval_scene=same",
+           "neighbors.L=2,4", "study_steps=2", "sim_num_tx=24", f"data_root={small_room_root}",
+           f"hydra.sweep.dir={sweep}"]
+    p = _run(cmd, tmp_path)
+    assert p.returncode == 0, p.stderr[-3000:]
+    jobs = {int(d.name.split("neighbors.L=")[1].split(",")[0]): d for d in sweep.iterdir() if "neighbors.L=" in d.name}
+    assert sorted(jobs) == [2, 4]
+    results = {L: json.loads((d / "results.json").read_text()) for L, d in jobs.items()}
+    base = sweep / "base" / "knn_dl_small_room"
+    assert json.loads((base / "results.json").read_text())["global_step"] == 2
+    for L, r in results.items():
+        assert r["config"]["neighbors"]["L"] == L and r["finetune"]["mode"] == "zero-shot"
+        assert r["finetune"]["base_steps"] == 2 and r["global_step"] == 0
+        assert (jobs[L] / "samples" / "small_room__knn-dl.npz").is_file()
+    report = json.loads((sweep / "report.json").read_text())
+    for L, r in results.items():  # the report's curve holds the jobs' own figures
+        assert report["vs_L"]["knn-dl"][str(L)]["PSNR"] == pytest.approx(r["metrics"]["test/psnr"])
+        assert report["vs_L"]["knn"][str(L)]["PSNR"] == pytest.approx(r["baselines"]["knn"]["metrics"]["test/psnr"])
+    assert "vs_L.png" in report["figures"] and (sweep / "report.md").is_file()
+
+    # interrupted: the L=4 job did not finish; the same command runs it alone
+    stamps = {L: (d / "results.json").stat().st_mtime_ns for L, d in jobs.items()}
+    base_stamp = (base / "results.json").stat().st_mtime_ns
+    (jobs[4] / "results.json").unlink()
+    p = _run(cmd, tmp_path)
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert (jobs[2] / "results.json").stat().st_mtime_ns == stamps[2]  # finished: not run again
+    assert (jobs[4] / "results.json").is_file()
+    assert (base / "results.json").stat().st_mtime_ns == base_stamp  # the base model is not trained again
+    assert "finished before" in p.stderr + p.stdout
+    again = json.loads((jobs[4] / "results.json").read_text())
+    assert again["metrics"]["test/psnr"] == pytest.approx(results[4]["metrics"]["test/psnr"], abs=1e-5)
+
+    # the base model is not reused for other settings
+    p = _run([*cmd[:-4], "study_steps=3", *cmd[-3:]], tmp_path)
+    assert "a base model trained with other settings is there" in p.stderr + p.stdout
+
+
+def test_user_errors_end_with_their_message_alone(tmp_path):
+    p = _run(["graf-train", "scene=nerf2", "scene.nerf2.path=/nonexistent/folder", "band=2.4ghz",
+              f"hydra.run.dir={tmp_path / 'a'}"], tmp_path)
+    assert p.returncode == 2
+    assert p.stderr.strip().splitlines()[-2] == "error: /nonexistent/folder: scene folder does not exist"
+    assert "Traceback" not in p.stderr + p.stdout
+    p = _run(["graf-train", "scene=nerf2", "scene.nerf2.path=/nonexistent/folder", "band=2.4ghz",
+              f"hydra.run.dir={tmp_path / 'b'}"], tmp_path, env={"HYDRA_FULL_ERROR": "1"})
+    assert p.returncode != 0 and "Traceback" in p.stderr
+    p = _run(["graf-train", "finetune=f20", f"hydra.run.dir={tmp_path / 'c'}"], tmp_path)
+    assert p.returncode == 2 and "finetune=f20 fine-tunes a checkpoint: set finetune.init_from=CKPT" in p.stderr
+    p = _run(["graf-train", "scene=[rfid_s23,no_such_scene]", f"hydra.run.dir={tmp_path / 'd'}"], tmp_path)
+    assert p.returncode != 0 and "scene/no_such_scene" in p.stderr and "Traceback" not in p.stderr
