@@ -77,16 +77,16 @@ def test_finetune_starts_from_a_checkpoints_weights_and_rejects_another_architec
     load_weights(fresh, ckpt)
     assert all(torch.equal(v, trained[k]) for k, v in fresh.state_dict().items())
 
-    cfg2 = compose_cfg("train", ("experiment=graf_rfid_s23", "trainer.max_steps=1", "finetune=from_checkpoint",
+    cfg2 = compose_cfg("train", ("experiment=graf_rfid_s23", "finetune=f100", "finetune.max_steps=1",
                                  f"finetune.init_from={ckpt}", f"paths.output_dir={tmp_path / 'ft'}", *FAST))
     train(cfg2)
     r = json.loads((tmp_path / "ft" / "results.json").read_text())
     assert r["global_step"] == 1  # a fresh schedule, not a resumed one
-    other = compose_cfg("train", ("experiment=graf_rfid_s23", "model.d_model=8", "finetune=from_checkpoint",
+    other = compose_cfg("train", ("experiment=graf_rfid_s23", "model.d_model=8", "finetune=f100",
                                   f"finetune.init_from={ckpt}", *FAST))
     with pytest.raises(ValueError, match="another architecture"):
         train(other)
-    missing = compose_cfg("train", ("experiment=graf_rfid_s23", "finetune=from_checkpoint",
+    missing = compose_cfg("train", ("experiment=graf_rfid_s23", "finetune=f100", "finetune.max_steps=1",
                                     f"finetune.init_from={tmp_path / 'nope.ckpt'}", *FAST))
     with pytest.raises(CheckpointError, match="nope.ckpt: checkpoint file does not exist"):
         train(missing)
@@ -131,6 +131,6 @@ def test_eval_of_a_checkpoint_applies_inference_settings_and_refuses_the_rest(co
     with pytest.raises(CheckpointError, match=why):
         run("model=graf_cpu", path=tmp_path / "old.ckpt")
     for extra in ((f"ckpt_path={tmp_path / 'old.ckpt'}",),
-                  ("finetune=from_checkpoint", f"finetune.init_from={tmp_path / 'old.ckpt'}")):
+                  ("finetune=f100", "finetune.max_steps=1", f"finetune.init_from={tmp_path / 'old.ckpt'}")):
         with pytest.raises(CheckpointError, match=why):
             train(compose_cfg("train", ("experiment=graf_rfid_s23", "trainer.max_steps=2", *extra, *FAST)))

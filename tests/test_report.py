@@ -41,8 +41,9 @@ def _samples(folder: Path, scene: str, method: str, value: int) -> None:
 
 def test_cross_scene_matrix_tables_heatmaps_and_spectra(tmp_path):
     knn = {"a_v1": 15.0, "a_v2": 14.0, "b_v1": 13.0}
-    _result(tmp_path / "j0", "graf", ["a_v1"], [("a_v1", 20.0, GHZ24), ("a_v2", 18.0, GHZ24), ("b_v1", 12.0, GHZ24)], knn=knn)
-    _result(tmp_path / "j1", "graf", ["b_v1"], [("a_v1", 11.0, GHZ24), ("a_v2", 10.5, GHZ24), ("b_v1", 19.0, GHZ24)], knn=knn)
+    scenes = ("a_v1", "a_v2", "b_v1")
+    _result(tmp_path / "j0", "graf", ["a_v1"], [(s, p, GHZ24) for s, p in zip(scenes, (20.0, 18.0, 12.0))], knn=knn)
+    _result(tmp_path / "j1", "graf", ["b_v1"], [(s, p, GHZ24) for s, p in zip(scenes, (11.0, 10.5, 19.0))], knn=knn)
     _result(tmp_path / "j2", "nerf2", ["a_v1"], [("a_v1", 16.0, GHZ24), ("a_v2", 4.0, GHZ24), ("b_v1", 3.0, GHZ24)])
     _result(tmp_path / "base" / "x", "graf", ["zzz"], [("zzz", 99.0, GHZ24)])  # a study's base model: left out
     _samples(tmp_path / "j0", "a_v2", "graf", 110)
@@ -74,7 +75,8 @@ def test_neighbour_count_curve_averages_the_same_family_pairs(tmp_path):
                                                                 ("conference_v3", c3, GHZ24), ("office_v2", o2, GHZ24)], L=L)
     s = make_report(tmp_path, tmp_path)
     assert s["axes"] == ["L", "eval_scene"]
-    assert s["vs_L"]["graf"][2]["PSNR"] == pytest.approx(11.0) and s["vs_L"]["graf"][10]["PSNR"] == pytest.approx(21.0)
+    assert s["vs_L"]["graf"][2]["PSNR"] == pytest.approx(11.0)
+    assert s["vs_L"]["graf"][10]["PSNR"] == pytest.approx(21.0)
     assert s["vs_L"]["graf"][10]["n_pairs"] == 2
     assert (tmp_path / "vs_L.png").stat().st_size > 5000
 
