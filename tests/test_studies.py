@@ -74,3 +74,19 @@ def test_user_errors_end_with_their_message_alone(tmp_path):
     assert p.returncode == 2 and "finetune=f20 fine-tunes a checkpoint: set finetune.init_from=CKPT" in p.stderr
     p = _run(["graf-train", "scene=[rfid_s23,no_such_scene]", f"hydra.run.dir={tmp_path / 'd'}"], tmp_path)
     assert p.returncode != 0 and "scene/no_such_scene" in p.stderr and "Traceback" not in p.stderr
+
+
+def test_study_jobs_outside_the_design_are_skipped_with_the_reason(compose_cfg):
+    from graf.cli.train import skip_reason
+
+    def reason(*overrides):
+        return skip_reason(compose_cfg("train", overrides))
+
+    assert reason("same_family_only=true", "scene=conference_v1", "eval_scene=[office_v2]").startswith(
+        "same_family_only: test scenes of family office, training scenes of conference")
+    assert reason("same_family_only=true", "scene=conference_v1", "eval_scene=[conference_v2]") is None
+    assert reason("same_family_only=false", "scene=conference_v1", "eval_scene=[office_v2]") is None
+    # base.band=scene: for a simulated scene the same job as with the run's band; measured data keeps its band
+    assert "the same job as the one with the run's band" in reason("experiment=unseen_layouts", "scene=bedroom",
+                                                                   "finetune.base.band=scene")
+    assert reason("experiment=unseen_layouts", "scene=rfid_s23", "finetune.base.band=scene") is None

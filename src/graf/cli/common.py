@@ -224,6 +224,12 @@ def _hz(v: float) -> str:
     return f"{v / 1e9:.3g} GHz" if v >= 1e9 else f"{v / 1e6:.4g} MHz"
 
 
+def family(scene: str) -> str:
+    """A catalog scene's layout family: ``conference_v2`` -> ``conference`` (a scene without variants is its
+    own family)."""
+    return scene.rsplit("_v", 1)[0] if "_v" in scene and scene.rsplit("_v", 1)[1].isdigit() else scene
+
+
 def check_bands(cfg: DictConfig, trained: dict, dm, source: str) -> None:
     """Refuse a scene at a band the model was not trained at (``trained``: name -> {"band_hz"}) unless
     ``cross_band=true``: the seed trains one model per band (E.5), so a cross-band run is a transfer study,
@@ -352,13 +358,16 @@ def evaluation_trainer(cfg: DictConfig, loggers=(), callbacks=()) -> L.Trainer:
 
 def evaluate_model(cfg: DictConfig, model, dm, loggers=(), timing: dict | None = None) -> tuple[dict, dict]:
     """Validation then test metrics of ``model`` (``{val/..., test/...}``) and the test predictions; with
-    ``timing`` (a dict), the wall seconds of each loop go into it (``val_s``, ``test_s``)."""
+    ``timing`` (a dict), the wall seconds of each loop go into it (``val_s``, ``test_s``).  ``validate=false``
+    (studies, which choose nothing) skips validation: the ``val/...`` figures are then None."""
     collector = PredictionCollector()
     trainer = evaluation_trainer(cfg, loggers, [collector])
     t0 = time.perf_counter()
-    trainer.validate(model=model, datamodule=dm, verbose=False)
+    metrics = {}
+    if cfg.get("validate", True):
+        trainer.validate(model=model, datamodule=dm, verbose=False)
+        metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("val/")}
     t1 = time.perf_counter()
-    metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("val/")}
     trainer.test(model=model, datamodule=dm, verbose=False)
     t2 = time.perf_counter()
     metrics.update({k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")})

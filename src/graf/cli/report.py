@@ -38,7 +38,7 @@ import numpy as np
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-from graf.cli.common import CONF_PATH, ConfigError, cli_errors, task_wrapper
+from graf.cli.common import CONF_PATH, ConfigError, cli_errors, family, task_wrapper
 from graf.io import atomic_write_bytes, atomic_write_json
 
 log = logging.getLogger("graf")
@@ -55,10 +55,6 @@ def _band(hz) -> str:
         return ""
     hz = float(hz)
     return f"{hz / 1e9:g} GHz" if hz >= 1e9 else f"{hz / 1e6:g} MHz"
-
-
-def _family(scene: str) -> str:
-    return scene.split("_v")[0] if "_v" in scene else scene
 
 
 def _ft_label(ft: dict | None) -> str:
@@ -246,7 +242,7 @@ def curve(rows: list[dict], axis: str, same_family: bool) -> dict:
     pick = [r for r in rows if r.get(axis) is not None]
     if same_family:
         fam = [r for r in pick if r["steps"] == "0" or all(
-            _family(t) == _family(r["eval_scene"]) for t in r["trained_on"].split("+"))]
+            family(t) == family(r["eval_scene"]) for t in r["trained_on"].split("+"))]
         pick = fam or pick
     groups = defaultdict(list)
     for r in pick:

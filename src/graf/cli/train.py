@@ -20,8 +20,8 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from graf.cli.common import (CONF_PATH, ConfigError, _output_dir, build, cli_errors, scene_configs, sweep_value,
-                             task_wrapper, test_and_report)
+from graf.cli.common import (CONF_PATH, ConfigError, _output_dir, build, cli_errors, family, scene_configs,
+                             sweep_value, task_wrapper, test_and_report)
 from graf.io import atomic_write_json
 from graf.models.base import CheckpointError, check_checkpoint, read_checkpoint
 
@@ -106,9 +106,16 @@ def finished_result(out: Path) -> dict | None:
 
 
 def skip_reason(cfg: DictConfig) -> str | None:
-    """Why a study job is not run (None: it is).  ``finetune.base.band=scene`` (start from a model trained at
+    """Why a study job is not run (None: it is).  ``same_family_only``: a job whose test scenes are of no
+    training scene's layout family (conference_v1 -> office_v2).  ``finetune.base.band=scene`` (start from a model trained at
     the new scene's own band) differs from the run's band only for a scene with a fixed band (measured data:
     rfid_s23 at 915 MHz); for a simulated scene it would repeat the job with the run's band."""
+    if cfg.get("same_family_only"):
+        train = {family(str(c.get("name"))) for c in scene_configs(cfg.get("scene"))}
+        test = {family(str(c.get("name"))) for c in scene_configs(cfg.get("eval_scene"))}
+        if test and not test & train:
+            return (f"same_family_only: test scenes of family {', '.join(sorted(test))}, training scenes of "
+                    f"{', '.join(sorted(train))}")
     base = (cfg.get("finetune") or {}).get("base") or {}
     if base.get("band") != "scene":
         return None
