@@ -23,8 +23,6 @@ A study's multirun calls it when it ends (:class:`StudyReport`, a Hydra callback
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import logging
 import math
@@ -39,6 +37,8 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from graf.cli.common import CONF_PATH, ConfigError, cli_errors, family, task_wrapper
+from graf.cli.table import to_csv
+from graf.cli.table import to_markdown as table_markdown
 from graf.io import atomic_write_bytes, atomic_write_json
 
 log = logging.getLogger("graf")
@@ -163,17 +163,7 @@ def _fmt(v, col: str) -> str:
 
 
 def to_markdown(header, body) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
-    lines += ["| " + " | ".join(_fmt(v, c) for v, c in zip(row, header)) + " |" for row in body]
-    return "\n".join(lines) + "\n"
-
-
-def to_csv(header, body) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf)
-    w.writerow(header)
-    w.writerows([[("" if v is None else v) for v in row] for row in body])
-    return buf.getvalue()
+    return table_markdown(header, body, _fmt)
 
 
 def to_latex(header, body) -> str:

@@ -126,13 +126,16 @@ def _fmt(v, col):
     return "" if v is None else str(v)
 
 
-def to_markdown(header, body) -> str:
+def to_markdown(header, body, fmt=None) -> str:
+    """A Markdown table; ``fmt(value, column) -> str`` formats each cell (default: this table's)."""
+    fmt = fmt or _fmt
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
-    lines += ["| " + " | ".join(_fmt(v, c) for v, c in zip(row, header)) + " |" for row in body]
+    lines += ["| " + " | ".join(fmt(v, c) for v, c in zip(row, header)) + " |" for row in body]
     return "\n".join(lines) + "\n"
 
 
 def to_csv(header, body) -> str:
+    """CSV text (None as an empty cell)."""
     buf = io.StringIO()
     w = csv.writer(buf)
     w.writerow(header)
