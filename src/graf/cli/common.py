@@ -166,16 +166,14 @@ def scene_band_config(scene_cfg: DictConfig, run_band: DictConfig | None) -> Dic
                       f"band=<one of {', '.join(band_choices())}> (the band its spectra were measured at)")
 
 
-def build_datamodule(cfg: DictConfig, which: str = "scene", scene_indices=None, band=None):
+def build_datamodule(cfg: DictConfig, which: str = "scene", scene_indices=None):
     """Bands, scenes, neighbour selector and the datamodule that joins them (``cfg.data``), for the scenes
-    of ``cfg[which]`` (``scene``: what is trained on; ``eval_scene``: what is tested).  ``band``: the band
-    config of the run (default ``cfg.band``).  The fine-tuning settings (``cfg.finetune``: measured fraction,
+    of ``cfg[which]`` (``scene``: what is trained on; ``eval_scene``: what is tested).  The fine-tuning settings (``cfg.finetune``: measured fraction,
     its seed, the test neighbour pool) apply to the scenes trained on."""
     configs = scene_configs(cfg.get(which))
     if not configs:
         raise ConfigError(f"{which}= selects no scene")
-    run_band = cfg.get("band") if band is None else band
-    band_cfgs = [scene_band_config(c, run_band) for c in configs]
+    band_cfgs = [scene_band_config(c, cfg.get("band")) for c in configs]
     bands = [hydra.utils.instantiate(b) for b in band_cfgs]
     scenes = [hydra.utils.instantiate(c) for c in configs]
     neighbors = hydra.utils.instantiate(cfg.neighbors)
@@ -257,8 +255,7 @@ def build(cfg: DictConfig) -> dict:
     indices = assign_scene_indices({n: v["index"] for n, v in known.items()}, names) if known else None
     _, _, neighbors, datamodule = build_datamodule(cfg, scene_indices=indices)
     datamodule.setup("fit")
-    if (cfg.get("finetune") or {}).get("init_from"):  # fine-tuning on the run's scenes at a new band: a transfer
-        check_bands(cfg, known, datamodule, source)
+    check_bands(cfg, known, datamodule, source)  # fine-tuning or testing a checkpoint at another band: a transfer
     table = dict(known)
     for d, b, k in zip(datamodule.sets, datamodule.bands, datamodule.scene_index.tolist()):
         table.setdefault(d.name, {"index": int(k), "band_hz": float(b.frequency_hz)})
@@ -468,6 +465,9 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -
     atomic_write_json(out / "results.json", results)
     log.info("results: %s", out / "results.json")
     print(format_metrics_table(rows))
+    if "evaluations" in results:  # say which test scenes the model was trained on
+        print("; ".join(f"{e['eval_scene']}: {'within-scene (trained on it)' if e['within_scene'] else 'zero-shot'}"
+                        for e in results["evaluations"]))
     if cfg.get("regime"):
         print(f"regime: {cfg.regime}")
     return metrics
