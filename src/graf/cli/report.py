@@ -244,12 +244,12 @@ def curve(rows: list[dict], axis: str, same_family: bool) -> dict:
     return {m: dict(sorted(v.items(), key=lambda kv: _sort_key(kv[0]))) for m, v in out.items()}
 
 
-def curve_figure(data: dict, xlabel: str, path: Path, title: str, xfun=lambda x: x) -> None:
+def curve_figure(data: dict, xlabel: str, path: Path, title: str) -> None:
     plt = _plt()
     fig, axes = plt.subplots(1, len(METRICS), figsize=(16, 3.4), constrained_layout=True)
     for ax, (_, name, _) in zip(axes, METRICS):
         for m, pts in sorted(data.items()):
-            xs = [xfun(x) for x in pts]
+            xs = list(pts)
             ax.plot(xs, [p[name] for p in pts.values()], "o-", label=m)
         ax.set_xlabel(xlabel)
         ax.set_title(name)
