@@ -186,6 +186,30 @@ def test_table_collects_runs(compose_cfg, tmp_path):
     assert "| neighbors.L |" in (tmp_path / "table" / "table.md").read_text()
 
 
+def test_table_of_cross_scene_runs_has_a_row_per_test_scene_and_no_scene_config_columns():
+    from graf.cli.table import build_table
+
+    def run(trained, tested, psnrs, L):
+        scenes = {n: {"name": n, "room": {"size": [i + 5.0, 4.0, 3.0]}} for i, n in enumerate(trained)}
+        evals = [{"eval_scene": t, "n_test": 30, "metrics": {"test/psnr": p},
+                  "baselines": {"knn": {"metrics": {"test/psnr": p - 1}, "trainable_parameters": 0}}}
+                 for t, p in zip(tested, psnrs)]
+        return {"method": "graf", "scene": tested[0], "train_scenes": trained, "global_step": 300, "n_test": 30,
+                "trainable_parameters": 7, "metrics": evals[0]["metrics"], "evaluations": evals,
+                "config": {"scene": scenes, "eval_scene": {t: {"name": t} for t in tested}, "neighbors": {"L": L}}}
+
+    header, body = build_table([run(["room_a"], ["room_a", "room_b"], [15.0, 14.0], 4),
+                                run(["room_b", "room_c"], ["room_a", "room_b"], [13.0, 16.0], 8)])
+    assert header[:4] == ["method", "trained on", "tested on", "neighbors.L"]
+    assert not any(h.startswith(("scene.", "eval_scene.")) for h in header)
+    rows = [dict(zip(header, r)) for r in body]
+    graf = [(r["trained on"], r["tested on"], r["neighbors.L"], r["PSNR"]) for r in rows if r["method"] == "graf"]
+    assert graf == [("room_a", "room_a", 4, 15.0), ("room_a", "room_b", 4, 14.0),
+                    ("room_b+room_c", "room_a", 8, 13.0), ("room_b+room_c", "room_b", 8, 16.0)]
+    knn = [(r["trained on"], r["tested on"], r["PSNR"]) for r in rows if r["method"] == "knn"]
+    assert knn == [("-", "room_a", 14.0), ("-", "room_b", 13.0), ("-", "room_a", 12.0), ("-", "room_b", 15.0)]
+
+
 def test_console_scripts_run_end_to_end(tmp_path, make_scene):
     folder = make_scene(n=12)
     bindir = Path(sys.executable).parent

@@ -2,8 +2,10 @@
 
     graf-table runs=multirun/knn_rfid_s23/2026-11-22_16-00-00 [out=sweeps/knn_rfid_s23]
 
-Config keys whose values differ between the runs become columns (so a sweep's axes show up by
-themselves).  Writes ``table.md``, ``table.csv`` and ``results.json`` (``{"rows": [...]}``) into the
+One row per run and test scene (a cross-scene run tests several: ``evaluations``), with the scenes it
+was trained and tested on.  Config keys whose values differ between the runs become columns (so a sweep's
+axes show up by themselves; a varying ``scene`` or ``eval_scene`` shows as the two scene columns, not as
+the scenes' configs).  Writes ``table.md``, ``table.csv`` and ``results.json`` (``{"rows": [...]}``) into the
 output folder (and into ``out`` when given), and prints the Markdown table.
 
 Every multirun also gets its table without this command: :class:`SweepTable` (a Hydra callback, in
@@ -39,6 +41,22 @@ log = logging.getLogger("graf")
 METRICS = ("val/psnr", "val/ssim", "test/mse", "test/psnr", "test/ssim", "test/lpips")  # blank where absent
 IGNORED_PREFIXES = ("paths.", "hydra.", "data_root", "task_name", "logger.", "trainer.default_root_dir", "callbacks.",
                     "save_predictions", "plot_count", "ckpt_path")
+
+
+# config groups that hold whole scene configs keyed by scene name: one column of the names (the scenes'
+# geometry, materials and tracing settings would otherwise become a hundred columns when the scene varies)
+NAMED_GROUPS = ("scene", "eval_scene")
+
+
+def _flat_config(config: dict) -> dict:
+    """A run's config flattened to ``{dotted.key: value}``, each of NAMED_GROUPS as its scene names."""
+    out = _flatten({k: v for k, v in config.items() if k not in NAMED_GROUPS})
+    for g in NAMED_GROUPS:
+        if isinstance(config.get(g), dict):
+            out[g] = "+".join(config[g])
+        elif g in config:
+            out[g] = config[g]
+    return out
 
 
 def _flatten(d, prefix=""):
@@ -87,7 +105,7 @@ def varying_keys(rows: list[dict]) -> list[str]:
     """Config keys whose values differ between the runs.  When the runs are of different methods
     (``model._target_`` varies), the model's own settings are left out: they are not comparable across
     methods, the method column names the model, and each run's results.json holds its full config."""
-    flats = [_flatten(r.get("config", {})) for r in rows]
+    flats = [_flat_config(r.get("config", {})) for r in rows]
     keys = sorted(set().union(*flats)) if flats else []
     varying = [k for k in keys if not k.startswith(IGNORED_PREFIXES)
                and len({json.dumps(f.get(k), default=str) for f in flats}) > 1]
@@ -96,24 +114,35 @@ def varying_keys(rows: list[dict]) -> list[str]:
     return varying
 
 
+def _evaluations(r: dict) -> list[dict]:
+    """A run's evaluations: one per test scene (``evaluations`` of a cross-scene run; the run itself before)."""
+    return r.get("evaluations") or [{"eval_scene": r.get("scene"), "metrics": r.get("metrics", {}),
+                                      "n_test": r.get("n_test"), "baselines": r.get("baselines") or {}}]
+
+
 def build_table(rows: list[dict]) -> tuple[list[str], list[list]]:
-    axes = varying_keys(rows)
-    header = ["method", "scene", *axes, "parameters", "steps", "n_test", "val PSNR", "val SSIM", "MSE", "PSNR", "SSIM",
-              "LPIPS", "seconds"]
+    """One row per (run, test scene) and per baseline tested beside it: the method, the scenes it was trained
+    and tested on, the config keys that vary between the runs, the budget and the metrics."""
+    axes = [k for k in varying_keys(rows) if k not in NAMED_GROUPS]  # the two scene columns name them
+    header = ["method", "trained on", "tested on", *axes, "parameters", "steps", "n_test", "val PSNR", "val SSIM",
+              "MSE", "PSNR", "SSIM", "LPIPS", "seconds"]
     body, seen = [], set()
     for r in rows:
-        flat = _flatten(r.get("config", {}))
-        m = r.get("metrics", {})
-        body.append([r.get("method"), r.get("scene"), *[flat.get(k) for k in axes], r.get("trainable_parameters"),
-                     r.get("global_step"), r.get("n_test"), *[m.get(k) for k in METRICS], r.get("seconds")])
-        for name, b in (r.get("baselines") or {}).items():  # tested in the same run, same split and neighbours
-            ax = [None if k.startswith(BASELINE_BLANK) else flat.get(k) for k in axes]
-            key = json.dumps([name, r.get("scene"), ax, b["metrics"]], default=str)
-            if key in seen:
-                continue
-            seen.add(key)
-            body.append([name, r.get("scene"), *ax, b.get("trainable_parameters"), None, r.get("n_test"),
-                         *[b["metrics"].get(k) for k in METRICS], b.get("seconds")])
+        flat = _flat_config(r.get("config", {}))
+        trained = "+".join(r.get("train_scenes") or [r.get("scene")]) if r.get("global_step") else "-"
+        for i, e in enumerate(_evaluations(r)):
+            m = e.get("metrics", {})
+            body.append([r.get("method"), trained, e.get("eval_scene"), *[flat.get(k) for k in axes],
+                         r.get("trainable_parameters"), r.get("global_step"), e.get("n_test"),
+                         *[m.get(k) for k in METRICS], r.get("seconds") if i == 0 else None])
+            for name, b in (e.get("baselines") or {}).items():  # tested in the same run, same split and neighbours
+                ax = [None if k.startswith(BASELINE_BLANK) else flat.get(k) for k in axes]
+                key = json.dumps([name, e.get("eval_scene"), ax, b["metrics"]], default=str)
+                if key in seen:
+                    continue
+                seen.add(key)
+                body.append([name, "-", e.get("eval_scene"), *ax, b.get("trainable_parameters"), None,
+                             e.get("n_test"), *[b["metrics"].get(k) for k in METRICS], b.get("seconds")])
     return header, body
 
 

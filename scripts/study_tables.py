@@ -1,0 +1,102 @@
+"""Compact markdown views of a published study, for its README section: read from the study's report.json and
+rows.json (written by graf-report), nothing recomputed.
+
+    python scripts/study_tables.py sweeps/cross_scene_matrix      # train x test matrix per metric
+    python scripts/study_tables.py sweeps/neighbour_count         # metric vs L per method
+    python scripts/study_tables.py sweeps/unseen_layouts          # seed Tables 1-4 shape, metric vs fraction
+    python scripts/study_tables.py sweeps/bands                   # train band x test band (PSNR)
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+METRICS = (("test/mse", "MSE", "{:.4f}"), ("test/lpips", "LPIPS", "{:.3f}"), ("test/psnr", "PSNR", "{:.2f}"),
+           ("test/ssim", "SSIM", "{:.3f}"))
+FRACTIONS = ("-", "none", "f05", "f10", "f20", "f50", "f100")
+
+
+def md(header: list[str], body: list[list]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in body]
+    return "\n".join(lines)
+
+
+def fmt(v, f: str) -> str:
+    return "-" if v is None else f.format(v)
+
+
+def matrix(report: dict) -> str:
+    out = []
+    for _, name, f in METRICS:
+        cols = None
+        body = []
+        for method, mats in report["matrix"].items():
+            m = mats[name]
+            cols = m["cols"]
+            for r, vals in zip(m["rows"], m["values"]):
+                body.append([method, r, *[fmt(v, f) for v in vals]])
+        out.append(f"**{name}** (rows: trained on; columns: tested on)\n\n" + md(["method", "trained on", *cols], body))
+    return "\n\n".join(out)
+
+
+def vs_l(report: dict) -> str:
+    data = report["vs_L"]
+    ls = sorted({int(x) for pts in data.values() for x in pts})
+    out = []
+    for _, name, f in METRICS:
+        body = [[m, *[fmt(pts.get(str(x), {}).get(name), f) for x in ls]] for m, pts in data.items()]
+        out.append(f"**{name}** vs L (mean over conference_v1 -> v2/v3 and office_v1 -> v2/v3)\n\n"
+                   + md(["method", *[f"L = {x}" for x in ls]], body))
+    return "\n\n".join(out)
+
+
+def unseen(rows: list[dict]) -> str:
+    out = []
+    keys = sorted({(r["eval_scene"], r["train_band"]) for r in rows if r["steps"] != "0"})
+    for scene, band in keys:
+        sub = [r for r in rows if r["eval_scene"] == scene and r["train_band"] in (band, "-")]
+        for ft, title in (("none", "zero-shot"), ("f20", "fine-tuned on 20%")):
+            body = [[r["method"], r["n_test"], r["steps"], *[fmt(r.get(k), f) for k, _, f in METRICS]]
+                    for r in sorted(sub, key=lambda r: r["method"]) if r["finetune"] in (ft, "-")]
+            out.append(f"**{scene}**, models trained at {band}, {title} (test neighbours: "
+                       f"{'the whole training split' if ft == 'none' else 'the measured 20%'})\n\n"
+                       + md(["method", "test spectra", "steps", *[n for _, n, _ in METRICS]], body))
+        by = defaultdict(dict)
+        for r in sub:
+            if r["steps"] != "0":
+                by[r["method"]][r["finetune"]] = r.get("test/psnr")
+        fr = [x for x in FRACTIONS[1:] if any(x in v for v in by.values())]
+        out.append(f"PSNR vs fine-tuned fraction, **{scene}** (models trained at {band})\n\n"
+                   + md(["method", *["zero-shot" if x == "none" else x for x in fr]],
+                        [[m, *[fmt(v.get(x), "{:.2f}") for x in fr]] for m, v in sorted(by.items())]))
+    return "\n\n".join(out)
+
+
+def bands(report: dict) -> str:
+    out = []
+    for m, d in report["band_matrix"].items():
+        body = [[r, *[fmt(v if v == v else None, "{:.2f}") for v in vals]] for r, vals in zip(d["rows"], d["psnr"])]
+        out.append(f"**{m}**: test PSNR (rows: train band; columns: test band)\n\n" + md(["train \\ test", *d["cols"]], body))
+    return "\n\n".join(out)
+
+
+def main() -> None:
+    folder = Path(sys.argv[1])
+    report = json.loads((folder / "report.json").read_text())
+    rows = json.loads((folder / "rows.json").read_text())["rows"]
+    if "matrix" in report:
+        print(matrix(report))
+    if "vs_L" in report:
+        print(vs_l(report))
+    if "vs_fraction" in report:
+        print(unseen(rows))
+    if "band_matrix" in report:
+        print(bands(report))
+
+
+if __name__ == "__main__":
+    main()
