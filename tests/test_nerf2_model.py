@@ -73,6 +73,10 @@ def test_presets_are_the_constructor_arguments_and_nerf2_sizes(compose_cfg):
     assert (paper.rays_per_step, paper.max_samples, paper.near, paper.pe_freqs) == (8192, 64, 0.0, 10)
     assert cpu.max_samples < paper.max_samples and cpu.rays_per_step < paper.rays_per_step
     assert (cpu.depth, cpu.width, list(cpu.skips)) == (paper.depth, paper.width, list(paper.skips))
+    study = compose_cfg("train", ("model=nerf2_study",)).model  # the studies' preset: narrower, fewer samples
+    assert {k for k in cpu if study[k] != cpu[k]} == {"width", "max_samples"}
+    assert (study.width, study.max_samples) == (128, 16)
+    assert sum(p.numel() for p in instantiate(study).parameters()) == 189_636
     for key, value in (("lr", 0.0), ("max_samples", 0), ("near", -1.0), ("skips", [7])):
         with pytest.raises(ValueError, match=f"model.{key}"):
             NeRF2Module(**{key: value})
