@@ -25,7 +25,7 @@ from pathlib import Path
 import hydra
 import lightning as L
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 import graf
 from graf.callbacks import PredictionCollector
@@ -228,6 +228,43 @@ def family(scene: str) -> str:
     return scene.rsplit("_v", 1)[0] if "_v" in scene and scene.rsplit("_v", 1)[1].isdigit() else scene
 
 
+def heldout_scenes(train: list[str], heldout) -> list[str]:
+    """``eval_scene=heldout``: the catalog scenes of the training scenes' families that the run does not train
+    on (``heldout: auto``), or those of a list that share a family with a training scene."""
+    families = {family(n) for n in train}
+    if heldout == "auto":
+        candidates = sorted(p.stem for p in (CONF_DIR / "scene_catalog").glob("*.yaml"))
+    else:
+        candidates = [str(n) for n in heldout]
+        unknown = [n for n in candidates if not (CONF_DIR / "scene_catalog" / f"{n}.yaml").is_file()]
+        if unknown:
+            raise ConfigError(f"eval_scene.heldout: unknown scene(s) {', '.join(unknown)}")
+    return [n for n in candidates if family(n) in families and n not in train]
+
+
+def expand_heldout(cfg: DictConfig) -> DictConfig:
+    """The run's config with ``eval_scene=heldout`` replaced by the held-out scenes' configs (composed from
+    the catalog; their interpolations resolve in the run's config), or by nothing (a within-scene run) when
+    no training scene has a held-out layout."""
+    ev = cfg.get("eval_scene")
+    if not isinstance(ev, DictConfig) or "heldout" not in ev:
+        return cfg
+    train = [str(c.get("name")) for c in scene_configs(cfg.get("scene"))]
+    names = heldout_scenes(train, ev.heldout)
+    cfg = cfg.copy()
+    with open_dict(cfg):
+        if not names:
+            log.info("eval_scene=heldout: no held-out layout of %s: testing within-scene", ", ".join(train))
+            cfg.eval_scene = None
+            return cfg
+        from hydra import compose
+
+        composed = compose(config_name="train", overrides=[f"eval_scene=[{','.join(names)}]"])
+        cfg.eval_scene = OmegaConf.create(OmegaConf.to_container(composed.eval_scene, resolve=False))
+    log.info("eval_scene=heldout: testing on %s (held out from training on %s)", ", ".join(names), ", ".join(train))
+    return cfg
+
+
 def check_bands(cfg: DictConfig, trained: dict, dm, source: str) -> None:
     """Refuse a scene at a band the model was not trained at (``trained``: name -> {"band_hz"}) unless
     ``cross_band=true``: the seed trains one model per band (E.5), so a cross-band run is a transfer study,
@@ -246,6 +283,8 @@ def check_bands(cfg: DictConfig, trained: dict, dm, source: str) -> None:
 
 def build(cfg: DictConfig) -> dict:
     """Instantiate band, scene, neighbour selector, datamodule (set up), model, loggers and trainer."""
+    if cfg.get("torch_threads"):
+        torch.set_num_threads(int(cfg.torch_threads))
     if cfg.get("seed") is not None:
         L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     out = _output_dir(cfg)
@@ -269,6 +308,12 @@ def build(cfg: DictConfig) -> dict:
                if isinstance(c, DictConfig) and "_target_" in c]
     callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()
                  if isinstance(c, DictConfig) and "_target_" in c]
+    if cfg.get("optuna_trial"):  # a trial of the Optuna sweeper: report validation during training, prune
+        from graf.sweeps.pruning import pruning_callback
+
+        cb = pruning_callback(cfg.optuna_trial)
+        if cb is not None:
+            callbacks.append(cb)
     trainer = hydra.utils.instantiate(trainer_args(cfg), logger=loggers or False, callbacks=callbacks)
     return {"neighbors": neighbors, "datamodule": datamodule, "evaluations": evaluations, "model": model,
             "loggers": loggers, "trainer": trainer, "output_dir": out, "scene_table": table}
@@ -356,7 +401,9 @@ def evaluation_trainer(cfg: DictConfig, loggers=(), callbacks=()) -> L.Trainer:
 def evaluate_model(cfg: DictConfig, model, dm, loggers=(), timing: dict | None = None) -> tuple[dict, dict]:
     """Validation then test metrics of ``model`` (``{val/..., test/...}``) and the test predictions; with
     ``timing`` (a dict), the wall seconds of each loop go into it (``val_s``, ``test_s``).  ``validate=false``
-    (studies, which choose nothing) skips validation: the ``val/...`` figures are then None."""
+    (studies, which choose nothing) skips validation: the ``val/...`` figures are then None; ``test=false``
+    (the trials of a hyperparameter search, which must not see the test split) skips the test: the
+    ``test/...`` figures are then None."""
     collector = PredictionCollector()
     trainer = evaluation_trainer(cfg, loggers, [collector])
     t0 = time.perf_counter()
@@ -365,9 +412,10 @@ def evaluate_model(cfg: DictConfig, model, dm, loggers=(), timing: dict | None =
         trainer.validate(model=model, datamodule=dm, verbose=False)
         metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("val/")}
     t1 = time.perf_counter()
-    trainer.test(model=model, datamodule=dm, verbose=False)
+    if cfg.get("test", True):
+        trainer.test(model=model, datamodule=dm, verbose=False)
+        metrics.update({k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")})
     t2 = time.perf_counter()
-    metrics.update({k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")})
     if timing is not None:
         timing.update(val_s=round(t1 - t0, 3), test_s=round(t2 - t1, 3))
     return {k: metrics.get(k) for k in EVAL_METRICS}, collector.arrays()
@@ -386,6 +434,8 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -
         m, a = evaluate_model(cfg, model, ev["datamodule"], objects["loggers"] if not done else (), t)
         done.append((ev, m, a, t))
     (first, metrics, arrays, timing) = done[0]
+    # every test scene's figures, for objectives over all of them (val/psnr@mean; graf.sweeps.objectives)
+    objects["evaluation_metrics"] = [m for _, m, _, _ in done]
     dm = first["datamodule"]
     out: Path = objects["output_dir"]
     config = OmegaConf.to_container(cfg, resolve=True)
@@ -507,7 +557,8 @@ def format_metrics_table(rows: list[dict]) -> str:
 
         def f(key, spec):
             v = m.get(key)
-            return format(v, spec) if v is not None and not math.isnan(v) else "n/a"
+            width = spec.split(".")[0]
+            return format(v, spec) if v is not None and not math.isnan(v) else format("n/a", f">{width}")
 
         lines.append(f"{r['method']:<22}{r['scene']:<16}{r['n_test']:>7}{f('test/mse', '10.4f')}"
                      f"{f('test/psnr', '9.2f')}{f('test/ssim', '8.3f')}{f('test/lpips', '8.3f')}"
@@ -515,16 +566,22 @@ def format_metrics_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def sweep_value(cfg: DictConfig, metrics: dict) -> float:
-    """The value a sweep optimises: never NaN (a NaN or missing metric counts as the worst value)."""
-    name = cfg.get("optimized_metric")
-    if not name:
+def sweep_value(cfg: DictConfig, metrics: dict, objects: dict | None = None):
+    """The value(s) a sweep optimises (``optimized_metric``: one name, or a list for a multi-objective search;
+    see :mod:`graf.sweeps.objectives` for the names).  Only validation metrics and costs measured on
+    validation data are accepted: nothing is chosen on the test split.  A NaN or missing metric is returned
+    as NaN for the Optuna sweeper (which records the trial as failed) and as -inf for Hydra's basic sweeper."""
+    from graf.sweeps.objectives import objective_values
+
+    names = cfg.get("optimized_metric")
+    if not names:
         return 0.0
-    if not str(name).startswith("val/"):
-        raise ConfigError(f"optimized_metric={name}: a sweep may optimise a validation metric (val/...) only; "
-                          "nothing is chosen on the test split")
-    v = metrics.get(name)
-    if v is None or not math.isfinite(v):
-        log.warning("optimized metric %s is %s; reporting -inf", name, v)
-        return float("-inf")
-    return float(v)
+    single = isinstance(names, str)
+    values = objective_values([names] if single else list(names), metrics, objects or {})
+    if not cfg.get("optuna_trial"):  # the worst value instead (a cost: +inf)
+        worst = [float("inf") if str(n).startswith("cost/") else float("-inf") for n in ([names] if single else names)]
+        for n, v in zip([names] if single else names, values):
+            if not math.isfinite(v):
+                log.warning("optimized metric %s is %s; reporting the worst value", n, v)
+        values = [v if math.isfinite(v) else w for v, w in zip(values, worst)]
+    return values[0] if single else values

@@ -82,8 +82,8 @@ def evaluate(cfg: DictConfig, overrides: Sequence[str] | None = None) -> tuple[d
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="eval")
 @cli_errors
 def main(cfg: DictConfig) -> float:
-    metrics, _ = evaluate(cfg)
-    return sweep_value(cfg, metrics)
+    metrics, objects = evaluate(cfg)
+    return sweep_value(cfg, metrics, objects)
 
 
 if __name__ == "__main__":

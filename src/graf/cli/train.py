@@ -20,8 +20,8 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from graf.cli.common import (CONF_PATH, ConfigError, _output_dir, build, cli_errors, family, scene_configs,
-                             sweep_value, task_wrapper, test_and_report)
+from graf.cli.common import (CONF_PATH, ConfigError, _output_dir, build, cli_errors, expand_heldout, family,
+                             scene_configs, sweep_value, task_wrapper, test_and_report)
 from graf.io import atomic_write_json
 from graf.models.base import CheckpointError, check_checkpoint, read_checkpoint
 
@@ -43,7 +43,7 @@ def train(cfg: DictConfig) -> tuple[dict, dict]:
         atomic_write_json(out / "skipped.json", {"skipped": reason})
         log.info("%s: skipped: %s", out, reason)
         return {}, {"output_dir": out, "skipped": reason}
-    cfg = resolve_base(cfg)
+    cfg = expand_heldout(resolve_base(cfg))
     ft = cfg.get("finetune") or {}
     if ft and OmegaConf.is_missing(ft, "init_from"):
         raise ConfigError(f"finetune={_choice(cfg, 'finetune')} fine-tunes a checkpoint: set finetune.init_from=CKPT "
@@ -247,8 +247,8 @@ def load_weights(model, path) -> None:
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="train")
 @cli_errors
 def main(cfg: DictConfig) -> float:
-    metrics, _ = train(cfg)
-    return sweep_value(cfg, metrics)
+    metrics, objects = train(cfg)
+    return sweep_value(cfg, metrics, objects)
 
 
 if __name__ == "__main__":

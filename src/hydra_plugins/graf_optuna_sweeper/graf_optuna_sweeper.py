@@ -1,0 +1,61 @@
+"""``hydra/sweeper=graf_optuna``: Optuna >= 4 searches with persistent, resumable, failure-tolerant studies.
+
+    graf-train -m hparams_search=neighbour_count            # conf/hparams_search/*.yaml select this sweeper
+
+Settings (``hydra.sweeper.*``): see :class:`GrafOptunaSweeperConf`; behaviour: :mod:`graf.sweeps.optuna_sweeper`.
+"""
+
+
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional
+
+from hydra.core.config_store import ConfigStore
+from hydra.plugins.sweeper import Sweeper
+
+
+@dataclass
+class PrunerConf:
+    name: str = "median"            # median | hyperband | none
+    monitor: str = "val/psnr"       # the validation metric logged during training that is reported
+    n_startup_trials: int = 3       # median: no pruning before this many trials have finished
+    n_warmup_steps: int = 0         # median: no pruning before this global step
+
+
+@dataclass
+class GrafOptunaSweeperConf:
+    _target_: str = "hydra_plugins.graf_optuna_sweeper.graf_optuna_sweeper.GrafOptunaSweeper"
+    sampler: str = "auto"           # auto (grid if all params are choices, nsga2 for 2+ objectives, else tpe) | tpe | grid | nsga2 | random
+    seed: int = 0
+    direction: Any = "maximize"     # or a list, one per objective (optimized_metric a list)
+    storage: Optional[str] = None   # SQLAlchemy URL; null: sqlite:///<sweep dir>/optuna.db
+    study_name: Optional[str] = None  # null: the task name
+    n_trials: int = 20              # finished trials (complete or pruned) the study ends with, over all runs
+    max_failures: int = 5           # failed trials (raised, NaN) tolerated before the sweep stops
+    n_jobs: int = 1                 # processes running trials at once on this machine (same storage)
+    threads_per_job: Optional[int] = None  # torch threads per trial; null: cores // n_jobs
+    pruner: PrunerConf = field(default_factory=PrunerConf)
+    params: Dict[str, str] = field(default_factory=dict)  # the search space: key -> interval/range/choice
+    test_best: bool = True          # test the chosen configuration once, after the search (best/)
+    test_overrides: List[str] = field(default_factory=lambda: ["test=true"])
+    plots: bool = True
+    worker_rank: int = 0            # set by the sweeper for the processes n_jobs starts
+
+
+ConfigStore.instance().store(group="hydra/sweeper", name="graf_optuna", node=GrafOptunaSweeperConf, provider="graf")
+
+
+class GrafOptunaSweeper(Sweeper):
+    def __init__(self, **kwargs: Any) -> None:
+        from omegaconf import OmegaConf
+
+        from graf.sweeps.optuna_sweeper import OptunaSweep
+
+        kwargs = {k: OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else v
+                  for k, v in kwargs.items()}
+        self.sweep_impl = OptunaSweep(**kwargs)
+
+    def setup(self, *, hydra_context, task_function, config) -> None:
+        self.sweep_impl.setup(hydra_context=hydra_context, task_function=task_function, config=config)
+
+    def sweep(self, arguments: List[str]) -> Any:
+        return self.sweep_impl.sweep(arguments)
