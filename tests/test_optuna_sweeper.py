@@ -173,6 +173,25 @@ def test_search_space_grammar():
         parse_search_space({"b": "tag(log, interval(0, 1))"}, [], parser)
 
 
+def test_samplers_follow_the_space_and_the_objectives():
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from graf.sweeps.optuna_sweeper import make_sampler
+    from graf.sweeps.search_space import SearchSpaceError, parse_search_space
+
+    parser = OverridesParser.create()
+    cat = parse_search_space({"a": "choice(1,2)", "b": "choice(3,4,5)"}, [], parser)
+    mixed = parse_search_space({"a": "choice(1,2)", "lr": "tag(log, interval(1e-4, 1e-2))"}, [], parser)
+    assert isinstance(make_sampler("auto", cat, 1, 0), optuna.samplers.GridSampler)
+    assert isinstance(make_sampler("auto", mixed, 1, 0), optuna.samplers.TPESampler)
+    nsga = make_sampler("auto", mixed, 2, 0, population_size=4)
+    assert isinstance(nsga, optuna.samplers.NSGAIISampler) and nsga._population_size == 4
+    with pytest.raises(SearchSpaceError, match="choice"):
+        make_sampler("grid", mixed, 1, 0)
+    with pytest.raises(SearchSpaceError, match="population_size"):
+        make_sampler("nsga2", mixed, 2, 0, population_size=1)
+
+
 def test_objectives_refuse_test_metrics_and_average_over_test_scenes():
     from graf.cli.common import ConfigError
 

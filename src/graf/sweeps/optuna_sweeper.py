@@ -108,7 +108,8 @@ def _sqlite_path(url: str) -> Path | None:
 
 
 # ----------------------------------------------------------------------------------------------------------
-def make_sampler(name: str, space: SearchSpace, n_objectives: int, seed: int) -> optuna.samplers.BaseSampler:
+def make_sampler(name: str, space: SearchSpace, n_objectives: int, seed: int,
+                 population_size: int | None = None) -> optuna.samplers.BaseSampler:
     name = (name or "auto").lower()
     if name == "auto":
         name = "nsga2" if n_objectives > 1 else ("grid" if space.all_categorical else "tpe")
@@ -120,7 +121,9 @@ def make_sampler(name: str, space: SearchSpace, n_objectives: int, seed: int) ->
                                    f"{', '.join(k for k, d in space.distributions.items() if not hasattr(d, 'choices'))}")
         return _Grid(space.grid(), seed=seed)
     if name == "nsga2":
-        return optuna.samplers.NSGAIISampler(seed=seed)
+        if population_size is not None and int(population_size) < 2:
+            raise SearchSpaceError(f"hydra.sweeper.population_size={population_size}: NSGA-II needs at least 2")
+        return optuna.samplers.NSGAIISampler(seed=seed, population_size=int(population_size or 50))
     if name == "random":
         return optuna.samplers.RandomSampler(seed=seed)
     raise SearchSpaceError(f"hydra.sweeper.sampler={name}: one of auto, tpe, grid, nsga2, random")
@@ -180,6 +183,7 @@ class OptunaSweep:
                  storage: str | None = None, study_name: str | None = None, n_trials: int = 20,
                  max_failures: int = 5, n_jobs: int = 1, threads_per_job: int | None = None,
                  pruner: dict | None = None, params: dict | None = None, test_best: bool = True,
+                 population_size: int | None = None,
                  test_overrides: list | None = None, plots: bool = True, worker_rank: int = 0):
         self.sampler_name, self.seed = sampler, int(seed)
         self.directions = [str(d) for d in (direction if isinstance(direction, (list, tuple)) or
@@ -194,6 +198,7 @@ class OptunaSweep:
         self.params = dict(params or {})
         self.test_best, self.test_overrides = bool(test_best), list(test_overrides or ["test=true"])
         self.plots, self.worker_rank = bool(plots), int(worker_rank)
+        self.population_size = population_size
         self.config: DictConfig | None = None
         self.launcher = None
         self.hydra_context = None
@@ -270,7 +275,8 @@ class OptunaSweep:
                                         load_if_exists=True, pruner=make_pruner(self.pruner_conf))
             self._check_same_search(study, space, names)
             study.sampler = make_sampler(self.sampler_name, space, len(names),
-                                         self.seed + len(study.trials) + 7919 * self.worker_rank)
+                                         self.seed + len(study.trials) + 7919 * self.worker_rank,
+                                         self.population_size)
         log.info("study %s in %s: %d trial(s) stored, %d to finish; objective %s (%s); threads per trial %d",
                  name, url, len(study.trials), n_trials, names, self.directions, self.threads())
         workers = self._start_workers(sweep_dir, url, name) if self.worker_rank == 0 and self.n_jobs > 1 else []

@@ -26,6 +26,7 @@ class GrafOptunaSweeperConf:
     _target_: str = "hydra_plugins.graf_optuna_sweeper.graf_optuna_sweeper.GrafOptunaSweeper"
     sampler: str = "auto"           # auto (grid if all params are choices, nsga2 for 2+ objectives, else tpe) | tpe | grid | nsga2 | random
     seed: int = 0
+    population_size: Optional[int] = None  # nsga2: trials per generation; null: Optuna's 50
     direction: Any = "maximize"     # or a list, one per objective (optimized_metric a list)
     storage: Optional[str] = None   # SQLAlchemy URL; null: sqlite:///<sweep dir>/optuna.db
     study_name: Optional[str] = None  # null: the task name
