@@ -3,6 +3,7 @@ skipped.json, base_overrides.json, the job log), the multirun's config, and graf
 Checkpoints and prediction samples stay behind (they are large; the study's command makes them again).
 
     python scripts/publish_study.py cross_scene_matrix     (then add the command and wall time in its README.md)
+    python scripts/publish_study.py search_neighbour_count (a search: also its optuna.db, trials.csv, best files)
 """
 
 from __future__ import annotations
@@ -12,7 +13,9 @@ import shutil
 from pathlib import Path
 
 KEEP = ("results.json", "skipped.json", "base_overrides.json", "multirun.yaml", "rows.csv", "rows.json",
-        "matrix.json", "failed.json")
+        "matrix.json", "failed.json",
+        # searches (hparams_search): the study's storage and its outputs
+        "optuna.db", "trials.csv", "best_params.json", "best_overrides.txt", "pareto.json", "best.json")
 KEEP_SUFFIX = (".png", ".log")
 KEEP_PREFIX = ("report.", "table.")
 
