@@ -61,14 +61,14 @@ def unseen(rows: list[dict]) -> str:
         sub = [r for r in rows if r["eval_scene"] == scene and r["train_band"] in (band, "-")]
         for ft, title in (("none", "zero-shot"), ("f20", "fine-tuned on 20%")):
             body = [[r["method"], r["n_test"], r["steps"], *[fmt(r.get(k), f) for k, _, f in METRICS]]
-                    for r in sorted(sub, key=lambda r: r["method"]) if r["finetune"] in (ft, "-")]
+                    for r in sorted(sub, key=lambda r: r["method"]) if r["finetune"] in ((ft, "zero-shot", "-") if ft == "none" else (ft, "-"))]
             out.append(f"**{scene}**, models trained at {band}, {title} (test neighbours: "
                        f"{'the whole training split' if ft == 'none' else 'the measured 20%'})\n\n"
                        + md(["method", "test spectra", "steps", *[n for _, n, _ in METRICS]], body))
         by = defaultdict(dict)
         for r in sub:
             if r["steps"] != "0":
-                by[r["method"]][r["finetune"]] = r.get("test/psnr")
+                by[r["method"]]["none" if r["finetune"] == "zero-shot" else r["finetune"]] = r.get("test/psnr")
         fr = [x for x in FRACTIONS[1:] if any(x in v for v in by.values())]
         out.append(f"PSNR vs fine-tuned fraction, **{scene}** (models trained at {band})\n\n"
                    + md(["method", *["zero-shot" if x == "none" else x for x in fr]],

@@ -366,7 +366,8 @@ def make_report(runs: Path, out: Path) -> dict:
                          f"{key[0]}: metric vs fine-tuned fraction (models trained at {key[1]})")
             summary["vs_fraction"][f"{key[0]} | trained at {key[1]}"] = data
             summary["figures"].append(name)
-    if "eval_band" in axes and "train_band" in axes:
+    if "eval_band" in axes and "train_band" in axes and "eval_scene" not in axes and "finetune" not in axes:
+        # a band x band matrix of one layout (bands); not when the band changes with the test scene
         summary["band_matrix"] = band_figure(rows, out / "band_matrix.png")
         summary["figures"].append("band_matrix.png")
     elif "eval_scene" in axes and "trained_on" in axes and "L" not in axes and "finetune" not in axes:
