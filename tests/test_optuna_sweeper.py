@@ -149,6 +149,32 @@ def test_a_pruned_trial_is_stored_as_pruned(tmp_path):
     assert pruned.params["x"] not in trained(tmp_path)  # never ran to its end
 
 
+def test_the_validation_that_ends_training_never_prunes():
+    from types import SimpleNamespace
+
+    import torch
+
+    from graf.sweeps.pruning import OptunaPruning
+
+    study = optuna.create_study(direction="maximize",
+                                pruner=optuna.pruners.MedianPruner(n_startup_trials=1, n_warmup_steps=0))
+    done = study.ask()
+    done.report(10.0, 2)
+    done.report(10.0, 4)
+    study.tell(done, 10.0)
+
+    def trainer(step):
+        return SimpleNamespace(sanity_checking=False, global_step=step, max_steps=4,
+                               callback_metrics={"val/psnr": torch.tensor(-10.0)})
+
+    last = OptunaPruning(study.ask(), "val/psnr")
+    last.on_validation_end(trainer(4), None)  # far under the median, but training is over: reported, not pruned
+    assert last.reported == [(4, -10.0)]
+    early = OptunaPruning(study.ask(), "val/psnr")
+    with pytest.raises(optuna.TrialPruned):
+        early.on_validation_end(trainer(2), None)
+
+
 def test_search_space_grammar():
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from optuna.distributions import CategoricalDistribution, FloatDistribution, IntDistribution

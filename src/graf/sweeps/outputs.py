@@ -1,7 +1,7 @@
 """What a finished search leaves in its folder (written atomically, again after every resumed run):
 
-- ``trials.csv``: one row per trial: number, state, the objective values, the parameters, wall seconds,
-  start time, and why a trial failed, was interrupted, re-queued, duplicated or dropped;
+- ``trials.csv``: one row per trial: number, state, the objective values (COMPLETE trials only), the
+  parameters, wall seconds, start time, the last intermediate validation value and its step (what pruning saw), and why a trial failed, was interrupted, re-queued, duplicated or dropped;
 - ``best_params.json`` and ``best_overrides.txt`` (the chosen trial's overrides, one per line, as one run
   that trains, validates and tests it: ``xargs graf-train < best_overrides.txt``); for two objectives the chosen trial is the Pareto-front trial
   best in the first objective, and ``pareto.json`` lists the whole front;
@@ -49,7 +49,7 @@ def trials_table(study: optuna.Study, names: list[str]) -> tuple[list[str], list
     params = sorted({k for t in study.trials for k in t.params})
     front = {t.number for t in best_trials(study)} if len(study.directions) > 1 else set()
     cols = (["number", "state"] + _value_columns(names) + [f"param {p}" for p in params] +
-            ["wall_s", "datetime_start", "pareto", "duplicate_of", "requeued_from", "interrupted", "surplus",
+            ["wall_s", "datetime_start", "last_intermediate_step", "last_intermediate_value", "pareto", "duplicate_of", "requeued_from", "interrupted", "surplus",
              "error", "output_dir"])
     rows = []
     for t in study.trials:
@@ -59,8 +59,14 @@ def trials_table(study: optuna.Study, names: list[str]) -> tuple[list[str], list
                "pareto": t.number in front if front else None, "duplicate_of": a.get("graf.duplicate_of"),
                "requeued_from": a.get("graf.requeued_from"), "interrupted": a.get("graf.interrupted"),
                "surplus": a.get("graf.surplus"), "error": a.get("graf.error"), "output_dir": a.get("graf.output_dir")}
-        for c, v in zip(_value_columns(names), t.values or [None] * len(names)):
+        # a pruned trial has no objective value (Optuna stores its last intermediate value there): that
+        # value and its step go to their own columns
+        values = t.values if t.state == TrialState.COMPLETE else None
+        for c, v in zip(_value_columns(names), values or [None] * len(names)):
             row[c] = v
+        if t.intermediate_values:
+            step = max(t.intermediate_values)
+            row["last_intermediate_step"], row["last_intermediate_value"] = step, t.intermediate_values[step]
         for p in params:
             row[f"param {p}"] = t.params.get(p)
         rows.append(row)

@@ -3,7 +3,8 @@
 A small Lightning callback (Lightning 2.6; Optuna's own integration lives in the separate
 ``optuna-integration`` package, not installed here): after each validation during training it reports
 ``monitor`` at the global step to the trial (``trial.report``), and raises :class:`optuna.TrialPruned`
-when the study's pruner says so.  Lightning tears the fit down and re-raises it; Hydra's launcher returns
+when the study's pruner says so; never at the validation that ends training (``max_steps`` reached:
+pruning then would discard a finished trial and save nothing).  Lightning tears the fit down and re-raises it; Hydra's launcher returns
 it as the job's failure, and the sweeper stores the trial as PRUNED (with its reported values).
 
 The trial is reopened from the study's storage in the job (``optuna_trial: {storage, study_name,
@@ -44,8 +45,16 @@ class OptunaPruning(Callback):
             raise optuna.TrialPruned(f"{self.monitor} is {value} at step {step}")
         self.trial.report(value, step)
         self.reported.append((step, value))
+        if is_last_validation(trainer):
+            return  # training is over: the trial's objective decides, pruning would only throw it away
         if self.trial.should_prune():
             raise optuna.TrialPruned(f"trial {self.trial.number} pruned at step {step}: {self.monitor}={value:.4f}")
+
+
+def is_last_validation(trainer) -> bool:
+    """The validation at the end of training (the step budget reached): nothing is left to save."""
+    max_steps = int(getattr(trainer, "max_steps", -1) or -1)
+    return max_steps > 0 and int(trainer.global_step) >= max_steps
 
 
 def pruning_callback(conf) -> OptunaPruning | None:
