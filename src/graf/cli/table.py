@@ -204,7 +204,8 @@ class SweepTable(Callback):
             return
         sweep_dir = Path(config.hydra.sweep.dir)
         try:
-            if job_return.status == JobStatus.FAILED:
+            pruned = type(job_return._return_value).__name__ == "TrialPruned"  # an Optuna search's pruned trial:
+            if job_return.status == JobStatus.FAILED and not pruned:           # stored as PRUNED, not a failure
                 failed_file = sweep_dir / "failed.json"
                 failed = json.loads(failed_file.read_text()) if failed_file.exists() else []
                 failed.append({"job": int(config.hydra.job.num), "overrides": list(config.hydra.overrides.task),
