@@ -39,6 +39,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import optuna
 from omegaconf import DictConfig, OmegaConf
 from optuna.trial import FrozenTrial, TrialState
@@ -502,10 +503,16 @@ class OptunaSweep:
                 result["evaluations"] = [{"eval_scene": e["eval_scene"], "metrics": e["metrics"]}
                                          for e in r.get("evaluations", [])]
                 result["results"] = str(res)
+                evals = [e["metrics"] for e in result["evaluations"]]
+                if len(evals) > 1:  # the objective's @mean: every metric averaged over the evaluated scenes
+                    result["metrics@mean"] = {k: float(np.mean([m[k] for m in evals]))
+                                              for k in evals[0] if all(k in m for m in evals)}
         else:
             result["error"] = f"{type(ret._return_value).__name__}: {ret._return_value}"
             log.error("testing the chosen configuration failed: %s", result["error"])
         record.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_json(record, result)
-        log.info("chosen configuration: trial %d, %s; validation %s; test: %s", chosen.number, chosen.params,
-                 chosen.values, (result.get("metrics") or {}).get("test/psnr"))
+        shown = result.get("metrics@mean") or result.get("metrics") or {}
+        log.info("chosen configuration: trial %d, %s; objective %s; validation PSNR %s, test PSNR %s%s", chosen.number,
+                 chosen.params, chosen.values, shown.get("val/psnr"), shown.get("test/psnr"),
+                 " (means over the evaluated scenes)" if "metrics@mean" in result else "")
