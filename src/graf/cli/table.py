@@ -40,7 +40,9 @@ log = logging.getLogger("graf")
 
 METRICS = ("val/psnr", "val/ssim", "test/mse", "test/psnr", "test/ssim", "test/lpips")  # blank where absent
 IGNORED_PREFIXES = ("paths.", "hydra.", "data_root", "task_name", "logger.", "trainer.default_root_dir", "callbacks.",
-                    "save_predictions", "plot_count", "ckpt_path")
+                    "save_predictions", "plot_count", "ckpt_path",
+                    # a search trial's link to its study (its number stays: trials.csv's key)
+                    "optuna_trial.storage", "optuna_trial.study_name", "optuna_trial.trial_id", "optuna_trial.pruner")
 
 
 # config groups that hold whole scene configs keyed by scene name: one column of the names (the scenes'

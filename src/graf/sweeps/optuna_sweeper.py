@@ -278,7 +278,7 @@ class OptunaSweep:
             study.sampler = make_sampler(self.sampler_name, space, len(names),
                                          self.seed + len(study.trials) + 7919 * self.worker_rank,
                                          self.population_size)
-        log.info("study %s in %s: %d trial(s) stored, %d to finish; objective %s (%s); threads per trial %d",
+        log.info("study %s in %s: %d trial(s) stored of n_trials=%d; objective %s (%s); threads per trial %d",
                  name, url, len(study.trials), n_trials, names, self.directions, self.threads())
         workers = self._start_workers(sweep_dir, url, name) if self.worker_rank == 0 and self.n_jobs > 1 else []
         ctx = {"url": url, "name": name, "sweep_dir": sweep_dir, "lock": lock, "space": space,
@@ -481,6 +481,11 @@ class OptunaSweep:
         record = out / "best" / "best.json"
         if record.is_file() and json.loads(record.read_text()).get("trial") == chosen.number:
             log.info("the chosen trial %d was tested before: %s", chosen.number, record)
+            result = json.loads(record.read_text())
+            if "metrics@mean" not in result and _metrics_mean(result.get("evaluations", [])):
+                # a record from before the means were written: add them from its own evaluations
+                result["metrics@mean"] = _metrics_mean(result["evaluations"])
+                atomic_write_json(record, result)
             return
         overrides = space.overrides(chosen.params) + list(self.test_overrides) + ["hydra.sweep.subdir=best",
                                                                                     "validate=true"]
@@ -503,10 +508,8 @@ class OptunaSweep:
                 result["evaluations"] = [{"eval_scene": e["eval_scene"], "metrics": e["metrics"]}
                                          for e in r.get("evaluations", [])]
                 result["results"] = str(res)
-                evals = [e["metrics"] for e in result["evaluations"]]
-                if len(evals) > 1:  # the objective's @mean: every metric averaged over the evaluated scenes
-                    result["metrics@mean"] = {k: float(np.mean([m[k] for m in evals]))
-                                              for k in evals[0] if all(k in m for m in evals)}
+                if _metrics_mean(result["evaluations"]):
+                    result["metrics@mean"] = _metrics_mean(result["evaluations"])
         else:
             result["error"] = f"{type(ret._return_value).__name__}: {ret._return_value}"
             log.error("testing the chosen configuration failed: %s", result["error"])
@@ -516,3 +519,11 @@ class OptunaSweep:
         log.info("chosen configuration: trial %d, %s; objective %s; validation PSNR %s, test PSNR %s%s", chosen.number,
                  chosen.params, chosen.values, shown.get("val/psnr"), shown.get("test/psnr"),
                  " (means over the evaluated scenes)" if "metrics@mean" in result else "")
+
+
+def _metrics_mean(evaluations: list[dict]) -> dict[str, float] | None:
+    """The objective's ``@mean``: every metric averaged over the evaluated scenes (None for fewer than two)."""
+    evals = [e["metrics"] for e in evaluations]
+    if len(evals) < 2:
+        return None
+    return {k: float(np.mean([m[k] for m in evals])) for k in evals[0] if all(k in m for m in evals)}
