@@ -230,12 +230,12 @@ def test_objectives_refuse_test_metrics_and_average_over_test_scenes():
 
 
 def test_best_json_means_are_the_means_over_the_evaluated_scenes():
-    from graf.sweeps.optuna_sweeper import _metrics_mean
+    from graf.sweeps.objectives import metrics_mean
 
     evals = [{"eval_scene": "a", "metrics": {"val/psnr": 15.0, "test/psnr": 14.0, "val/ssim": 0.5}},
              {"eval_scene": "b", "metrics": {"val/psnr": 13.0, "test/psnr": 16.0}}]
-    assert _metrics_mean(evals) == {"val/psnr": 14.0, "test/psnr": 15.0}  # only metrics every scene has
-    assert _metrics_mean(evals[:1]) is None and _metrics_mean([]) is None
+    assert metrics_mean(evals) == {"val/psnr": 14.0, "test/psnr": 15.0}  # only metrics every scene has
+    assert metrics_mean(evals[:1]) is None and metrics_mean([]) is None
 
 
 def test_heldout_scenes_are_the_other_layouts_of_the_training_families():

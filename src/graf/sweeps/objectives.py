@@ -92,3 +92,12 @@ def objective_values(names: list[str], metrics: dict, objects: dict) -> list[flo
             v = metrics.get(base)
             out.append(float(v) if v is not None else math.nan)
     return out
+
+
+def metrics_mean(evaluations: list[dict]) -> dict[str, float] | None:
+    """Every metric of a run averaged over its evaluated scenes, as ``@mean`` averages one (``best.json``'s
+    ``metrics@mean``): only the metrics every scene has; None for fewer than two scenes."""
+    evals = [e["metrics"] for e in evaluations]
+    if len(evals) < 2:
+        return None
+    return {k: float(statistics.fmean(m[k] for m in evals)) for k in evals[0] if all(k in m for m in evals)}

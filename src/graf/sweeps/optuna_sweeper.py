@@ -39,7 +39,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import optuna
 from omegaconf import DictConfig, OmegaConf
 from optuna.trial import FrozenTrial, TrialState
@@ -469,6 +468,7 @@ class OptunaSweep:
 
     # -- after the search -----------------------------------------------------------------------------------
     def _finish(self, study, ctx) -> None:
+        from graf.sweeps.objectives import metrics_mean
         from graf.sweeps.outputs import best_trials, write_outputs
 
         out = ctx["sweep_dir"]
@@ -479,13 +479,12 @@ class OptunaSweep:
             return
         chosen = best[0]
         record = out / "best" / "best.json"
-        if record.is_file() and json.loads(record.read_text()).get("trial") == chosen.number:
+        before = json.loads(record.read_text()) if record.is_file() else {}
+        if before.get("trial") == chosen.number:
             log.info("the chosen trial %d was tested before: %s", chosen.number, record)
-            result = json.loads(record.read_text())
-            if "metrics@mean" not in result and _metrics_mean(result.get("evaluations", [])):
-                # a record from before the means were written: add them from its own evaluations
-                result["metrics@mean"] = _metrics_mean(result["evaluations"])
-                atomic_write_json(record, result)
+            if "metrics@mean" not in before and (means := metrics_mean(before.get("evaluations", []))):
+                before["metrics@mean"] = means  # a record from before the means were written: from its evaluations
+                atomic_write_json(record, before)
             return
         overrides = space.overrides(chosen.params) + list(self.test_overrides) + ["hydra.sweep.subdir=best",
                                                                                     "validate=true"]
@@ -508,8 +507,8 @@ class OptunaSweep:
                 result["evaluations"] = [{"eval_scene": e["eval_scene"], "metrics": e["metrics"]}
                                          for e in r.get("evaluations", [])]
                 result["results"] = str(res)
-                if _metrics_mean(result["evaluations"]):
-                    result["metrics@mean"] = _metrics_mean(result["evaluations"])
+                if means := metrics_mean(result["evaluations"]):
+                    result["metrics@mean"] = means
         else:
             result["error"] = f"{type(ret._return_value).__name__}: {ret._return_value}"
             log.error("testing the chosen configuration failed: %s", result["error"])
@@ -520,10 +519,3 @@ class OptunaSweep:
                  chosen.params, chosen.values, shown.get("val/psnr"), shown.get("test/psnr"),
                  " (means over the evaluated scenes)" if "metrics@mean" in result else "")
 
-
-def _metrics_mean(evaluations: list[dict]) -> dict[str, float] | None:
-    """The objective's ``@mean``: every metric averaged over the evaluated scenes (None for fewer than two)."""
-    evals = [e["metrics"] for e in evaluations]
-    if len(evals) < 2:
-        return None
-    return {k: float(np.mean([m[k] for m in evals])) for k in evals[0] if all(k in m for m in evals)}
