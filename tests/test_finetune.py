@@ -70,7 +70,9 @@ def test_finetune_and_zero_shot_from_a_checkpoint_record_what_they_did(compose_c
     train(base)
     ckpt = tmp_path / "b" / "checkpoints" / "last.ckpt"
     saved = torch.load(ckpt, map_location="cpu", weights_only=False)
-    assert saved["graf"]["scenes"] == {"rfid_s23": {"index": 0, "band_hz": 915e6}}
+    scenes = saved["graf"]["scenes"]
+    assert list(scenes) == ["rfid_s23"] and (scenes["rfid_s23"]["index"], scenes["rfid_s23"]["band_hz"]) == (0, 915e6)
+    assert scenes["rfid_s23"]["fingerprint"]["n"] == 200  # the scene's content (graf.data.fingerprint)
 
     ft = compose_cfg("train", ("model=knn_dl", "finetune=f20", f"finetune.init_from={ckpt}", "finetune.max_steps=2",
                                "finetune.lr=1e-4", *QUIET, f"paths.output_dir={tmp_path / 'f'}"))

@@ -213,14 +213,15 @@ def test_error_headerless_positions_with_partly_numeric_first_row(tmp_path):
 
 
 def test_error_headerless_positions_with_garbage_first_row_is_not_shifted(tmp_path):
-    # a first row with no numeric cell is a header by the rule; with rows for ids 1..n the lost row
-    # shows up as a missing one instead of every spectrum silently taking the next row's position
+    # a first row with no numeric cell that does not name x, y, z is neither a header nor a position:
+    # refused at line 1, instead of every spectrum taking the next row's position
     root, _ = _small_folder(tmp_path, header=False)
     lines = (root / "tx_pos.csv").read_text().splitlines()
     lines[0] = "abc,def,ghi"
     (root / "tx_pos.csv").write_text("\n".join(lines) + "\n")
-    _expect(root, r"has 4 position rows but spectrum id 5 needs row 5 \(line 1 was taken as a header row\)",
-            "tx_pos.csv")
+    err = _expect(root, r"line 1 'abc,def,ghi' looks like a header \(no numeric cell\) but is not one",
+                  "tx_pos.csv")
+    assert "unknown names 'abc', 'def', 'ghi'" in err.problem
 
 
 def test_error_header_row_with_wrong_cell_count(tmp_path):
@@ -281,3 +282,115 @@ def test_error_one_spectrum_without_index_files(tmp_path):
     root, _ = _small_folder(tmp_path, n=1, index=False)
     _expect(root, r"1 spectrum and no index files: a seeded split needs at least 2 \(one to train on, one to test\)",
             "small")
+
+
+# ---------------------------------------------------------------- positions never shift against spectrum ids
+# tx_pos.csv data row k is spectrum id k, and NeRF2 writes one row per spectrum: the number of data rows must
+# equal the largest spectrum id in spectrum/ (``position_rows="at_least"`` accepts more, with a warning).
+def _csv_lines(root):
+    return (root / "tx_pos.csv").read_text().splitlines()
+
+
+def _write_csv_lines(root, lines):
+    (root / "tx_pos.csv").write_text("\n".join(lines) + "\n")
+
+
+def test_real_s23_slice_has_one_row_per_id():
+    d = read_nerf2_folder(EMBEDDED_S23)
+    assert b"\r\n" in (EMBEDDED_S23 / "tx_pos.csv").read_bytes()  # CRLF, as shipped
+    assert d.meta["position_rows"] == {"rows": 200, "largest_id": 200, "rule": "exact"}
+
+
+def test_error_duplicated_position_row(tmp_path):
+    root, _ = _small_folder(tmp_path)  # header + rows for ids 1..5
+    lines = _csv_lines(root)
+    _write_csv_lines(root, lines[:3] + [lines[2]] + lines[3:])  # id 2's row twice: ids 3..5 would shift
+    err = _expect(root, r"has 6 position rows but the largest spectrum id in spectrum/ is 5", "tx_pos.csv")
+    assert "shift every later id's position" in err.problem
+
+
+def test_error_headerless_na_first_row_with_extra_rows(tmp_path):
+    # NA,NA,NA is id 1's (unknown) position, not a header; taken as one, every id read the next row
+    root, _ = _small_folder(tmp_path, header=False)
+    lines = _csv_lines(root)
+    lines[0] = "NA,NA,NA"
+    _write_csv_lines(root, lines + ["9.5,9.5,9.5"])
+    err = _expect(root, r"line 1 'NA,NA,NA' looks like a header \(no numeric cell\) but is not one", "tx_pos.csv")
+    assert "found names ['NA', 'NA', 'NA']" in err.problem and "expected x, y, z" in err.problem
+
+
+def test_error_row_of_empty_cells_is_refused_not_skipped(tmp_path):
+    root, _ = _small_folder(tmp_path)
+    lines = _csv_lines(root)
+    lines[3] = ",,"  # id 3's row is empty: skipping it would move ids 4, 5 onto the rows of 5 and the extra one
+    _write_csv_lines(root, lines + ["9.5,9.5,9.5"])
+    _expect(root, r"line 4 is not numeric: ',,'", "tx_pos.csv")
+
+
+def test_error_more_rows_than_largest_id(tmp_path):
+    root, _ = _small_folder(tmp_path)
+    _write_csv_lines(root, _csv_lines(root) + ["9.5,9.5,9.5"])
+    err = _expect(root, r"has 6 position rows but the largest spectrum id in spectrum/ is 5", "tx_pos.csv")
+    assert "position_rows='at_least'" in err.problem  # says how to read a slice of a larger dataset
+
+
+def test_more_rows_than_largest_id_accepted_with_warning_when_at_least(tmp_path, caplog):
+    root, pos = _small_folder(tmp_path)
+    _write_csv_lines(root, _csv_lines(root) + ["9.5,9.5,9.5", "8.5,8.5,8.5"])
+    with caplog.at_level("WARNING", logger="graf.data.nerf2_format"):
+        d = read_nerf2_folder(root, position_rows="at_least")
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING" and "tx_pos.csv" in r.getMessage()]
+    assert len(warned) == 1
+    assert "7 position rows" in warned[0] and "largest spectrum id in spectrum/ is 5" in warned[0]
+    assert "2 rows" in warned[0]
+    np.testing.assert_array_equal(d.positions, pos[d.ids - 1])
+    assert d.meta["position_rows"] == {"rows": 7, "largest_id": 5, "rule": "at_least"}
+
+
+@pytest.mark.parametrize("rule", ["exact", "at_least"])
+def test_error_fewer_rows_than_largest_png_id(tmp_path, rule):
+    # the index files list ids 1..4 only (rows exist for them) but spectrum/ holds 00005.png: a row is missing
+    root, _ = _small_folder(tmp_path)
+    (root / "train_index.txt").write_text("1\n2\n3\n")
+    (root / "test_index.txt").write_text("4\n")
+    _write_csv_lines(root, _csv_lines(root)[:-1])
+    kw = {} if rule == "exact" else {"position_rows": rule}  # exact is the default
+    err = _expect(root, r"has 4 position rows but the largest spectrum id in spectrum/ is 5 \(00005\.png\)",
+                  "tx_pos.csv", **kw)
+    assert "shift every later id's position" in err.problem
+
+
+def test_header_columns_read_by_name(tmp_path):
+    root, pos = _small_folder(tmp_path)
+    lines = _csv_lines(root)
+    _write_csv_lines(root, ["z,y,x"] + [",".join(line.split(",")[::-1]) for line in lines[1:]])
+    d = read_nerf2_folder(root)
+    assert d.meta["tx_pos_header"] is True
+    np.testing.assert_array_equal(d.positions, pos[d.ids - 1])  # x and z not swapped
+
+
+@pytest.mark.parametrize("header, order", [("X, Y ,Z", "xyz"), (" Z ,y, X", "zyx"), ("y,Z,x", "yzx")])
+def test_header_names_any_case_spaces_and_order(tmp_path, header, order):
+    root, pos = _small_folder(tmp_path)
+    rows = [",".join(repr(float(p["xyz".index(c)])) for c in order) for p in pos]
+    _write_csv_lines(root, [header] + rows)
+    d = read_nerf2_folder(root)
+    np.testing.assert_array_equal(d.positions, pos[d.ids - 1])
+
+
+@pytest.mark.parametrize("header, problem", [
+    ("x,y,w", "unknown name 'w'"),
+    ("x,x,y", "repeated 'x'"),
+    ("a,b,c", "unknown names 'a', 'b', 'c'"),
+])
+def test_error_header_with_other_names(tmp_path, header, problem):
+    root, _ = _small_folder(tmp_path)
+    _write_csv_lines(root, [header] + _csv_lines(root)[1:])
+    err = _expect(root, rf"line 1 '{header}' looks like a header \(no numeric cell\) but is not one", "tx_pos.csv")
+    assert problem in err.problem and f"found names {header.split(',')!r}" in err.problem
+
+
+def test_error_unknown_position_rows_rule(tmp_path):
+    root, _ = _small_folder(tmp_path)
+    with pytest.raises(ValueError, match=r"position_rows.*'exact' or 'at_least'.*'sometimes'"):
+        read_nerf2_folder(root, position_rows="sometimes")

@@ -1,4 +1,4 @@
-"""Callbacks that turn a test run into files: predictions and the predicted-vs-true figure."""
+"""Callbacks: the test predictions for results files and figures, and the pre-emption stop."""
 
 from __future__ import annotations
 
@@ -32,3 +32,23 @@ class PredictionCollector(Callback):
         return {"pred": torch.cat(self.pred).numpy().astype(np.float32),
                 "target": torch.cat(self.target).numpy().astype(np.float32),
                 "ids": torch.cat(self.ids).numpy().astype(np.int64)}
+
+
+class Preemption(Callback):
+    """A SIGTERM during training (a cluster pre-empting the job) stops the run after the step in progress with
+    its state saved: Lightning notices the signal (its signal connector sets ``trainer.received_sigterm``) and
+    raises ``SIGTERMException`` at the end of that step; this callback first saves ``<dirpath>/last.ckpt`` (the
+    file ``ckpt_path=`` resumes from, optimiser and step count included) and records where it stopped in
+    :attr:`saved`.  graf-train then writes ``preempted.json`` and exits with code 143 (128 + SIGTERM)."""
+
+    def __init__(self, dirpath: str):
+        self.dirpath = str(dirpath)
+        self.saved: dict | None = None
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        if trainer.received_sigterm and self.saved is None:
+            from pathlib import Path
+
+            path = Path(self.dirpath) / "last.ckpt"
+            trainer.save_checkpoint(str(path))
+            self.saved = {"checkpoint": str(path), "global_step": int(trainer.global_step)}

@@ -11,6 +11,22 @@ from pathlib import Path
 import numpy as np
 
 
+def writable_dir(path: str | os.PathLike, setting: str) -> Path:
+    """``path`` made if missing and checked writable (a probe file is made and removed), or a
+    :class:`graf.errors.ConfigError` naming ``setting`` and the reason: before a long job writes into it."""
+    from graf.errors import ConfigError
+
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(dir=path, prefix=".graf-write-probe.")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise ConfigError(f"{setting}={path}: cannot write there ({exc.strerror or exc})") from None
+    return path
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

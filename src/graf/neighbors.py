@@ -21,6 +21,8 @@ from typing import Sequence
 
 import torch
 
+from graf.errors import ConfigError, UserError
+
 log = logging.getLogger(__name__)
 
 
@@ -46,8 +48,8 @@ class Neighbors:
         return self.mask.sum(dim=1)
 
 
-class NoNeighborsError(ValueError):
-    pass
+class NoNeighborsError(UserError):
+    """No candidate is left for a target (after excluding itself and those within ``exclude_within``)."""
 
 
 def select_neighbors(
@@ -134,9 +136,9 @@ class NeighborSelector:
                  exclude_within: float = 0.0):
         lo, hi = (int(v) for v in L_train)
         if int(L) < 1 or lo < 1 or hi < lo:
-            raise ValueError(f"neighbors: need L >= 1 and 1 <= L_train[0] <= L_train[1], got L={L}, L_train={L_train}")
+            raise ConfigError(f"neighbors: need L >= 1 and 1 <= L_train[0] <= L_train[1], got L={L}, L_train={L_train}")
         if exclude_within < 0 or (radius is not None and radius <= 0):
-            raise ValueError(f"neighbors: radius must be > 0 and exclude_within >= 0, got {radius}, {exclude_within}")
+            raise ConfigError(f"neighbors: radius must be > 0 and exclude_within >= 0, got {radius}, {exclude_within}")
         self.L, self.L_train = int(L), (lo, hi)
         self.radius, self.exclude_within = radius, float(exclude_within)
 
@@ -145,7 +147,9 @@ class NeighborSelector:
         return max(self.L, self.L_train[1])
 
     def select(self, target_pos, cand_pos, wavelength: float, *, train: bool = False,
-               target_ids=None, cand_ids=None, generator: torch.Generator | None = None) -> Neighbors:
+               target_ids=None, cand_ids=None, generator: torch.Generator | None = None,
+               quiet: bool = False) -> Neighbors:
+        """``quiet``: no warnings about widened radii or short neighbour lists (set-up checks)."""
         T = target_pos.shape[0]
         if train:
             lo, hi = self.L_train
@@ -157,7 +161,7 @@ class NeighborSelector:
             radius=None if self.radius is None else self.radius * wavelength,
             exclude_within=self.exclude_within * wavelength,
         )
-        if not train:
+        if not train and not quiet:
             n_w, n_s = int(result.widened.sum()), int(result.short.sum())
             if n_w:
                 warnings.warn(f"neighbors: radius {self.radius} wavelengths held fewer than L={self.L} candidates "

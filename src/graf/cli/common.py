@@ -29,6 +29,8 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 import graf
 from graf.callbacks import PredictionCollector
+from graf.data.fingerprint import find_scene, next_index, register_scene
+from graf.errors import ConfigError, UserError  # ConfigError: re-exported for the commands
 from graf.io import atomic_write_json, atomic_write_npz
 from graf.plotting import plot_spectra_grid
 
@@ -50,8 +52,9 @@ def task_wrapper(task):
         try:
             return task(cfg, *args, **kwargs)
         except Exception as exc:
-            if is_user_error(exc) and os.environ.get("HYDRA_FULL_ERROR") != "1":
-                log.error("%s failed: %s (output folder: %s)", cfg.get("task_name", "task"), exc, _output_dir(cfg))
+            if (is_user_error(exc) or hasattr(exc, "exit_code")) and os.environ.get("HYDRA_FULL_ERROR") != "1":
+                log.error("%s failed: %s (output folder: %s)", cfg.get("task_name", "task"), user_message(exc),
+                          _output_dir(cfg))
             else:
                 log.exception("%s failed; output folder: %s", cfg.get("task_name", "task"), _output_dir(cfg))
             raise
@@ -74,22 +77,29 @@ def _output_dir(cfg: DictConfig) -> Path:
         return Path.cwd()
 
 
-class ConfigError(ValueError):
-    """A configuration that cannot run as given; the message says what to set."""
 
 
 def is_user_error(exc: BaseException) -> bool:
     """Errors in what the user gave (data, config values, checkpoints), whose message says what is wrong:
-    :class:`ConfigError`, ``DataFormatError``, ``CheckpointError``, a mandatory config value left unset, and a
-    constructor refusing a config value (Hydra's instantiation error)."""
+    :class:`graf.errors.UserError` (``ConfigError``, ``DataFormatError``, ``CheckpointError``,
+    ``NoNeighborsError``), a mandatory config value left unset, and a constructor refusing a config value
+    (Hydra's instantiation error)."""
     from hydra.errors import InstantiationException
     from omegaconf.errors import MissingMandatoryValue
 
-    from graf.data.spectrum_set import DataFormatError
-    from graf.models.base import CheckpointError
+    return isinstance(exc, (UserError, MissingMandatoryValue, InstantiationException))
 
-    return isinstance(exc, (ConfigError, DataFormatError, CheckpointError, MissingMandatoryValue,
-                            InstantiationException))
+
+def user_message(exc: BaseException) -> str:
+    """A user error's message on one line: a constructor's own refusal rather than Hydra's three-line wrapper
+    around it (``Error in call to target ...``), with the config node it came from."""
+    from hydra.errors import InstantiationException
+
+    cause = exc.__cause__ if isinstance(exc, InstantiationException) else None
+    if cause is not None and str(cause):
+        key = getattr(exc, "full_key", None)
+        return f"{cause}" + (f" (in {key})" if key and str(key) not in str(cause) else "")
+    return " ".join(str(exc).split("\n")) if "\n" in str(exc) else str(exc)
 
 
 def cli_errors(main):
@@ -107,9 +117,12 @@ def cli_errors(main):
             from hydra.types import RunMode
 
             multirun = HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+            if hasattr(exc, "exit_code") and not multirun:  # a run stopped on purpose (pre-emption): its own code
+                print(str(exc), file=sys.stderr)
+                sys.exit(int(exc.exit_code))
             if not is_user_error(exc) or multirun or os.environ.get("HYDRA_FULL_ERROR") == "1":
                 raise
-            print(f"error: {exc}\n(HYDRA_FULL_ERROR=1 shows the full traceback)", file=sys.stderr)
+            print(f"error: {user_message(exc)}\n(HYDRA_FULL_ERROR=1 shows the full traceback)", file=sys.stderr)
             sys.exit(2)
 
     return wrapped
@@ -281,8 +294,30 @@ def check_bands(cfg: DictConfig, trained: dict, dm, source: str) -> None:
                 "do), or band=... to match")
 
 
-def build(cfg: DictConfig) -> dict:
-    """Instantiate band, scene, neighbour selector, datamodule (set up), model, loggers and trainer."""
+def run_settings(cfg: DictConfig) -> dict:
+    """The settings of a training run that its checkpoints record (``checkpoint["graf"]["run"]``: data,
+    neighbours, seed, trainer), so that resuming with other ones is refused or recorded
+    (:func:`graf.cli.train.check_resume`)."""
+    c = OmegaConf.to_container(cfg, resolve=True)
+    trainer = {k: v for k, v in (c.get("trainer") or {}).items() if k not in ("_target_", "default_root_dir")}
+    return {"data": c.get("data"), "neighbors": c.get("neighbors"), "seed": c.get("seed"), "trainer": trainer}
+
+
+def check_run_settings(cfg: DictConfig) -> None:
+    """Top-level settings that must be integers, checked before anything is built (one clear error)."""
+    for key, low in (("seed", None), ("torch_threads", 1)):
+        v = cfg.get(key)
+        if v is None:
+            continue
+        if isinstance(v, bool) or not isinstance(v, int) or (low is not None and v < low):
+            raise ConfigError(f"{key} must be an integer{'' if low is None else f' >= {low}'}, got {v!r}")
+
+
+def build(cfg: DictConfig, trains: bool = True) -> dict:
+    """Instantiate band, scene, neighbour selector, datamodule (set up), model, loggers and trainer.  ``trains``:
+    whether the run trains the model on its scenes (graf-eval and a zero-shot test do not: a test scene is then
+    "within-scene" only when the checkpoint was trained on its content)."""
+    check_run_settings(cfg)
     if cfg.get("torch_threads"):
         torch.set_num_threads(int(cfg.torch_threads))
     if cfg.get("seed") is not None:
@@ -290,20 +325,21 @@ def build(cfg: DictConfig) -> dict:
     out = _output_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
     source, known = checkpoint_scenes(cfg)
-    names = [str(c.get("name")) for c in scene_configs(cfg.get("scene"))]
-    indices = assign_scene_indices({n: v["index"] for n, v in known.items()}, names) if known else None
-    _, _, neighbors, datamodule = build_datamodule(cfg, scene_indices=indices)
+    _, _, neighbors, datamodule = build_datamodule(cfg)
     datamodule.setup("fit")
     check_bands(cfg, known, datamodule, source)  # fine-tuning or testing a checkpoint at another band: a transfer
+    # a scene the checkpoint was trained on (the same content, whatever its name) keeps its index; a new one
+    # gets the next; the table is what the checkpoints this run writes record
     table = dict(known)
-    for d, b, k in zip(datamodule.sets, datamodule.bands, datamodule.scene_index.tolist()):
-        table.setdefault(d.name, {"index": int(k), "band_hz": float(b.frequency_hz)})
-    evaluations = eval_datamodules(cfg, datamodule, table)
+    datamodule.set_scene_indices([table[register_scene(table, d.name, fp, next_index(table))]["index"]
+                                  for d, fp in zip(datamodule.sets, datamodule.fingerprints())])
+    evaluations = eval_datamodules(cfg, datamodule, table, seen=table if trains or not known else known)
     for ev in evaluations:
         if ev["datamodule"] is not datamodule:
             check_bands(cfg, table, ev["datamodule"], source or "the model")
     model = hydra.utils.instantiate(cfg.model)
-    model.scene_table = dict(known)  # what the checkpoints it writes record, with the run's own scenes added
+    model.scene_table = dict(table)  # what the checkpoints it writes record: the checkpoint's and this run's scenes
+    model.run_settings = run_settings(cfg)
     loggers = [hydra.utils.instantiate(c) for c in (cfg.get("logger") or {}).values()
                if isinstance(c, DictConfig) and "_target_" in c]
     callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()
@@ -319,7 +355,7 @@ def build(cfg: DictConfig) -> dict:
             "loggers": loggers, "trainer": trainer, "output_dir": out, "scene_table": table}
 
 
-def eval_datamodules(cfg: DictConfig, train_dm, table: dict | None = None) -> list[dict]:
+def eval_datamodules(cfg: DictConfig, train_dm, table: dict | None = None, seen: dict | None = None) -> list[dict]:
     """What the final evaluations test: ``[{"eval_scene", "datamodule", "within_scene"}]``.  Without
     ``eval_scene`` (``eval_scene=same``) and ``eval_band`` the training datamodule itself (within-scene).
     Otherwise one datamodule per test scene (``eval_scene=same`` with an ``eval_band``: the training scenes at
@@ -327,28 +363,38 @@ def eval_datamodules(cfg: DictConfig, train_dm, table: dict | None = None) -> li
     (all of it: the measured fraction of a fine-tuning run applies to the scenes it trains on).  ``table``:
     the scenes the model knows (name -> {"index"}; default: the training datamodule's), so a test scene the
     model was trained on keeps its scene index and is reported as within-scene, and an unseen one gets a new
-    index."""
+    index.  ``seen``: the scenes the model was trained on, by content (default: ``table``); a run that trains
+    nothing (graf-eval of a checkpoint) passes the checkpoint's alone."""
     configs = scene_configs(cfg.get("eval_scene"))
     eval_band = cfg.get("eval_band")
     if not configs and not eval_band:
-        return [{"eval_scene": train_dm.scene_name, "datamodule": train_dm, "within_scene": True}]
+        within = seen is None or all(find_scene(seen, d.name, fp) is not None
+                                     for d, fp in zip(train_dm.sets, train_dm.fingerprints()))
+        return [{"eval_scene": train_dm.scene_name, "datamodule": train_dm, "within_scene": within}]
     if not configs:
         configs = scene_configs(cfg.get("scene"))
     band = load_band_config(str(eval_band)) if eval_band else cfg.get("band")
     if table is None:
-        table = {d.name: {"index": int(k)} for d, k in zip(train_dm.sets, train_dm.scene_index.tolist())}
+        table = {}
+        for d, fp, k in zip(train_dm.sets, train_dm.fingerprints(), train_dm.scene_index.tolist()):
+            register_scene(table, d.name, fp, k)
     names = [str(c.get("name")) for c in configs]
-    indices = assign_scene_indices({n: v["index"] for n, v in table.items()}, names)
-    out = []
-    for c, name, k in zip(configs, names, indices):
+    out, new = [], next_index(table)
+    for c, name in zip(configs, names):
         scene = OmegaConf.create({name: OmegaConf.to_container(c, resolve=True)})  # resolved in the run's config
         sub = OmegaConf.create({key: OmegaConf.to_container(v, resolve=True) if isinstance(v, DictConfig) else v
                                 for key, v in (("eval_scene", scene), ("band", band),
                                              ("neighbors", cfg.neighbors), ("data", cfg.data),
                                              ("data_root", cfg.get("data_root")))})
-        _, _, _, dm = build_datamodule(sub, "eval_scene", scene_indices=[k])
+        _, _, _, dm = build_datamodule(sub, "eval_scene")
         dm.setup("test")
-        within = name in table
+        key = find_scene(table, name, dm.fingerprints()[0])  # by content: another folder of the same name is unseen
+        within = key is not None and (seen is None or find_scene(seen, name, dm.fingerprints()[0]) is not None)
+        if key is not None:
+            k = int(table[key]["index"])
+        else:
+            k, new = new, new + 1
+        dm.set_scene_indices([k])
         log.info("test scene %s at %s: %s (scene index %d)", name, dm.bands[0].name,
                  "within-scene (the model was trained on it)" if within else "unseen in training (zero-shot)", k)
         out.append({"eval_scene": name, "datamodule": dm, "within_scene": within})
@@ -483,8 +529,7 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -
         for lg in objects["loggers"]:
             if hasattr(lg, "log_image"):
                 lg.log_image(key="test/spectra", images=[str(fig)])
-    baselines = [(name, bcfg) for name, bcfg in (cfg.get("baselines") or {}).items()
-                 if isinstance(bcfg, DictConfig) and "_target_" in bcfg and bcfg != cfg.model]
+    baselines = [(name, bcfg) for name, bcfg in selected_baselines(cfg).items() if bcfg != cfg.model]
     rows, per_eval = [], []
     for i, (ev, m, a, t) in enumerate(done):  # every test scene: the model, then its baselines on the same data
         head = results if i == 0 else {"method": results["method"], "scene": ev["eval_scene"],
@@ -506,6 +551,10 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -
              "n_test": int(len(a["ids"])), "band_hz": float(ev["datamodule"].bands[0].frequency_hz),
              "scene_index": int(ev["datamodule"].scene_index[0]), "splits": ev["datamodule"].split_summary(),
              "timing": t, "baselines": b} for (ev, m, a, t), b in zip(done, per_eval)]
+    if objects.get("training"):  # steps asked and reached, and why training stopped early if it did
+        results["training"] = objects["training"]
+    if objects.get("resumed"):  # the checkpoint resumed from, and the trainer settings changed since
+        results["resumed"] = objects["resumed"]
     if objects.get("finetune"):
         results["finetune"] = objects["finetune"]
     if objects.get("scene_table"):
@@ -521,6 +570,19 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -
     if cfg.get("regime"):
         print(f"regime: {cfg.regime}")
     return metrics
+
+
+def selected_baselines(cfg: DictConfig) -> dict:
+    """The baselines to test beside the model (``{name: model config}``).  ``baselines=null`` and ``baselines={}``
+    both switch them off: Hydra merges ``{}`` into the composed group (a no-op), so the command line's own
+    ``baselines={}`` is honoured here."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if HydraConfig.initialized() and any(o.replace(" ", "") in ("baselines={}", "baselines=null", "baselines=[]")
+                                         for o in HydraConfig.get().overrides.task):
+        return {}
+    return {name: bcfg for name, bcfg in (cfg.get("baselines") or {}).items()
+            if isinstance(bcfg, DictConfig) and "_target_" in bcfg}
 
 
 def _test_baseline(cfg: DictConfig, name: str, bcfg: DictConfig, dm) -> dict:

@@ -70,7 +70,7 @@ def load_checkpoint_model(cfg: DictConfig, path: str, overrides: Sequence[str]):
 def evaluate(cfg: DictConfig, overrides: Sequence[str] | None = None) -> tuple[dict, dict]:
     """``overrides``: the command line's overrides (taken from Hydra when run as a command)."""
     started = time.perf_counter()
-    objects = build(cfg)
+    objects = build(cfg, trains=False)
     if cfg.get("ckpt_path"):
         if overrides is None:
             overrides = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
@@ -79,11 +79,52 @@ def evaluate(cfg: DictConfig, overrides: Sequence[str] | None = None) -> tuple[d
     return metrics, objects
 
 
+def checkpoint_model_choice(args: Sequence[str]) -> str | None:
+    """``model=<option>`` to add to a command line that tests a checkpoint (``ckpt_path=``) and overrides a
+    ``model.*`` key without naming ``model=``: the model config of the checkpoint's class, so that the key
+    exists when Hydra composes (the default model, KNN, has no ``lr``) and :func:`load_checkpoint_model` can
+    apply or refuse it.  None when nothing is to be added (or the checkpoint cannot be read: the run then
+    reports that itself)."""
+    if not any(a.startswith("ckpt_path=") for a in args) or any(a.split("=", 1)[0].lstrip("+~") == "model"
+                                                                for a in args):
+        return None
+    if not any(a.lstrip("+~").startswith("model.") for a in args):
+        return None
+    path = next(a.split("=", 1)[1] for a in args if a.startswith("ckpt_path="))
+    try:
+        target = (read_checkpoint(path).get("graf") or {}).get("target")
+        cls = get_class(target) if target else None
+    except Exception:
+        return None
+    if cls is None:
+        return None
+    from graf.cli.common import CONF_DIR
+
+    for f in sorted((CONF_DIR / "model").glob("*.yaml")):  # graf before graf_cpu: the base config of a class
+        t = OmegaConf.load(f).get("_target_")
+        try:
+            if t and get_class(str(t)) is cls:
+                return f.stem
+        except Exception:
+            continue
+    return None
+
+
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="eval")
 @cli_errors
-def main(cfg: DictConfig) -> float:
+def _hydra_main(cfg: DictConfig) -> float:
     metrics, objects = evaluate(cfg)
     return sweep_value(cfg, metrics, objects)
+
+
+def main() -> None:
+    """The ``graf-eval`` command (see :func:`checkpoint_model_choice` for the one thing added to its arguments)."""
+    import sys
+
+    choice = checkpoint_model_choice(sys.argv[1:])
+    if choice is not None:
+        sys.argv.append(f"model={choice}")
+    _hydra_main()
 
 
 if __name__ == "__main__":

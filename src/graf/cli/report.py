@@ -37,7 +37,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from graf.cli.common import CONF_PATH, ConfigError, cli_errors, family, task_wrapper
-from graf.cli.table import to_csv
+from graf.cli.table import read_run_result, to_csv
 from graf.cli.table import to_markdown as table_markdown
 from graf.io import atomic_write_bytes, atomic_write_json
 
@@ -76,10 +76,10 @@ def _ft_fraction(label: str) -> float | None:
 def result_files(runs: Path) -> list[Path]:
     if not runs.exists():
         raise ConfigError(f"graf-report: {runs} does not exist")
-    files = [f for f in sorted(runs.rglob("results.json")) if "base" not in f.relative_to(runs).parts[:-1]
-             and f.parent != runs]
     if runs.is_file():
         files = [runs]
+    else:  # runs may be one run's own folder: its results.json counts
+        files = [f for f in sorted(runs.rglob("results.json")) if "base" not in f.relative_to(runs).parts[:-1]]
     if not files:
         raise ConfigError(f"graf-report: no results.json under {runs} (base/ folders are left out)")
     return files
@@ -121,15 +121,17 @@ def collect_rows(runs: Path) -> tuple[list[dict], list[Path]]:
     files = result_files(runs)
     rows, seen = [], set()
     for f in files:
-        try:
-            result = json.loads(f.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise ConfigError(f"{f}: not a readable results.json ({exc})") from None
-        for r in rows_of(result, str(f.parent.relative_to(runs))):
+        result = read_run_result(f)
+        if result is None:  # a table written into the folder: not a run
+            continue
+        job = str(f.parent.relative_to(runs.parent if runs.is_file() else runs))
+        for r in rows_of(result, job):
             key = json.dumps({k: v for k, v in r.items() if k != "job"}, sort_keys=True, default=str)
             if key not in seen:  # the same baseline on the same data in several jobs: once
                 seen.add(key)
                 rows.append(r)
+    if not rows:
+        raise ConfigError(f"graf-report: no run's results.json under {runs} (base/ folders and tables are left out)")
     return rows, files
 
 

@@ -14,8 +14,8 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from graf.cli.common import CONF_PATH, cli_errors, _output_dir, scene_band_config, single_scene_config, task_wrapper
-from graf.io import atomic_write_json
+from graf.cli.common import CONF_PATH, ConfigError, cli_errors, _output_dir, scene_band_config, single_scene_config, task_wrapper
+from graf.io import atomic_write_json, writable_dir
 
 log = logging.getLogger("graf")
 
@@ -30,17 +30,18 @@ def simulate(cfg: DictConfig) -> dict:
     band = hydra.utils.instantiate(scene_band_config(scene_cfg, cfg.get("band")))
     scene = hydra.utils.instantiate(scene_cfg)
     if not isinstance(scene, SimulatedScene):
-        raise ValueError(f"scene {getattr(scene, 'name', scene_cfg.get('name'))} is not a simulated scene: graf-simulate needs "
-                         "a scene config with _target_: graf.sim.scene.SimulatedScene")
+        raise ConfigError(f"scene {getattr(scene, 'name', scene_cfg.get('name'))} is not a simulated scene: graf-simulate "
+                          "needs a scene config with _target_: graf.sim.scene.SimulatedScene")
     sim = cfg.sim
+    if sim.export not in (None, "none", "nerf2"):
+        raise ConfigError(f"sim.export must be null or 'nerf2', got {sim.export!r}")
+    writable_dir(cfg.data_root, "data_root")  # before any tracing: a long run must not fail at its first write
     device = sim.device if sim.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu")
     summary = generate(scene, band, cfg.data_root, num_tx=sim.num_tx, chunk_size=int(sim.chunk_size),
                        overwrite=bool(sim.overwrite), device=device, progress=bool(sim.progress))
     if sim.export == "nerf2":
         folder = export_nerf2(summary["path"], summary["path"].replace(".h5", "_nerf2"))
         summary["nerf2_folder"] = str(folder)
-    elif sim.export not in (None, "none"):
-        raise ValueError(f"sim.export must be null or 'nerf2', got {sim.export!r}")
     results = {"scene": scene.name, "band": band.name, "band_hz": band.frequency_hz, **summary,
                "device": device, "command_seconds": round(time.perf_counter() - started, 3),
                "config": OmegaConf.to_container(cfg, resolve=True)}

@@ -17,17 +17,43 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from graf.cli.common import CONF_PATH, build_datamodule, cli_errors, _output_dir, single_scene_config, task_wrapper
+from graf.cli.common import CONF_PATH, ConfigError, build_datamodule, cli_errors, _output_dir, single_scene_config, task_wrapper
+from graf.data.spectrum_set import DataFormatError
 from graf.io import atomic_write_json
+
+
+def read_query_positions(path: Path):
+    """The query positions ``[N, 3]`` (x,y,z; header optional) and whether a header was found: at least one,
+    every one finite, or a :class:`DataFormatError` naming the file and line."""
+    import numpy as np
+
+    from graf.data.nerf2_format import _read_positions
+
+    positions, had_header = _read_positions(path)
+    if len(positions) == 0:
+        raise DataFormatError(path, "holds no positions (a header row alone): give one x,y,z row per spectrum to "
+                                    "synthesize")
+    bad = ~np.isfinite(positions).all(axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise DataFormatError(path, f"data row {i + 1}: position {positions[i].tolist()} is not finite "
+                                    f"({int(bad.sum())} such row(s))")
+    return positions, had_header
+
+
+def _model_choice() -> str:
+    from hydra.core.hydra_config import HydraConfig
+
+    return str(HydraConfig.get().runtime.choices.get("model")) if HydraConfig.initialized() else "..."
 
 
 @task_wrapper
 def run(cfg: DictConfig) -> dict:
-    from graf.data.nerf2_format import _read_positions, write_nerf2_folder
+    from graf.data.nerf2_format import write_nerf2_folder
     from graf.synthesize import synthesize
 
     started = time.perf_counter()
-    positions, had_header = _read_positions(Path(cfg.positions))
+    positions, had_header = read_query_positions(Path(cfg.positions))
     single_scene_config(cfg, "graf-synthesize")
     bands, _, neighbors, dm = build_datamodule(cfg)
     band = bands[0]
@@ -40,7 +66,9 @@ def run(cfg: DictConfig) -> dict:
     else:
         model = hydra.utils.instantiate(cfg.model)
         if getattr(model, "has_trainable_parameters", False):
-            raise ValueError(f"{model_cls.__name__} is a trained model: give its checkpoint with ckpt_path=...")
+            raise ConfigError(f"{model_cls.__name__} (model={_model_choice()}) is a trained model: give its checkpoint with "
+                              "ckpt_path=<run>/checkpoints/last.ckpt (only a method with nothing to train, model=knn, "
+                              "runs without one)")
     t0 = time.perf_counter()
     spectra = synthesize(model, dm, positions)
     t_pred = time.perf_counter() - t0

@@ -33,7 +33,7 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, ListConfig
 
-from graf.cli.common import CONF_PATH, cli_errors, _output_dir, task_wrapper
+from graf.cli.common import CONF_PATH, ConfigError, cli_errors, _output_dir, task_wrapper
 from graf.io import atomic_write_bytes, atomic_write_json
 
 log = logging.getLogger("graf")
@@ -80,7 +80,29 @@ def _natural(path: Path) -> list:
     return [int(part) if part.isdigit() else part for part in path.parts]
 
 
+# results.json files that are a collecting command's own output, not a run's (graf-table, graf-pareto)
+COLLECTED = ("table", "pareto")
+
+
+def read_run_result(f: Path) -> dict | None:
+    """A run's ``results.json`` as a dict, None for a collecting command's own output
+    (``task`` in :data:`COLLECTED`, or a table's ``{"rows", "sources"}`` written before it said its task), or a
+    :class:`ConfigError` naming the file when it is unreadable or not a run's results."""
+    try:
+        r = json.loads(Path(f).read_text())
+    except (json.JSONDecodeError, OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{f}: not a readable results.json ({exc})") from None
+    if not isinstance(r, dict):
+        raise ConfigError(f"{f}: a results.json holds one run's results as a JSON object; this one holds a "
+                          f"{type(r).__name__}")
+    if r.get("task") in COLLECTED or ("rows" in r and "metrics" not in r):
+        return None
+    return r
+
+
 def collect(paths: list[str | Path]) -> list[dict]:
+    """Every run's results under ``paths`` (folders searched recursively, or files); collecting commands' own
+    outputs (a table written into a folder it reads) are passed over."""
     files = []
     for p in paths:
         p = Path(p)
@@ -89,17 +111,17 @@ def collect(paths: list[str | Path]) -> list[dict]:
         elif p.is_dir():
             files.extend(sorted(p.rglob("results.json"), key=_natural))
         else:
-            raise FileNotFoundError(f"graf-table: {p} does not exist")
-    if not files:
-        raise FileNotFoundError(f"graf-table: no results.json under {', '.join(map(str, paths))}")
+            raise ConfigError(f"graf-table: runs={p} does not exist")
     rows = []
     for f in files:
-        try:
-            r = json.loads(f.read_text())
-            r["_file"] = str(f)
-            rows.append(r)
-        except (json.JSONDecodeError, OSError) as exc:
-            raise ValueError(f"{f}: not a readable results.json ({exc})") from None
+        r = read_run_result(f)
+        if r is None:
+            log.info("%s: a table's own output, not a run: left out", f)
+            continue
+        r["_file"] = str(f)
+        rows.append(r)
+    if not rows:
+        raise ConfigError(f"graf-table: no run's results.json under {', '.join(map(str, paths))}")
     return rows
 
 
@@ -189,7 +211,7 @@ def write_table(folder: Path, rows: list[dict], sources: list[str], json_name: s
     """Write ``table.md``, ``table.csv`` and the rows as JSON (``json_name``) into ``folder``, atomically.
     A sweep folder's JSON is ``table.json``: a ``results.json`` there would be read back as a run."""
     header, body = build_table(rows)
-    payload = {"rows": [dict(zip(header, row)) for row in body], "sources": sources}
+    payload = {"task": "table", "rows": [dict(zip(header, row)) for row in body], "sources": sources}
     atomic_write_bytes(folder / "table.md", to_markdown(header, body).encode())
     atomic_write_bytes(folder / "table.csv", to_csv(header, body).encode())
     atomic_write_json(folder / json_name, payload)

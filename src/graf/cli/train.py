@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import logging
+import sys
 import time
 from pathlib import Path
 
@@ -21,9 +22,12 @@ import hydra
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from graf.cli.common import (CONF_PATH, ConfigError, _output_dir, build, cli_errors, expand_heldout, family,
-                             scene_configs, sweep_value, task_wrapper, test_and_report)
+                             run_settings, scene_configs, sweep_value, task_wrapper, test_and_report)
 from graf.io import atomic_write_json
 from graf.models.base import CheckpointError, check_checkpoint, read_checkpoint
+
+from lightning.pytorch.callbacks import Timer
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 log = logging.getLogger("graf")
 
@@ -52,23 +56,30 @@ def train(cfg: DictConfig) -> tuple[dict, dict]:
     if ft.get("init_from"):
         ensure_base(cfg)
         cfg = finetune_config(cfg)
-    objects = build(cfg)
-    model, trainer = objects["model"], objects["trainer"]
+    check_training_length(cfg)
     init_from = ft.get("init_from")
     zero_shot = bool(init_from) and ft.get("fraction") is None  # finetune=none
+    objects = build(cfg, trains=not zero_shot)
+    model, trainer = objects["model"], objects["trainer"]
     if init_from:
         load_weights(model, init_from)
-    if cfg.get("ckpt_path"):  # resume: refuse another class's or an old layout's checkpoint up front
-        check_checkpoint(read_checkpoint(cfg.ckpt_path), type(model), cfg.ckpt_path)
+    resumed = None
+    if cfg.get("ckpt_path"):  # resume: refuse another class's, an old layout's or other settings' checkpoint up front
+        resumed = check_resume(cfg, model, objects["datamodule"], cfg.ckpt_path)
+        objects["resumed"] = resumed
     if zero_shot:
         log.info("finetune=none: testing %s zero-shot (no step trained)", init_from)
     elif getattr(model, "has_trainable_parameters", True):
         # resumes from ckpt_path (e.g. <old run>/checkpoints/last.ckpt) when given
-        step0, t0 = trainer.global_step, time.perf_counter()
-        trainer.fit(model=model, datamodule=objects["datamodule"], ckpt_path=cfg.get("ckpt_path"))
+        step0, t0 = (resumed or {}).get("global_step", 0), time.perf_counter()
+        try:
+            trainer.fit(model=model, datamodule=objects["datamodule"], ckpt_path=cfg.get("ckpt_path"))
+        except SIGTERMException:
+            raise preempted(cfg, trainer, step0) from None
         fit_s, steps = time.perf_counter() - t0, max(0, trainer.global_step - step0)
         objects["timing"] = {"fit_s": round(fit_s, 3), "fit_steps": int(steps),
                              "fit_s_per_step": round(fit_s / steps, 4) if steps else None}
+        objects["training"] = training_record(trainer, step0)
     else:
         log.info("%s has no trainable parameters: nothing to fit, testing directly", type(model).__name__)
     if init_from:
@@ -83,6 +94,129 @@ def train(cfg: DictConfig) -> tuple[dict, dict]:
     # the final weights are validated and tested (nothing is chosen on the test split)
     metrics = test_and_report(cfg, objects, started, task="train")
     return metrics, objects
+
+
+def check_training_length(cfg: DictConfig) -> None:
+    """``trainer.max_steps`` governs training; epochs are unbounded unless ``trainer.max_epochs`` is set (a limit
+    of the user's own).  Refuse settings that are not counts, or that would never end."""
+    t = cfg.get("trainer") or {}
+    for key in ("max_steps", "max_epochs"):
+        v = t.get(key)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < -1):
+            raise ConfigError(f"trainer.{key} must be an integer >= -1 (-1: no limit), got {v!r}")
+    if t.get("max_steps", -1) in (None, -1) and t.get("max_epochs", -1) in (None, -1):
+        raise ConfigError("trainer.max_steps=-1 and trainer.max_epochs=-1: training would never end; set "
+                          "trainer.max_steps=N (optimiser steps)")
+
+
+def training_record(trainer, step0: int) -> dict:
+    """What results.json records of the training length (``training``): the steps asked and reached, and why
+    training stopped before ``max_steps`` when it did.  A stop that is not the user's own limit
+    (``trainer.max_epochs``, ``trainer.max_time``) is warned about loudly."""
+    asked, epochs = int(trainer.max_steps), int(trainer.max_epochs if trainer.max_epochs is not None else -1)
+    reached = int(trainer.global_step)
+    rec = {"max_steps": asked, "max_epochs": epochs, "start_step": int(step0), "global_step": reached,
+           "steps_trained": reached - int(step0), "epochs_trained": int(trainer.current_epoch),
+           "stopped_early": False}
+    if asked > 0 and reached < asked:
+        if epochs > 0 and trainer.current_epoch >= epochs:
+            reason, own = (f"trainer.max_epochs={epochs} reached first ({trainer.num_training_batches} steps per "
+                           "epoch): your own limit"), True
+        elif any(isinstance(cb, Timer) and cb.time_remaining() <= 0 for cb in trainer.callbacks):
+            reason, own = "trainer.max_time reached first: your own limit", True
+        else:
+            reason, own = "a callback stopped training (trainer.should_stop) before trainer.max_steps", False
+        rec.update(stopped_early=True, stop_reason=reason, own_limit=own)
+        msg = f"training stopped at step {reached} of trainer.max_steps={asked}: {reason}"
+        if own:
+            log.info(msg)
+        else:
+            log.warning("WARNING: %s; results.json records it under 'training'", msg)
+            print(f"WARNING: {msg}", file=sys.stderr)
+    return rec
+
+
+class Preempted(Exception):
+    """Training stopped by SIGTERM with its state saved: the command exits with :attr:`exit_code`."""
+
+    exit_code = 143  # 128 + SIGTERM: what a shell reports for a job ended by SIGTERM
+
+
+def preempted(cfg: DictConfig, trainer, step0: int) -> Preempted:
+    """After a SIGTERM stopped ``trainer.fit``: ``preempted.json`` in the output folder (the step, the checkpoint,
+    the command's way to resume) and the :class:`Preempted` to raise."""
+    from graf.callbacks import Preemption
+
+    saved = next((cb.saved for cb in trainer.callbacks if isinstance(cb, Preemption) and cb.saved), None)
+    out = _output_dir(cfg)
+    record = {"preempted": "SIGTERM", "global_step": int(trainer.global_step), "start_step": int(step0),
+              "max_steps": int(trainer.max_steps), "checkpoint": (saved or {}).get("checkpoint")}
+    atomic_write_json(out / "preempted.json", record)
+    if saved:
+        msg = (f"SIGTERM: training stopped at step {saved['global_step']} of {int(trainer.max_steps)}; checkpoint saved "
+               f"to {saved['checkpoint']}; resume with the same command and ckpt_path={saved['checkpoint']}")
+    else:
+        msg = (f"SIGTERM: training stopped at step {int(trainer.global_step)} with no checkpoint saved (callbacks="
+               "none has no pre-emption callback)")
+    return Preempted(msg)
+
+
+# settings whose change between a checkpoint and the run resuming it changes what is trained: refused
+RESUME_FIXED = ("data", "neighbors", "seed")
+
+
+def check_resume(cfg: DictConfig, model, dm, path) -> dict:
+    """Resuming ``ckpt_path``: refuse another class's or an old layout's checkpoint, another architecture or
+    model setting (``model.*`` but inference settings), other data, neighbour or seed settings, or other training
+    scenes (by content) than the checkpoint's; other trainer settings (a longer ``max_steps``) are allowed and
+    both are recorded (results.json ``resumed``)."""
+    from graf.data.fingerprint import find_scene
+
+    ckpt = read_checkpoint(path)
+    check_checkpoint(ckpt, type(model), path)
+    saved = dict(ckpt.get("hyper_parameters") or {})
+    allowed = set(getattr(type(model), "INFERENCE_SETTINGS", ()))
+    now = dict(model.hparams)
+    diff = {k: (saved.get(k, "<unset>"), now.get(k, "<unset>")) for k in sorted(set(saved) | set(now))
+            if k not in allowed and saved.get(k, "<unset>") != now.get(k, "<unset>")}
+    if diff:
+        raise CheckpointError(
+            f"ckpt_path={path}: resuming with other model settings than it was trained with: "
+            + "; ".join(f"model.{k}: checkpoint {a!r}, this run {b!r}" for k, (a, b) in diff.items())
+            + ". Resume with the checkpoint's settings, or start from its weights with finetune.init_from=")
+    info = ckpt.get("graf") or {}
+    run_then = info.get("run") or {}
+    run_now = run_settings(cfg)
+    fixed = {f"{g}.{k}" if k else g: (a, b) for g in RESUME_FIXED
+             for k, (a, b) in _dict_diff(run_then.get(g), run_now.get(g)).items()} if run_then else {}
+    if fixed:
+        raise CheckpointError(
+            f"ckpt_path={path}: resuming with other settings than it was trained with: "
+            + "; ".join(f"{k}: checkpoint {a!r}, this run {b!r}" for k, (a, b) in fixed.items())
+            + ". They change the training stream; resume with the checkpoint's settings")
+    trained = info.get("scenes") or {}
+    if trained and any(fp.get("digest") for fp in (v.get("fingerprint") or {} for v in trained.values())):
+        other = [d.name for d, fp in zip(dm.sets, dm.fingerprints()) if find_scene(trained, d.name, fp) is None]
+        if other:
+            raise CheckpointError(f"ckpt_path={path}: was trained on {', '.join(sorted(trained))}, not on the content "
+                                  f"of this run's scene(s) {', '.join(other)}: resume on the same data")
+    changed = {f"trainer.{k}": {"checkpoint": a, "run": b}
+               for k, (a, b) in _dict_diff((run_then.get("trainer") or {}), run_now["trainer"]).items()}
+    if changed:
+        log.info("resuming %s with other trainer settings: %s", path,
+                 ", ".join(f"{k} {v['checkpoint']} -> {v['run']}" for k, v in changed.items()))
+    return {"checkpoint": str(path), "global_step": int(ckpt.get("global_step", 0)),
+            "checkpoint_settings": run_then or None, "changed": changed}
+
+
+def _dict_diff(a, b, prefix: str = "") -> dict:
+    """``{dotted key: (a value, b value)}`` where two plain configs differ."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        out = {}
+        for k in sorted(set(a) | set(b)):
+            out.update(_dict_diff(a.get(k, "<unset>"), b.get(k, "<unset>"), f"{prefix}{k}."))
+        return out
+    return {} if a == b else {prefix[:-1]: (a, b)}
 
 
 def _choice(cfg: DictConfig, group: str) -> str:

@@ -51,6 +51,7 @@ identical draws across workers, the same stream for every worker count).
 from __future__ import annotations
 
 import logging
+import numbers
 import warnings
 from pathlib import Path
 from typing import Callable, Sequence
@@ -62,7 +63,8 @@ from torch.utils.data import DataLoader, Dataset, IterableDataset, get_worker_in
 
 from graf.bands import Band
 from graf.data.spectrum_set import DataFormatError, SpectrumSet
-from graf.neighbors import Neighbors, NeighborSelector
+from graf.errors import ConfigError
+from graf.neighbors import Neighbors, NeighborSelector, NoNeighborsError
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +97,8 @@ def carve_validation(train_rows: np.ndarray, fraction: float, seed: int, where: 
     """``(fit_rows, val_rows)``: a seeded ``fraction`` (rounded, at least 1) of ``train_rows`` for validation."""
     n = len(train_rows)
     if not 0.0 < fraction < 1.0:
-        raise ValueError(f"data.val_fraction must be in (0, 1), got {fraction}")
+        raise ConfigError(f"data.val_fraction must be in (0, 1), got {fraction}: validation is carved from each "
+                          "scene's training split (at least one spectrum), so 0 and 1 leave nothing to validate or fit on")
     if n < 2:
         raise DataFormatError(where, f"the training split holds {n} spectrum(s): at least 2 are needed, one to "
                                      "validate on and one to train on and take neighbours from")
@@ -187,14 +190,17 @@ class SpectrumDataModule(L.LightningDataModule):
                  measured_seed: int = 0, test_pool: str = "measured", simulate_missing: bool = False):
         super().__init__()
         if test_pool not in TEST_POOLS:
-            raise ValueError(f"test_pool must be one of {TEST_POOLS}, got {test_pool!r}")
+            raise ConfigError(f"finetune.test_pool must be one of {TEST_POOLS}, got {test_pool!r}")
         if measured_fraction is not None and not 0.0 < float(measured_fraction) <= 1.0:
-            raise ValueError(f"the measured fraction must be in (0, 1], got {measured_fraction}")
+            raise ConfigError(f"finetune.fraction (the measured fraction) must be in (0, 1], got {measured_fraction}")
         self.measured_fraction = None if measured_fraction is None else float(measured_fraction)
         self.measured_seed, self.test_pool = int(measured_seed), test_pool
         self.simulate_missing = bool(simulate_missing)
         if eval_split not in EVAL_SPLITS:
-            raise ValueError(f"data.eval_split must be one of {EVAL_SPLITS}, got {eval_split!r}")
+            raise ConfigError(f"data.eval_split must be one of {', '.join(EVAL_SPLITS)}, got {eval_split!r}")
+        for key, value, low in (("batch_size", batch_size, 1), ("num_workers", num_workers, 0)):
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
+                raise ConfigError(f"data.{key} must be an integer >= {low}, got {value!r}")
         self.scenes = list(scene) if isinstance(scene, (list, tuple)) else [scene]
         bands = list(band) if isinstance(band, (list, tuple)) else [band] * len(self.scenes)
         if len(bands) != len(self.scenes):
@@ -260,6 +266,32 @@ class SpectrumDataModule(L.LightningDataModule):
         self.ray_length = torch.as_tensor(ray_len, dtype=torch.float32)
         self.bounds = torch.stack(bounds).float()
         self._eval = {}
+        self.check_neighbours()
+
+    def check_neighbours(self) -> None:
+        """Every target of every split has at least one neighbour under the run's selector (``exclude_within``
+        drops the nearest ones): checked once at set-up, so a setting that leaves a target with none is one
+        clear error before any training or evaluation starts, not a failure deep inside a loader."""
+        for name in ("train", "val", "test"):
+            rows, pool = self._split(name)
+            for s in range(0, len(rows), 1024):
+                self.select(rows[s:s + 1024], pool, train=False, quiet=True)
+
+    def set_scene_indices(self, indices: Sequence[int]) -> None:
+        """The scene index each scene's items carry (decided by content after set-up: see
+        :mod:`graf.data.fingerprint`)."""
+        idx = [int(i) for i in indices]
+        if len(idx) != len(self.scenes):
+            raise ValueError(f"{len(idx)} scene indices given for {len(self.scenes)} scenes")
+        if idx != self.scene_index.tolist():
+            log.info("scene indices: %s", ", ".join(f"{d.name} {i}" for d, i in zip(self.sets, idx)))
+        self.scene_index = torch.as_tensor(idx, dtype=torch.long)
+
+    def fingerprints(self) -> list[dict]:
+        """Each scene's content fingerprint at its band (:func:`graf.data.fingerprint.scene_fingerprint`)."""
+        from graf.data.fingerprint import scene_fingerprint
+
+        return [scene_fingerprint(d, b.frequency_hz) for d, b in zip(self.sets, self.bands)]
 
     @property
     def data(self) -> SpectrumSet:
@@ -278,7 +310,7 @@ class SpectrumDataModule(L.LightningDataModule):
 
     # ------------------------------------------------------------------ neighbours
     def select(self, rows: torch.Tensor, pool: torch.Tensor, train: bool,
-               generator: torch.Generator | None = None) -> Neighbors:
+               generator: torch.Generator | None = None, quiet: bool = False) -> Neighbors:
         """Neighbours of ``rows`` among ``pool`` (both datamodule rows), each target's from its own scene only,
         never the target itself; indices returned as datamodule rows."""
         rows, pool = torch.as_tensor(rows, dtype=torch.long), torch.as_tensor(pool, dtype=torch.long)
@@ -288,9 +320,15 @@ class SpectrumDataModule(L.LightningDataModule):
             cand = pool[self.row_scene[pool] == k]
             if len(cand) == 0:
                 raise DataFormatError(self.sets[k].source, "no spectra left to take neighbours from")
-            nb = self.neighbors.select(self.positions[rows[t]], self.positions[cand], float(self.wavelength[k]),
-                                       train=train, target_ids=self.ids[rows[t]], cand_ids=self.ids[cand],
-                                       generator=generator)
+            try:
+                nb = self.neighbors.select(self.positions[rows[t]], self.positions[cand], float(self.wavelength[k]),
+                                           train=train, target_ids=self.ids[rows[t]], cand_ids=self.ids[cand],
+                                           generator=generator, quiet=quiet)
+            except NoNeighborsError as exc:
+                raise NoNeighborsError(
+                    f"scene {self.sets[k].name}: {exc} (neighbors.exclude_within={self.neighbors.exclude_within:g} "
+                    f"wavelengths of {float(self.wavelength[k]):.4g} m): lower neighbors.exclude_within, or use more "
+                    "training spectra") from None
             nb.index = cand[nb.index]
             parts.append((t, nb))
         if len(parts) == 1:

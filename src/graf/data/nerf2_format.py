@@ -3,17 +3,34 @@
 Layout of a scene folder (XPengZhao/NeRF2, RFID spectrum datasets)::
 
     spectrum/NNNNN.png    8-bit grayscale, 90 rows (elevation) x 360 columns (azimuth), label = pixel / 255
-    tx_pos.csv            optional header ``x,y,z``; data row k-1 is the position of spectrum id k (ids start at 1)
-                          (UTF-8, a byte-order mark is stripped; a first row is a header only when no cell is numeric)
+    tx_pos.csv            optional header ``x,y,z``, then the k-th data row (data row k-1 counting from 0) is
+                          the position of spectrum id k (ids start at 1)
     gateway_info.yml      gateway1.position [x, y, z]; gateway1.orientation quaternion (x, y, z, w)
     train_index.txt       spectrum ids, one per line (optional, together with test_index.txt)
     test_index.txt
 
-Ids are parsed as integers, so ``00132.png`` and ``132.png`` are both id 132.  When *both* index files
-are missing, a seeded split is made (``split_seed``, ``train_fraction``; NeRF2 itself uses an unseeded
-80/20 shuffle) and recorded in :attr:`SpectrumSet.split_source`.  Everything else is strict: a problem
-raises :class:`DataFormatError` naming the file and what is wrong with it.  Constant (e.g. all-zero)
-spectra are read but warned about (:func:`graf.data.spectrum_set.warn_flat_spectra`).
+Ids are parsed as integers, so ``00132.png`` and ``132.png`` are both id 132.
+
+``tx_pos.csv`` is matched to ids by row number, so nothing may shift a row:
+
+* UTF-8, a leading byte-order mark is stripped; LF, CRLF or CR line ends; blank lines are skipped, but a
+  line of empty cells (``,,``) is a row and is refused as not numeric.
+* The first row is a header only when its cells, stripped and lower-cased, are ``x``, ``y``, ``z`` in some
+  order; columns are then taken by name (``z,y,x`` works).  A fully numeric first row is id 1's position
+  (no header).  Any other first row (``NA,NA,NA``, ``x,y,w``, ``x,x,y``, ``1.0,2.0,abc``) is refused.
+  Every data row must be 3 numbers.
+* Row count: NeRF2 writes one row per spectrum, so the number of data rows must equal the largest
+  spectrum id among the PNGs in ``spectrum/`` (not only the ids listed in the index files).  Fewer rows
+  is refused; so is more, unless ``position_rows="at_least"`` (a slice whose ``tx_pos.csv`` holds the
+  full dataset's rows), which accepts more rows with a warning.  A duplicated, missing or inserted row
+  therefore fails the count instead of moving every later id onto the next row's position.  The counts
+  are recorded in ``SpectrumSet.meta["position_rows"]``.
+* The position of every listed id must be finite.
+
+When *both* index files are missing, a seeded split is made (``split_seed``, ``train_fraction``; NeRF2
+itself uses an unseeded 80/20 shuffle) and recorded in :attr:`SpectrumSet.split_source`.  Everything else
+is strict: a problem raises :class:`DataFormatError` naming the file and what is wrong with it.  Constant
+(e.g. all-zero) spectra are read but warned about (:func:`graf.data.spectrum_set.warn_flat_spectra`).
 """
 
 from __future__ import annotations
@@ -35,6 +52,12 @@ from graf.geometry.grid import N_AZIMUTH, N_ELEVATION, SPECTRUM_SHAPE
 from graf.io import atomic_write_bytes
 
 log = logging.getLogger(__name__)
+
+# how the number of tx_pos.csv data rows must relate to the largest spectrum id (read_nerf2_folder)
+POSITION_ROWS_RULES = ("exact", "at_least")
+_ROW_RULE = ("data row k is the position of spectrum id k and NeRF2 writes one row per spectrum, so the row "
+             "count must equal the largest id; a duplicated, missing or extra row would shift every later id's "
+             "position")
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 # leading bytes of formats that turn up under a .png name, to say what a refused file looks like
@@ -142,46 +165,90 @@ def _is_number(cell: str) -> bool:
     return True
 
 
-def _read_positions(path: Path) -> tuple[np.ndarray, bool]:
-    """Returns (rows [M, 3], had_header).
+_XYZ = ("x", "y", "z")
 
-    Decoded as UTF-8 with a byte-order mark stripped.  The first row is a header only when *none* of its
-    cells is numeric (and then it must have 3 cells, as NeRF2's ``x,y,z``); a first row that is partly
-    numeric is neither a header nor a position and is refused, so no spectrum is ever matched to the
-    next row's position.
+
+def _header_problem(cells: list[str]) -> str | None:
+    """None when ``cells`` name the columns x, y, z (each once, any order, any case, spaces around);
+    otherwise what is wrong with them as a header."""
+    if len(cells) != 3:
+        return f"has {len(cells)} cells; expected 3 (x, y, z in any order)"
+    names = [c.strip().lower() for c in cells]
+    if sorted(names) == list(_XYZ):
+        return None
+    unknown = [c.strip() for c, n in zip(cells, names) if n not in _XYZ]
+    repeated = sorted({n for n in names if n in _XYZ and names.count(n) > 1})
+    missing = [n for n in _XYZ if n not in names]
+    parts = []
+    if unknown:
+        parts.append(f"unknown name{'s' if len(unknown) > 1 else ''} {', '.join(map(repr, unknown))}")
+    if repeated:
+        parts.append(f"repeated {', '.join(map(repr, repeated))}")
+    if missing:
+        parts.append(f"missing {', '.join(map(repr, missing))}")
+    return f"found names {[c.strip() for c in cells]!r} ({'; '.join(parts)}), expected x, y, z in any order"
+
+
+def _csv_rows(path: Path) -> list[tuple[int, list[str]]]:
+    """(line number, cells) of each non-blank line of a CSV text file; a line of separators only (``,,``) is
+    a row of empty cells, not a blank line, so it is never skipped (that would shift every later row)."""
+    text = _read_text(path).replace("\r\n", "\n").replace("\r", "\n")
+    out = []
+    for line_no, line in enumerate(text.split("\n"), start=1):
+        if not line.strip():
+            continue
+        try:
+            cells = next(csv.reader([line]))
+        except csv.Error as exc:
+            raise DataFormatError(path, f"line {line_no} is not valid CSV ({exc}): {line!r}") from None
+        out.append((line_no, cells))
+    return out
+
+
+def _read_positions(path: Path) -> tuple[np.ndarray, bool]:
+    """Returns (rows [M, 3] as x, y, z, had_header).
+
+    Decoded as UTF-8 with a byte-order mark stripped; LF, CRLF or CR line ends; blank lines are skipped.
+    The first non-blank row is a header only when its cells, stripped and lower-cased, are x, y, z in some
+    order, and columns are then taken by name (``z,y,x`` is read correctly).  A first row with no numeric
+    cell that is not such a header (``NA,NA,NA``, ``x,y,w``) is refused, and so is one that is partly
+    numeric; a fully numeric first row is the position of spectrum id 1 (no header).  Every other row must
+    be 3 numbers.  So no spectrum is ever matched to the next row's position by a guess about line 1.
     """
     if not path.is_file():
         raise DataFormatError(path, "transmitter position file is missing")
-    rows = list(csv.reader(io.StringIO(_read_text(path))))
-    rows = [r for r in rows if any(c.strip() for c in r)]
+    rows = _csv_rows(path)
     if not rows:
         raise DataFormatError(path, "is empty")
-    first = rows[0]
+    first_no, first = rows[0]
     numeric = [_is_number(c) for c in first]
     if any(numeric) and not all(numeric):
         raise DataFormatError(
-            path, f"line 1 {','.join(first)!r} is neither a header (no numeric cell) nor a numeric x,y,z row: "
-                  f"cells {[c for c, n in zip(first, numeric) if not n]!r} are not numbers, the others are")
+            path, f"line {first_no} {','.join(first)!r} is neither a header (no numeric cell) nor a numeric x,y,z "
+                  f"row: cells {[c for c, n in zip(first, numeric) if not n]!r} are not numbers, the others are")
     had_header = not any(numeric)
+    order = [0, 1, 2]  # column of x, y, z
     if had_header:
-        if len(first) != 3:
+        problem = _header_problem(first)
+        if problem is not None:
             raise DataFormatError(
-                path, f"line 1 {','.join(first)!r} looks like a header (no numeric cell) but has {len(first)} cells; "
-                      "expected 3 (x,y,z)")
-        if [c.strip().lower() for c in first] != ["x", "y", "z"]:
-            log.warning("%s: line 1 %r is not 'x,y,z' but has no numeric cell: taken as a header row",
-                        path, ",".join(first))
+                path, f"line {first_no} {','.join(first)!r} looks like a header (no numeric cell) but is not one: "
+                      f"{problem}; a header names the columns x, y, z, and a file without one starts with the "
+                      "numeric position of spectrum id 1")
+        names = [c.strip().lower() for c in first]
+        order = [names.index(n) for n in _XYZ]
         rows = rows[1:]
-    log.info("%s: %s", path, "header row found and skipped" if had_header else "no header row; first row is id 1")
+    log.info("%s: %s", path, f"header row {','.join(first)!r} found and skipped" if had_header
+             else "no header row; first row is id 1")
     out = np.full((len(rows), 3), np.nan)
-    for i, r in enumerate(rows):
-        line_no = i + 1 + int(had_header)
+    for i, (line_no, r) in enumerate(rows):
         if len(r) != 3:
             raise DataFormatError(path, f"line {line_no} has {len(r)} columns, expected 3 (x,y,z)")
         try:
-            out[i] = [float(c) for c in r]
+            values = [float(c) for c in r]
         except ValueError:
             raise DataFormatError(path, f"line {line_no} is not numeric: {','.join(r)!r}") from None
+        out[i] = [values[j] for j in order]
     return out, had_header
 
 
@@ -232,8 +299,19 @@ def read_nerf2_folder(
     frequency_hz: float = 915e6,
     split_seed: int = 0,
     train_fraction: float = 0.8,
+    position_rows: str = "exact",
 ) -> SpectrumSet:
-    """Read a scene in NeRF2's folder format (see the module docstring)."""
+    """Read a scene in NeRF2's folder format (see the module docstring).
+
+    ``position_rows``: ``"exact"`` (the format's rule) refuses a ``tx_pos.csv`` whose number of data rows is
+    not the largest spectrum id in ``spectrum/``; ``"at_least"`` (a slice whose ``tx_pos.csv`` holds the
+    full dataset's rows) also accepts more rows, with a warning.  Either way the counts are recorded in
+    ``meta["position_rows"]``.
+    """
+    if position_rows not in POSITION_ROWS_RULES:
+        raise DataFormatError(
+            "position_rows", f"must be 'exact' or 'at_least' (data rows of tx_pos.csv = or >= the largest "
+                             f"spectrum id), got {position_rows!r}")
     root = Path(path)
     if not root.is_dir():
         raise DataFormatError(root, "scene folder does not exist")
@@ -273,9 +351,23 @@ def read_nerf2_folder(
     rows = all_ids - 1
     if rows.max() >= len(positions_all):
         k = int(all_ids[rows.argmax()])
-        note = " (line 1 was taken as a header row)" if had_header else ""
+        note = " (not counting the header row)" if had_header else " (the file has no header row)"
         raise DataFormatError(
-            pos_file, f"has {len(positions_all)} position rows but spectrum id {k} needs row {k}{note}")
+            pos_file, f"has {len(positions_all)} position rows but spectrum id {k} needs row {k}{note}; "
+                      f"{_ROW_RULE}")
+    n_rows, largest = len(positions_all), max(files)
+    if n_rows != largest:
+        counts = (f"has {n_rows} position rows but the largest spectrum id in spectrum/ is {largest} "
+                  f"({files[largest].name})")
+        if n_rows < largest or position_rows == "exact":
+            raise DataFormatError(
+                pos_file, f"{counts}; {_ROW_RULE}"
+                          + (". If this file holds a larger dataset's rows (a slice of it), read with "
+                             "position_rows='at_least'" if n_rows > largest else ""))
+        extra = n_rows - largest
+        log.warning("%s %s: %d row%s more than the spectra need, accepted because position_rows='at_least' "
+                    "(rows 1..%d are taken as ids 1..%d; if a row was duplicated or inserted, every later id's "
+                    "position is WRONG)", pos_file, counts, extra, "" if extra == 1 else "s", largest, largest)
     positions = positions_all[rows]
     bad = ~np.isfinite(positions).all(axis=1)
     if bad.any():
@@ -299,7 +391,8 @@ def read_nerf2_folder(
         frequency_hz=float(frequency_hz),
         source=str(root),
         split_source=split_source,
-        meta={"tx_pos_header": had_header, "unused_spectra": len(files) - len(all_ids)},
+        meta={"tx_pos_header": had_header, "unused_spectra": len(files) - len(all_ids),
+              "position_rows": {"rows": n_rows, "largest_id": largest, "rule": position_rows}},
     )
 
 
@@ -316,7 +409,10 @@ def write_nerf2_folder(
     """Write spectra ``[N, 90, 360]`` in [0, 1] as a NeRF2 folder that :func:`read_nerf2_folder` reads back.
 
     PNGs are quantised to 8 bits (pixel = round(255 * value)), as NeRF2 stores them.  ``tx_pos.csv`` gets
-    a header and one row per id 1..max(id) (rows of ids not written are NaN-free zeros and never read).
+    a header and one row per id 1..max(id), so its row count is the largest id as the reader requires (rows
+    of ids not written are zeros and never read); positions are written exactly (shortest round-trip repr).
+    Write into a new or emptied folder: a PNG left there from an earlier write with a larger id would make
+    the reader refuse the row count.
     """
     root = Path(path)
     (root / "spectrum").mkdir(parents=True, exist_ok=True)
@@ -326,14 +422,19 @@ def write_nerf2_folder(
         raise ValueError(f"spectra must be [N, 90, 360] with N = len(ids) = {len(ids)}, got {tuple(spectra.shape)}")
     if not np.isfinite(spectra).all():
         raise ValueError("spectra contain non-finite values")
+    positions = np.asarray(positions, dtype=np.float64)
+    if positions.shape != (len(ids), 3) or not np.isfinite(positions).all():
+        raise ValueError(f"positions must be finite [N, 3] with N = len(ids) = {len(ids)}, got {positions.shape}")
+    if ids.min() < 1 or len(np.unique(ids)) != len(ids):
+        raise ValueError("ids must be distinct integers >= 1 (id k is tx_pos.csv data row k)")
     width = max(5, len(str(int(ids.max()))))
     for k, s in zip(ids.tolist(), spectra):
         buf = io.BytesIO()
         Image.fromarray(np.clip(np.rint(s * 255.0), 0, 255).astype(np.uint8), mode="L").save(buf, format="PNG")
         atomic_write_bytes(root / "spectrum" / f"{k:0{width}d}.png", buf.getvalue())
-    table = np.zeros((int(ids.max()), 3))
-    table[ids - 1] = np.asarray(positions, dtype=np.float64)
-    lines = ["x,y,z"] + [",".join(f"{v:.6f}" for v in row) for row in table]
+    table = np.zeros((int(ids.max()), 3))  # one row per id 1..max(id), the reader's row-count rule
+    table[ids - 1] = positions
+    lines = ["x,y,z"] + [",".join(repr(float(v)) for v in row) for row in table]  # repr: exact round trip
     atomic_write_bytes(root / "tx_pos.csv", ("\n".join(lines) + "\n").encode())
     gw = {"gateway1": {"position": [float(v) for v in gateway_position],
                        "orientation": [float(v) for v in gateway_orientation]}}

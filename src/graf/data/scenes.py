@@ -43,6 +43,9 @@ class NeRF2Scene:
         name: scene name written into results.
         path: the folder (``embedded:rfid_s23_200`` for the shipped slice).
         split_seed / train_fraction: used only when the folder has no index files.
+        position_rows: ``"exact"`` (tx_pos.csv has one row per spectrum id 1..largest id, NeRF2's rule) or
+            ``"at_least"`` (a slice whose tx_pos.csv holds a larger dataset's rows: more rows are accepted with a
+            warning); see :func:`graf.data.nerf2_format.read_nerf2_folder`.
         band / fixed_band: the band name a run uses for this scene (fixed: whatever the run's band= says, as
             for measured data); read by the run, see :func:`graf.cli.common.scene_band_config`.
     """
@@ -50,11 +53,25 @@ class NeRF2Scene:
     kind = "nerf2_folder"
 
     def __init__(self, name: str, path: str, split_seed: int = 0, train_fraction: float = 0.8,
-                 band: str | None = None, fixed_band: bool = False):
+                 band: str | None = None, fixed_band: bool = False, position_rows: str = "exact"):
+        from graf.data.nerf2_format import POSITION_ROWS_RULES
+        from graf.errors import ConfigError
+
+        if isinstance(train_fraction, bool) or not isinstance(train_fraction, (int, float)) \
+                or not 0.0 < float(train_fraction) < 1.0:
+            raise ConfigError(f"scene.{name}.train_fraction must be in (0, 1) (the seeded split's training part when "
+                              f"the folder has no index files), got {train_fraction!r}")
+        if isinstance(split_seed, bool) or not isinstance(split_seed, int):
+            raise ConfigError(f"scene.{name}.split_seed must be an integer, got {split_seed!r}")
+        if position_rows not in POSITION_ROWS_RULES:
+            raise ConfigError(f"scene.{name}.position_rows must be 'exact' (tx_pos.csv rows = the largest spectrum id) "
+                              f"or 'at_least' (more rows accepted, with a warning), got {position_rows!r}")
         self.name, self.path, self.band, self.fixed_band = name, path, band, bool(fixed_band)
-        self.split_seed, self.train_fraction = split_seed, train_fraction
+        self.split_seed, self.train_fraction = split_seed, float(train_fraction)
+        self.position_rows = position_rows
 
     def load(self, data_root: str | Path | None, band: Band) -> SpectrumSet:
         folder = resolve_scene_path(self.path, data_root)
         return read_nerf2_folder(folder, name=self.name, frequency_hz=band.frequency_hz,
-                                 split_seed=self.split_seed, train_fraction=self.train_fraction)
+                                 split_seed=self.split_seed, train_fraction=self.train_fraction,
+                                 position_rows=self.position_rows)

@@ -17,11 +17,12 @@ import numpy as np
 import torch
 
 from graf.bands import SPEED_OF_LIGHT
+from graf.errors import UserError
 
 log = logging.getLogger(__name__)
 
 
-class DataFormatError(ValueError):
+class DataFormatError(UserError):
     """A scene's files (or a data setting) are not as expected.  The message names the file and the problem."""
 
     def __init__(self, path: str | os.PathLike, problem: str):

@@ -6,7 +6,8 @@ and ``configure_optimizers``.  Validation and test metrics are per-spectrum mean
 (``val/...`` and ``test/...``: ``mse``, ``psnr``, ``ssim``, ``lpips``); predictions are clamped to [0, 1] first.
 
 Every checkpoint carries ``checkpoint["graf"] = {"target": <class path>, "layout": <LAYOUT>, "scenes": {name:
-{"index", "band_hz"}}}`` (the scenes it was trained on).  A class
+{"index", "band_hz", "fingerprint"}}}`` (the scenes it was trained on, identified by content:
+:mod:`graf.data.fingerprint`).  A class
 bumps ``LAYOUT`` when its weights change meaning (and says why in ``LAYOUT_CHANGES``); loading a checkpoint
 of another layout, or of another class, is refused with a message that names the file and the reason
 (:func:`check_checkpoint`).
@@ -20,10 +21,11 @@ from pathlib import Path
 import lightning as L
 import torch
 
+from graf.errors import UserError
 from graf.metrics import spectrum_metrics
 
 
-class CheckpointError(ValueError):
+class CheckpointError(UserError):
     """A checkpoint that cannot be used as asked; the message names the file and why."""
 
 
@@ -81,17 +83,22 @@ class SpectrumModule(L.LightningModule):
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         checkpoint["graf"] = {"target": class_path(type(self)), "layout": int(self.LAYOUT),
                               "scenes": self.trained_scenes()}
+        if getattr(self, "run_settings", None):  # data, neighbours, seed, trainer: a resume is checked against them
+            checkpoint["graf"]["run"] = self.run_settings
 
     def trained_scenes(self) -> dict:
         """``{scene name: {"index", "band_hz"}}``: the scenes this model was trained on, with the scene index
         and band each had (those of the checkpoint it was fine-tuned from, ``scene_table``, and the training
         datamodule's).  Checkpoints record it, so a later run gives a known scene its index back and an
         unseen one a new index, and can tell a cross-band transfer."""
+        from graf.data.fingerprint import register_scene
+
         table = dict(getattr(self, "scene_table", None) or {})
         trainer = getattr(self, "_trainer", None)
         dm = getattr(trainer, "datamodule", None) if trainer is not None else None
-        for d, b, k in zip(getattr(dm, "sets", []), getattr(dm, "bands", []), getattr(dm, "scene_index", [])):
-            table.setdefault(d.name, {"index": int(k), "band_hz": float(b.frequency_hz)})
+        if getattr(dm, "sets", None):
+            for d, fp, k in zip(dm.sets, dm.fingerprints(), dm.scene_index.tolist()):
+                register_scene(table, d.name, fp, k)
         return table
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:

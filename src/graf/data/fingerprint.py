@@ -1,0 +1,73 @@
+"""A scene identified by its content, not its config name.
+
+Two NeRF2 folders read through the same config (``scene=nerf2``) share a name but not their data; the same
+data read under another name is the same scene.  What a checkpoint records about the scenes it was trained
+on (``checkpoint["graf"]["scenes"]``) carries each one's fingerprint: digests of the gateway pose, the
+transmitter positions (with their ids) and the spectra, and the band.  Whether a test scene was "seen" in
+training, which scene index it gets, and which scene a fine-tuning run continues are decided by the
+fingerprint (:func:`find_scene`); a checkpoint written before fingerprints falls back to the name.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+
+import numpy as np
+import torch
+
+log = logging.getLogger(__name__)
+
+
+def _sha(*arrays) -> str:
+    h = hashlib.sha256()
+    for a in arrays:
+        a = a.detach().cpu().numpy() if isinstance(a, torch.Tensor) else np.asarray(a)
+        h.update(str(a.dtype).encode() + str(a.shape).encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+def scene_fingerprint(data, frequency_hz: float) -> dict:
+    """``{"digest", "gateway", "positions", "spectra", "band_hz", "n"}`` of a :class:`SpectrumSet` at a band
+    (sha256 hex digests; ``digest`` joins the others).  The content digests are computed once per set."""
+    parts = getattr(data, "_content_digests", None)
+    if parts is None:
+        parts = {"gateway": _sha(np.asarray(data.gateway_position, np.float64),
+                                 np.asarray(data.gateway_orientation, np.float64)),
+                 "positions": _sha(np.asarray(data.ids, np.int64), np.asarray(data.positions, np.float64)),
+                 "spectra": _sha(torch.as_tensor(data.spectra, dtype=torch.float32))}
+        data._content_digests = parts
+    band_hz = float(frequency_hz)
+    digest = hashlib.sha256(f"{parts['gateway']}|{parts['positions']}|{parts['spectra']}|{band_hz:.6f}".encode())
+    return {"digest": digest.hexdigest(), **parts, "band_hz": band_hz, "n": int(len(data.ids))}
+
+
+def find_scene(table: dict, name: str, fingerprint: dict) -> str | None:
+    """The key in ``table`` (``{key: {"index", "band_hz", "fingerprint"?}}``) of the scene with this content, or
+    None when the model never saw it.  Entries without a fingerprint (checkpoints written before them) match by
+    name."""
+    for key, entry in table.items():
+        fp = entry.get("fingerprint")
+        if fp is not None and fp.get("digest") == fingerprint["digest"]:
+            return key
+    if name in table and table[name].get("fingerprint") is None:
+        log.warning("scene %s: the checkpoint records no fingerprint for it (written before they were kept): "
+                    "taken as the same scene by its name alone", name)
+        return name
+    return None
+
+
+def register_scene(table: dict, name: str, fingerprint: dict, index: int) -> str:
+    """Add a scene to ``table`` unless its content is there already; returns its key (the name, or
+    ``name#<digest[:8]>`` when another scene of that name is there)."""
+    key = find_scene(table, name, fingerprint)
+    if key is not None:
+        return key
+    key = name if name not in table else f"{name}#{fingerprint['digest'][:8]}"
+    table[key] = {"index": int(index), "band_hz": float(fingerprint["band_hz"]), "fingerprint": fingerprint}
+    return key
+
+
+def next_index(table: dict) -> int:
+    return max((int(v["index"]) for v in table.values()), default=-1) + 1

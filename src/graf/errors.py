@@ -1,0 +1,18 @@
+"""The errors that mean "what the user gave is wrong" (data, config values, checkpoints, files).
+
+Every command ends on one of these with its message alone on stderr and exit code 2
+(:func:`graf.cli.common.cli_errors`); anything else is a bug and keeps its traceback.  The classes that
+name a file (:class:`graf.data.spectrum_set.DataFormatError`), a checkpoint
+(:class:`graf.models.base.CheckpointError`) or a neighbour shortage (:class:`graf.neighbors.NoNeighborsError`)
+subclass :class:`UserError` beside :class:`ConfigError`.
+"""
+
+from __future__ import annotations
+
+
+class UserError(ValueError):
+    """Something the user gave cannot be used as given; the message says what and where."""
+
+
+class ConfigError(UserError):
+    """A configuration that cannot run as given; the message says what to set."""
