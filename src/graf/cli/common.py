@@ -129,7 +129,10 @@ def cli_errors(main):
 
 
 METRIC_NAMES = ("mse", "psnr", "ssim", "lpips")
-EVAL_METRICS = tuple(f"{s}/{m}" for s in ("val", "test") for m in METRIC_NAMES)
+# test/psnr_swapped: PSNR with every target's neighbours replaced by another target's; test/reliance_db: test/psnr
+# minus it (how much a method reads its neighbours; None for a method that takes none)
+EVAL_METRICS = tuple(f"{s}/{m}" for s in ("val", "test") for m in METRIC_NAMES) + ("test/psnr_swapped",
+                                                                                    "test/reliance_db")
 
 
 def scene_configs(node) -> list[DictConfig]:
@@ -462,9 +465,30 @@ def evaluate_model(cfg: DictConfig, model, dm, loggers=(), timing: dict | None =
         trainer.test(model=model, datamodule=dm, verbose=False)
         metrics.update({k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")})
     t2 = time.perf_counter()
+    if cfg.get("test", True) and cfg.get("reliance", True) and getattr(model, "uses_neighbours", True):
+        swapped = swapped_psnr(cfg, model, dm)
+        if swapped is not None:
+            metrics["test/psnr_swapped"] = swapped
+            metrics["test/reliance_db"] = metrics["test/psnr"] - swapped
     if timing is not None:
-        timing.update(val_s=round(t1 - t0, 3), test_s=round(t2 - t1, 3))
+        timing.update(val_s=round(t1 - t0, 3), test_s=round(t2 - t1, 3), reliance_s=round(time.perf_counter() - t2, 3))
     return {k: metrics.get(k) for k in EVAL_METRICS}, collector.arrays()
+
+
+def swapped_psnr(cfg: DictConfig, model, dm) -> float | None:
+    """Neighbour reliance's second pass: the test PSNR with each target's neighbours replaced by another
+    target's of the same scene (a derangement seeded by ``reliance_seed``; the same L, positions and spectra of
+    real neighbours, only the wrong ones).  A model that reads its neighbours loses PSNR; one that ignores them
+    scores the same.  None when a scene has a single test target."""
+    if dm.swapped_neighbors(dm.eval_split, int(cfg.get("reliance_seed") or 0)) is None:
+        return None
+    trainer = evaluation_trainer(cfg)
+    dm.swap_seed = int(cfg.get("reliance_seed") or 0)
+    try:
+        trainer.test(model=model, datamodule=dm, verbose=False)
+    finally:
+        dm.swap_seed = None
+    return float(trainer.callback_metrics["test/psnr"])
 
 
 def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -> dict:
@@ -612,7 +636,7 @@ def save_samples(out: Path, scene: str, method: str, arrays: dict, n: int) -> Pa
 def format_metrics_table(rows: list[dict]) -> str:
     """A plain-text table of the four test metrics (and the validation PSNR), one row per results dict."""
     head = (f"{'method':<22}{'scene':<16}{'n_test':>7}{'MSE':>10}{'PSNR':>9}{'SSIM':>8}{'LPIPS':>8}"
-            f"{'val PSNR':>10}")
+            f"{'val PSNR':>10}{'reliance dB':>13}")
     lines = [head, "-" * len(head)]
     for r in rows:
         m = r["metrics"]
@@ -624,7 +648,7 @@ def format_metrics_table(rows: list[dict]) -> str:
 
         lines.append(f"{r['method']:<22}{r['scene']:<16}{r['n_test']:>7}{f('test/mse', '10.4f')}"
                      f"{f('test/psnr', '9.2f')}{f('test/ssim', '8.3f')}{f('test/lpips', '8.3f')}"
-                     f"{f('val/psnr', '10.2f')}")
+                     f"{f('val/psnr', '10.2f')}{f('test/reliance_db', '13.2f')}")
     return "\n".join(lines)
 
 

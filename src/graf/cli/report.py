@@ -43,6 +43,8 @@ from graf.io import atomic_write_bytes, atomic_write_json
 
 log = logging.getLogger("graf")
 
+# neighbour reliance (PSNR with true minus with swapped neighbours): a column of the tables, not a figure
+RELIANCE = ("test/reliance_db", "reliance dB", "{:.2f}")
 METRICS = (("test/mse", "MSE", "{:.4f}"), ("test/lpips", "LPIPS", "{:.3f}"), ("test/psnr", "PSNR", "{:.2f}"),
            ("test/ssim", "SSIM", "{:.3f}"))
 # the settings a study may vary, in the order its table blocks are nested
@@ -109,11 +111,11 @@ def rows_of(result: dict, job: str) -> list[dict]:
         base = {**common, "eval_scene": ev["eval_scene"], "eval_band": _band(ev.get("band_hz")),
                 "within_scene": bool(ev.get("within_scene")), "n_test": ev.get("n_test")}
         out.append({**base, "method": result.get("method"), "steps": budget,
-                    **{k: (ev.get("metrics") or {}).get(k) for k, _, _ in METRICS}})
+                    **{k: (ev.get("metrics") or {}).get(k) for k, _, _ in (*METRICS, RELIANCE)}})
         for name, b in (ev.get("baselines") or {}).items():
             # a baseline is not trained: it is the same whatever the job trained on
             out.append({**base, "trained_on": "-", "train_band": "-", "within_scene": None, "method": name, "steps": "0",
-                        **{k: (b.get("metrics") or {}).get(k) for k, _, _ in METRICS}})
+                        **{k: (b.get("metrics") or {}).get(k) for k, _, _ in (*METRICS, RELIANCE)}})
     return out
 
 
@@ -149,14 +151,14 @@ def _sort_key(v):
 
 def table(rows: list[dict], axes: list[str]) -> tuple[list[str], list[list]]:
     """Method x metric rows, sorted by the study's varying axes (the seed's tables: one block per setting)."""
-    header = [*axes, "method", "n_test", "steps", *[n for _, n, _ in METRICS]]
+    header = [*axes, "method", "n_test", "steps", *[n for _, n, _ in (*METRICS, RELIANCE)]]
     order = sorted(rows, key=lambda r: ([_sort_key(r.get(a)) for a in axes], r["method"] == "knn", r["method"]))
     return header, [[r.get(a) for a in axes] + [r["method"], r.get("n_test"), r["steps"]]
-                    + [r.get(k) for k, _, _ in METRICS] for r in order]
+                    + [r.get(k) for k, _, _ in (*METRICS, RELIANCE)] for r in order]
 
 
 def _fmt(v, col: str) -> str:
-    spec = {n: s for _, n, s in METRICS}.get(col)
+    spec = {n: s for _, n, s in (*METRICS, RELIANCE)}.get(col)
     if v is None:
         return ""
     if isinstance(v, float) and math.isnan(v):
@@ -170,7 +172,7 @@ def to_markdown(header, body) -> str:
 
 def to_latex(header, body) -> str:
     esc = lambda s: str(s).replace("_", r"\_").replace("%", r"\%").replace("&", r"\&")  # noqa: E731
-    lines = [r"\begin{tabular}{" + "l" * (len(header) - len(METRICS)) + "r" * len(METRICS) + "}", r"\toprule",
+    lines = [r"\begin{tabular}{" + "l" * (len(header) - len(METRICS) - 1) + "r" * (len(METRICS) + 1) + "}", r"\toprule",
              " & ".join(esc(h) for h in header) + r" \\", r"\midrule"]
     lines += [" & ".join(esc(_fmt(v, c)) for v, c in zip(row, header)) + r" \\" for row in body]
     return "\n".join(lines + [r"\bottomrule", r"\end{tabular}"]) + "\n"

@@ -38,7 +38,8 @@ from graf.io import atomic_write_bytes, atomic_write_json
 
 log = logging.getLogger("graf")
 
-METRICS = ("val/psnr", "val/ssim", "test/mse", "test/psnr", "test/ssim", "test/lpips")  # blank where absent
+METRICS = ("val/psnr", "val/ssim", "test/mse", "test/psnr", "test/ssim", "test/lpips",  # blank where absent
+           "test/reliance_db")
 IGNORED_PREFIXES = ("paths.", "hydra.", "data_root", "task_name", "logger.", "trainer.default_root_dir", "callbacks.",
                     "save_predictions", "plot_count", "ckpt_path",
                     # a search trial's link to its study (its number stays: trials.csv's key)
@@ -149,7 +150,7 @@ def build_table(rows: list[dict]) -> tuple[list[str], list[list]]:
     and tested on, the config keys that vary between the runs, the budget and the metrics."""
     axes = [k for k in varying_keys(rows) if k not in NAMED_GROUPS]  # the two scene columns name them
     header = ["method", "trained on", "tested on", *axes, "parameters", "steps", "n_test", "val PSNR", "val SSIM",
-              "MSE", "PSNR", "SSIM", "LPIPS", "seconds"]
+              "MSE", "PSNR", "SSIM", "LPIPS", "reliance dB", "seconds"]
     body, seen = [], set()
     for r in rows:
         flat = _flat_config(r.get("config", {}))
@@ -175,6 +176,7 @@ def _fmt(v, col):
         if math.isnan(v):
             return "nan"
         return {"MSE": f"{v:.4f}", "PSNR": f"{v:.2f}", "SSIM": f"{v:.3f}", "LPIPS": f"{v:.3f}", "val PSNR": f"{v:.2f}",
+                "reliance dB": f"{v:.2f}",
                 "val SSIM": f"{v:.3f}", "seconds": f"{v:.1f}"}.get(col, f"{v:g}")
     return "" if v is None else str(v)
 

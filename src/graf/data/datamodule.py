@@ -87,6 +87,16 @@ def measured_part(train_rows: np.ndarray, fraction: float | None, seed: int, whe
     return np.sort(train_rows[perm[:k]])
 
 
+def derangement(n: int, rng: np.random.Generator) -> np.ndarray:
+    """A seeded permutation of ``range(n)`` with no fixed point (n >= 2): a uniform random n-cycle (Sattolo's
+    algorithm)."""
+    p = np.arange(n)
+    for i in range(n - 1, 0, -1):
+        j = int(rng.integers(0, i))  # j < i: never i itself
+        p[i], p[j] = p[j], p[i]
+    return p
+
+
 def mixed_seed(*parts: int) -> int:
     """A 63-bit seed from integers (numpy's SeedSequence: well mixed, stable across versions)."""
     state = np.random.SeedSequence([int(p) & 0xFFFFFFFF for p in parts]).generate_state(1, np.uint64)[0]
@@ -215,6 +225,7 @@ class SpectrumDataModule(L.LightningDataModule):
         if len(idx) != len(self.scenes):
             raise ValueError(f"{len(idx)} scene indices given for {len(self.scenes)} scenes")
         self.scene_index = torch.as_tensor(idx, dtype=torch.long)
+        self.swap_seed: int | None = None  # set by the reliance pass (swapped_neighbors)
 
     # ------------------------------------------------------------------ setup
     def setup(self, stage: str | None = None) -> None:
@@ -386,8 +397,28 @@ class SpectrumDataModule(L.LightningDataModule):
             "scene_index": self.scene_index[k],
         }
 
+    def swapped_neighbors(self, name: str, seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+        """``split_neighbors(name)`` with each target's neighbours replaced by another target's of the same scene
+        (a seeded derangement: no target keeps its own, every list is some target's, the same L): what a model
+        that reads its neighbours must do worse on (:func:`graf.metrics.reliance.neighbour_reliance`).  None when
+        a scene has a single target in the split (no derangement exists)."""
+        rows, idx, mask = self.split_neighbors(name)
+        perm = torch.arange(len(rows))
+        rng = np.random.default_rng(int(seed))
+        for k in torch.unique(self.row_scene[rows]).tolist():
+            members = (self.row_scene[rows] == k).nonzero().flatten()
+            if len(members) < 2:
+                return None
+            perm[members] = members[torch.as_tensor(derangement(len(members), rng))]
+        return rows, idx[perm], mask[perm]
+
     def _eval_collate(self, name: str):
         rows, idx, mask = self.split_neighbors(name)
+        if self.swap_seed is not None:  # the reliance pass: every target with another target's neighbours
+            swapped = self.swapped_neighbors(name, self.swap_seed)
+            if swapped is None:
+                raise ValueError(f"split {name}: a scene has a single target, no derangement of its neighbours")
+            rows, idx, mask = swapped
 
         def collate(positions: list[int]) -> dict:
             pos = torch.as_tensor(positions, dtype=torch.long)

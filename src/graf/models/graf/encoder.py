@@ -68,10 +68,14 @@ class ResNetEncoder(nn.Module):
             if isinstance(m, BasicBlock):
                 nn.init.zeros_(m.norm2.weight)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward_map(self, x: torch.Tensor) -> torch.Tensor:
+        """The feature map before pooling, ``[N, widths[-1], h, w]`` (3 x 12 from 90 x 360 at stride 32):
+        ray-aligned features sample it at each ray's direction."""
         if x.dim() == 3:
             x = x.unsqueeze(1)
         if self.downsample > 1:
             x = F.avg_pool2d(x, self.downsample, ceil_mode=True)
-        x = self.stages(self.stem(x))
-        return x.mean(dim=(-2, -1))
+        return self.stages(self.stem(x))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.forward_map(x).mean(dim=(-2, -1))

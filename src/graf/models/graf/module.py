@@ -48,6 +48,7 @@ from torch import nn
 from graf.models.base import SpectrumModule, adam_exponential_decay
 from graf.models.graf.attention import CrossAttentionBlock, SelfAttentionBlock
 from graf.models.graf.encoder import ResNetEncoder
+from graf.models.graf.ray_features import RayNeighbourTokens, pixel_window, upsample_wrap
 from graf.geometry.encoding import PositionalEncoding, sinusoidal_encoding, to_gateway_axes, to_gateway_frame
 from graf.geometry.grid import local_directions
 from graf.geometry.grid import N_AZIMUTH, N_ELEVATION, N_RAYS
@@ -55,6 +56,11 @@ from graf.geometry.rays import box_segments, fp32, random_pixels, segment_sample
 from graf.models.knn.weights import barycentric_weights, idw_weights
 
 WEIGHTINGS = ("idw", "barycentric")
+# how the rays read the neighbours: pooled (the seed's: one token per neighbour spectrum), ray (per-ray tokens
+# from each neighbour's feature map and pixel values at the ray's own direction), ray_knn (ray, plus a per-ray
+# convex combination of the neighbours' pixel values that equals IDW KNN at initialisation, corrected by the
+# ray tracer): see graf.models.graf.ray_features
+NEIGHBOUR_FEATURES = ("pooled", "ray", "ray_knn")
 LOSSES = ("mse", "log_mse")
 LOG_MSE_EPS = 1e-6
 # The scene index enters the PE as a coordinate ``index * SCENE_INDEX_SCALE``: with a raw integer n every
@@ -105,8 +111,17 @@ class GRaFModule(SpectrumModule):
                  max_samples: int = 128, rays_per_step: int = 5120, chunk_rays: int = 4096, lr: float = 5e-4,
                  lr_decay: float = 0.1, decay_steps: int = 300_000, residual: bool = False,
                  weighting: str = "idw", use_scene_index: bool = False, loss: str = "mse", length_unit: float = 4.0,
-                 voxel_wavelengths: float = 1.0, ray_window: int = 0, attention: str = "auto"):
+                 voxel_wavelengths: float = 1.0, ray_window: int = 0, attention: str = "auto",
+                 neighbour_features: str = "pooled", ray_feature_dim: int = 8, pixel_window: int = 1):
         super().__init__()
+        if neighbour_features not in NEIGHBOUR_FEATURES:
+            raise ValueError(f"model.neighbour_features must be one of {NEIGHBOUR_FEATURES}, got {neighbour_features!r}")
+        if ray_feature_dim < 1 or pixel_window < 0:
+            raise ValueError(f"model.ray_feature_dim must be >= 1 and model.pixel_window >= 0, got {ray_feature_dim}, "
+                             f"{pixel_window}")
+        if neighbour_features == "ray_knn" and residual:
+            raise ValueError("model.neighbour_features=ray_knn already adds its own per-ray KNN base: "
+                             "model.residual must be false")
         if weighting not in WEIGHTINGS:
             raise ValueError(f"model.weighting must be one of {WEIGHTINGS}, got {weighting!r}")
         if loss not in LOSSES:
@@ -131,6 +146,8 @@ class GRaFModule(SpectrumModule):
         self.residual, self.weighting, self.use_scene_index = bool(residual), weighting, bool(use_scene_index)
         self.loss_name, self.length_unit = loss, float(length_unit)
         self.sample_spacing, self.ray_window = float(voxel_wavelengths), int(ray_window)
+        self.neighbour_features, self.pixel_window = neighbour_features, int(pixel_window)
+        self.ray_aligned = neighbour_features != "pooled"
         self._ray_tables: dict = {}  # geometry only: per scene geometry and band, never stale
         self._eval_cache: dict = {}  # weights-dependent tables of evaluation (see _cached)
         d = self.d_model
@@ -139,7 +156,11 @@ class GRaFModule(SpectrumModule):
         self.pe = PositionalEncoding(pe_freqs)
         pe_abs, pe_off = self.pe.out_dim(coord_dim), self.pe.out_dim(3)
         self.encoder = ResNetEncoder(encoder_widths, in_channels=1, downsample=encoder_downsample)
-        self.mlp1 = _mlp(self.encoder.out_dim + pe_abs + pe_off, mlp_dim, d)
+        if self.ray_aligned:  # per-ray tokens (ray_features); no pooled token
+            self.ray_proj = nn.Conv2d(self.encoder.out_dim, int(ray_feature_dim), 1)
+            self.ray_tokens = RayNeighbourTokens(int(ray_feature_dim), self.pixel_window, pe_off + 1, mlp_dim, d)
+        else:
+            self.mlp1 = _mlp(self.encoder.out_dim + pe_abs + pe_off, mlp_dim, d)
         # Linear(PE(voxel) ⊕ PE(ray direction) ⊕ PE(target)) split in three: the direction's part is computed
         # once per ray (it is constant along the ray) and the target's once per target
         self.query_voxel = nn.Linear(pe_abs, d)
@@ -153,14 +174,15 @@ class GRaFModule(SpectrumModule):
         self.ray_blocks = nn.ModuleList(SelfAttentionBlock(d, ray_heads, ray_head_dim, ffn_dim, kernel=attention)
                                         for _ in range(ray_blocks))
         self.head = nn.Linear(d, 2)
-        if self.residual:
+        if self.residual or neighbour_features == "ray_knn":  # the model starts as (per-ray) KNN
             nn.init.zeros_(self.head.weight)
             nn.init.zeros_(self.head.bias)
         self.register_buffer("ray_dirs", local_directions(dtype=torch.float32), persistent=False)
 
     @property
     def method(self) -> str:
-        return "graf-residual" if self.residual else "graf"
+        name = "graf-residual" if self.residual else "graf"
+        return name if self.neighbour_features == "pooled" else f"{name}-{self.neighbour_features.replace('_', '-')}"
 
     # ------------------------------------------------------------------ building blocks
     def _with_scene(self, x: torch.Tensor, scene_index: torch.Tensor) -> torch.Tensor:
@@ -285,11 +307,37 @@ class GRaFModule(SpectrumModule):
         tokens = self.mlp1(torch.cat([feats.float(), pe_pos, pe_off], dim=-1))
         return torch.where(mask[..., None], tokens, torch.zeros_like(tokens)), mask
 
+    def encode_ray_neighbours(self, batch: dict) -> dict:
+        """Ray-aligned mode: each neighbour's projected feature map at every pixel ``ray_maps [B, L, k, P]``, the
+        spectra ``src [B, L, 90, 360]`` (padded ones zero), the geometry's share of the token MLP ``geo [B, L,
+        hidden]`` and, for ``ray_knn``, IDW's log-weights ``idw_logits [B, L]``."""
+        spectra, mask = batch["src_spectra"].float(), batch["src_mask"].bool()
+        B, L = mask.shape
+        maps = upsample_wrap(self.ray_proj(self.encoder.forward_map(spectra[mask].unsqueeze(1))))  # [N, k, 90, 360]
+        ray_maps = maps.new_zeros(B, L, maps.shape[1], N_RAYS)
+        ray_maps[mask] = maps.flatten(2)
+        src_pos, tgt_pos = batch["src_pos"].float(), batch["tgt_pos"].float()
+        offset = src_pos - tgt_pos[:, None, :]
+        pe_off = self.pe(to_gateway_axes(offset, batch["gw_rot"].float()) / self.length_unit)
+        dist_wl = torch.linalg.vector_norm(offset, dim=-1, keepdim=True) / batch["wavelength"].float()[:, None, None]
+        ctx = {"ray_maps": ray_maps, "src": spectra.masked_fill(~mask[..., None, None], 0.0),
+               "geo": self.ray_tokens.geometry(torch.cat([pe_off, torch.log1p(dist_wl)], dim=-1))}
+        if self.neighbour_features == "ray_knn":
+            ctx["idw_logits"] = torch.log(idw_weights(batch["tgt_pos"], batch["src_pos"], mask).float()).masked_fill(
+                ~mask, float("-inf"))
+        return ctx
+
     def prepare(self, batch: dict) -> dict:
         """Everything about a batch that does not depend on the rays: computed once per batch."""
-        tokens, mask = self.encode_neighbours(batch)
-        B = tokens.shape[0]
+        if self.ray_aligned:
+            mask = batch["src_mask"].bool()
+            tokens, extra = mask.new_zeros(mask.shape[0], 0), self.encode_ray_neighbours(batch)
+        else:
+            (tokens, mask), extra = self.encode_neighbours(batch), {}
+        B = mask.shape[0]
         ctx = {
+            **extra,
+            "mask": mask,
             "tokens": tokens,
             "key_mask": None if bool(mask.all()) else mask,
             "target_query": self.query_target(self.pe(self._coords(batch["tgt_pos"].float(), batch))),  # [B, d]
@@ -371,7 +419,15 @@ class GRaFModule(SpectrumModule):
             q, code = self._voxel_inputs(pix, t_in, step, ctx["wavelength"][bi], ctx["scene_index"][bi], S)
         q = q + ctx["target_query"][bi][:, None, :]
         key_mask = ctx["key_mask"]
-        if one_item:  # every voxel of the group attends to the same target's neighbours: one long query axis
+        base = None
+        if self.ray_aligned:  # each ray's voxels attend to that ray's own neighbour tokens
+            window = pixel_window(ctx["src"], bi, pix, self.pixel_window)  # [n, L, K]
+            ctx_tokens, logits = self.ray_tokens(ctx["ray_maps"][bi, :, :, pix], window, ctx["geo"][bi])
+            x, km = q, None if key_mask is None else key_mask[bi]
+            if self.neighbour_features == "ray_knn":  # convex weights at this pixel: IDW at init, then learned
+                w = torch.softmax(ctx["idw_logits"][bi] + logits, dim=-1)
+                base = (w * window[..., window.shape[-1] // 2]).sum(dim=-1)  # [n]
+        elif one_item:  # every voxel of the group attends to the same target's neighbours: one long query axis
             b = int(bi[0])
             x = q.reshape(1, n * S, self.d_model)
             ctx_tokens, km = ctx["tokens"][b:b + 1], None if key_mask is None else key_mask[b:b + 1]
@@ -381,7 +437,10 @@ class GRaFModule(SpectrumModule):
             x = blk(x, ctx_tokens, km)
         v = self.mlp2(x).view(n, S, self.d_model) + code
         v = self._ray_transformer(v)
-        return self.head(v.float().mean(dim=1)).float()
+        out = self.head(v.float().mean(dim=1)).float()
+        if base is not None:  # ray_knn: the ray tracer corrects the per-ray KNN value (re + base, im)
+            out = torch.stack([out[:, 0] + base.float(), out[:, 1]], dim=-1)
+        return out
 
     def render(self, ctx: dict, pix: torch.Tensor) -> torch.Tensor:
         """Predicted values ``[B, R]`` of the pixels ``pix [B, R]`` (long, ``r * 360 + c``).  Rays are grouped
@@ -409,7 +468,7 @@ class GRaFModule(SpectrumModule):
         """Whole spectra ``[B, 90, 360]``: each item's pixels in order of voxel count, in chunks of at most
         ``chunk_rays`` rays over the batch (memory bounded by the chunk), so a chunk holds few groups."""
         ctx = self.prepare(batch)
-        B = ctx["tokens"].shape[0]
+        B = ctx["mask"].shape[0]
         order = torch.stack([t["order"] for t in ctx["tables"]])  # [B, P]
         per = max(1, self.chunk_rays // B)
         out = torch.cat([self.render(ctx, order[:, s:s + per]) for s in range(0, N_RAYS, per)], dim=1)

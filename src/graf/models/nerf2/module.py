@@ -48,6 +48,7 @@ from graf.models.nerf2.renderer import render_rays, sample_distances
 
 class NeRF2Module(SpectrumModule):
     INFERENCE_SETTINGS = ("chunk_rays",)  # graf-eval may change these on a trained checkpoint
+    uses_neighbours = False  # one scene's field: no neighbour is read, so no reliance to measure
     """Args (all in ``conf/model/nerf2.yaml``):
         depth / width / skips: the attenuation MLP (8 x 256, point encoding re-entered after layer 4).
         pe_freqs: encoding frequencies of points, view directions and transmitter (10: 3 -> 63 dims).

@@ -1,0 +1,90 @@
+"""Ray-aligned neighbour features (``model.neighbour_features=ray`` and ``ray_knn``).
+
+Every spectrum of a scene is measured by the same array, so ray (elevation, azimuth) of the target is pixel
+(elevation, azimuth) of every neighbour.  Instead of pooling each neighbour's spectrum to one vector, a ray
+reads, for each neighbour l:
+
+- the neighbour's encoder feature map (projected to ``k`` channels) at the ray's direction, bilinear at the
+  pixel centre, the azimuth wrapping at 360 degrees and the elevation clamped at its ends
+  (:func:`upsample_wrap`),
+- the neighbour's own values in a ``(2r+1) x (2r+1)`` window around that pixel (:func:`pixel_window`; the
+  centre is its value at the pixel),
+- the neighbour's geometry: its offset from the target in the gateway frame (PE) and its distance in
+  wavelengths (``log1p``).
+
+:class:`RayNeighbourTokens` turns these into L per-ray tokens ``[n, L, d]`` (a two-layer MLP whose geometry
+part is computed once per batch), which the voxel queries of that ray cross-attend to.  Its ``weight_logits``
+head (zero at initialisation) corrects IDW's logits per ray: the ``ray_knn`` variant's convex weights.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from graf.geometry.grid import N_AZIMUTH, N_ELEVATION
+
+
+def upsample_wrap(maps: torch.Tensor) -> torch.Tensor:
+    """``[N, k, h, w]`` maps over the whole 90 x 360 grid -> ``[N, k, 90, 360]``: each spectrum pixel's value
+    bilinear at its centre, with the azimuth periodic (the last map column is the first one's neighbour) and
+    the elevation clamped (no wrap).  A map already at 90 x 360 comes back unchanged."""
+    N, k, h, w = maps.shape
+    dev = maps.device
+    padded = torch.cat([maps[..., -1:], maps, maps[..., :1]], dim=-1)  # [N, k, h, w + 2]: one column each side
+    y = ((torch.arange(N_ELEVATION, device=dev, dtype=torch.float32) + 0.5) * (h / N_ELEVATION) - 0.5).clamp(0, h - 1)
+    x = (torch.arange(N_AZIMUTH, device=dev, dtype=torch.float32) + 0.5) * (w / N_AZIMUTH) - 0.5 + 1.0
+    y0 = y.floor().long().clamp(0, h - 1)
+    y1 = (y0 + 1).clamp(max=h - 1)
+    x0 = x.floor().long()
+    x1 = (x0 + 1).clamp(max=w + 1)
+    wy = (y - y0.float()).to(maps.dtype)[:, None]
+    wx = (x - x0.float()).to(maps.dtype)
+    rows = padded[:, :, y0] * (1 - wy) + padded[:, :, y1] * wy  # [N, k, 90, w + 2]
+    return rows[..., x0] * (1 - wx) + rows[..., x1] * wx
+
+
+def pixel_window(spectra: torch.Tensor, bi: torch.Tensor, pix: torch.Tensor, radius: int) -> torch.Tensor:
+    """Values ``[n, L, (2r+1)^2]`` of every neighbour spectrum (``spectra [B, L, 90, 360]``) in the window of
+    radius ``r`` around pixel ``pix [n]`` (``row * 360 + col``) of item ``bi [n]``; the azimuth wraps, the
+    elevation is clamped.  The window's centre (index ``(2r+1)^2 // 2``) is the pixel itself."""
+    r, c = pix // N_AZIMUTH, pix % N_AZIMUTH
+    d = torch.arange(-radius, radius + 1, device=pix.device)
+    de, da = torch.meshgrid(d, d, indexing="ij")
+    rr = (r[:, None] + de.flatten()[None]).clamp(0, N_ELEVATION - 1)  # [n, K]
+    cc = (c[:, None] + da.flatten()[None]) % N_AZIMUTH
+    return spectra[bi[:, None], :, rr, cc].permute(0, 2, 1)  # [n, K, L] -> [n, L, K]
+
+
+class RayNeighbourTokens(nn.Module):
+    """Per-ray neighbour tokens: ``MLP(map feature ⊕ pixel window ⊕ geometry) -> d``, the geometry's share of the
+    first layer computed once per batch (:meth:`geometry`), the rest per ray (:meth:`forward`).
+
+    Args:
+        feature_dim: channels of the projected feature map (``k``).
+        window: pixel-window radius r (``(2r+1)^2`` values).
+        geometry_dim: width of a neighbour's geometry input (PE of its offset + 1 for the distance).
+        hidden / d_model: the MLP's hidden and output widths.
+    """
+
+    def __init__(self, feature_dim: int, window: int, geometry_dim: int, hidden: int, d_model: int):
+        super().__init__()
+        self.window = int(window)
+        self.ray_in = nn.Linear(feature_dim + (2 * self.window + 1) ** 2, hidden)
+        self.geo_in = nn.Linear(geometry_dim, hidden, bias=False)
+        self.out = nn.Linear(hidden, d_model)
+        self.weight_logits = nn.Linear(hidden, 1)  # ray_knn: per-ray correction of IDW's logits, zero at init
+        nn.init.zeros_(self.weight_logits.weight)
+        nn.init.zeros_(self.weight_logits.bias)
+
+    def geometry(self, geo: torch.Tensor) -> torch.Tensor:
+        """``[B, L, geometry_dim]`` -> the geometry's part of the first layer ``[B, L, hidden]``."""
+        return self.geo_in(geo)
+
+    def forward(self, feats: torch.Tensor, window: torch.Tensor, geo_part: torch.Tensor) -> tuple[torch.Tensor,
+                                                                                                   torch.Tensor]:
+        """``feats [n, L, k]``, ``window [n, L, K]``, ``geo_part [n, L, hidden]`` -> ``(tokens [n, L, d],
+        weight logits [n, L])``."""
+        h = F.relu(self.ray_in(torch.cat([feats, window], dim=-1)) + geo_part)
+        return self.out(h), self.weight_logits(h).squeeze(-1)

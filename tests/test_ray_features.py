@@ -1,0 +1,124 @@
+"""Ray-aligned neighbour features (issue 22, points 2 and 3): a ray at (elevation, azimuth) reads every
+neighbour at (elevation, azimuth), the azimuth wrapping at 360 degrees; the ray_knn variant is IDW KNN at
+step 0; every option composes through Hydra and round-trips a checkpoint."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from graf.cli.train import train
+from graf.models.graf import GRaFModule
+from graf.models.graf.ray_features import pixel_window, upsample_wrap
+from graf.models.knn import KNNModule
+
+TINY = dict(encoder_widths=[4, 8, 8, 8], encoder_downsample=2, max_samples=4, rays_per_step=64, chunk_rays=4096,
+            d_model=8, ray_heads=2, ray_head_dim=4, ffn_dim=16, mlp_dim=16, pe_freqs=4)
+
+
+def test_upsampling_a_full_resolution_map_is_the_identity():
+    m = torch.rand(2, 3, 90, 360)
+    assert torch.allclose(upsample_wrap(m), m, atol=1e-6)
+
+
+def test_upsampled_features_wrap_in_azimuth_and_not_in_elevation():
+    h, w = 3, 12
+    cols = torch.arange(w, dtype=torch.float32).expand(1, 1, h, w)
+    up = upsample_wrap(cols)[0, 0]
+    # pixel centre of azimuth column 359 lies between map columns 11 and (wrapped) 0; column 0 between 11 and 0
+    t = (359.5 * w / 360 - 0.5) - 11
+    assert up[0, 359] == pytest.approx(11 * (1 - t), abs=1e-5)
+    assert up[0, 0] == pytest.approx(11 * t, abs=1e-5)  # the same blend, mirrored: the seam is continuous
+    assert up[0, 180] == pytest.approx(180.5 * w / 360 - 0.5, abs=1e-5)
+    rows = torch.arange(h, dtype=torch.float32)[:, None].expand(1, 1, h, w)
+    up = upsample_wrap(rows)[0, 0]
+    assert up[0, 5] == 0 and up[89, 5] == h - 1  # clamped at both ends, never wrapped to the other pole
+
+
+def test_pixel_window_reads_the_rays_own_pixel_and_wraps_the_azimuth_seam():
+    spectra = torch.rand(2, 3, 90, 360)
+    bi = torch.tensor([0, 1, 1, 0])
+    rows, cols = torch.tensor([10, 0, 89, 45]), torch.tensor([20, 359, 0, 180])
+    win = pixel_window(spectra, bi, rows * 360 + cols, radius=1)  # [4, L=3, 9]
+    assert win.shape == (4, 3, 9)
+    for i, (b, r, c) in enumerate(zip(bi.tolist(), rows.tolist(), cols.tolist())):
+        assert torch.equal(win[i, :, 4], spectra[b, :, r, c])  # the centre: pixel (el, az) of every neighbour
+    assert torch.equal(win[1, :, 5], spectra[1, :, 0, 0])  # (el 0, az 359) + 1 column -> az 0 (wrapped)
+    assert torch.equal(win[1, :, 1], spectra[1, :, 0, 359])  # one row up from the top row: clamped, not wrapped
+    assert torch.equal(win[2, :, 3], spectra[1, :, 89, 359])  # az 0 - 1 column -> az 359
+
+
+def _batch(B=2, L=3, seed=0, colocated=False):
+    g = torch.Generator().manual_seed(seed)
+    tgt = torch.rand(B, 3, generator=g) + torch.tensor([0.0, 0.0, 0.5])
+    src = tgt[:, None, :] + 0.3 * torch.randn(B, L, 3, generator=g)
+    if colocated:
+        src[:, 0] = tgt
+    mask = torch.ones(B, L, dtype=torch.bool)
+    mask[1, -1] = False  # a padded neighbour
+    return {"tgt_pos": tgt, "src_pos": src, "src_mask": mask,
+            "src_spectra": torch.rand(B, L, 90, 360, generator=g), "tgt_spectrum": torch.rand(B, 90, 360, generator=g),
+            "gw_pos": torch.zeros(B, 3), "gw_rot": torch.eye(3).expand(B, 3, 3).clone(), "wavelength": torch.full((B,), 0.33),
+            "ray_length": torch.full((B,), 3.0), "bounds": torch.tensor([[-2.0, -2.0, -1.0], [2.0, 2.0, 2.0]]).expand(B, 2, 3),
+            "scene_index": torch.zeros(B, dtype=torch.long), "tgt_id": torch.arange(B)}
+
+
+def test_ray_knn_at_step_0_is_idw_knn_on_the_same_neighbours():
+    torch.manual_seed(0)
+    model = GRaFModule(**TINY, neighbour_features="ray_knn").eval()
+    batch = _batch()
+    with torch.no_grad():
+        pred = model.predict_spectra(batch)
+    knn = KNNModule(weighting="idw").predict_spectra(batch)
+    assert (pred - knn).abs().max() < 1e-5
+
+
+def test_a_colocated_neighbour_with_its_identity_weight_is_reproduced():
+    torch.manual_seed(0)
+    model = GRaFModule(**TINY, neighbour_features="ray_knn").eval()
+    batch = _batch(colocated=True)
+    with torch.no_grad():
+        pred = model.predict_spectra(batch)
+    assert (pred - batch["src_spectra"][:, 0]).abs().max() < 1e-5
+
+
+def test_ray_mode_reads_each_neighbour_at_the_rays_own_pixel():
+    """Changing one neighbour pixel changes the ray through that pixel; pooled mode spreads it over every ray,
+    ray mode moves that ray most."""
+    torch.manual_seed(0)
+    model = GRaFModule(**TINY, neighbour_features="ray", pixel_window=0).eval()
+    batch = _batch()
+    r, c = 40, 359
+    with torch.no_grad():
+        before = model.predict_spectra(batch)
+        batch["src_spectra"][0, 0, r, c] += 5.0
+        after = model.predict_spectra(batch)
+    diff = (after - before)[0].abs()
+    assert diff[r, c] > 0 and diff[r, c] >= diff.max() - 1e-7
+    assert torch.equal(after[1], before[1])  # the other target's rays never see it
+
+
+@pytest.mark.parametrize("features", ["ray", "ray_knn"])
+def test_ray_options_compose_train_and_round_trip_a_checkpoint(compose_cfg, features, tmp_path):
+    cfg = compose_cfg("train", ("experiment=graf_rfid_s23", f"model.neighbour_features={features}",
+                                "trainer.max_steps=2", "model.rays_per_step=64", "model.max_samples=4",
+                                "data.batch_size=2", "trainer.limit_test_batches=1", "validate=false",
+                                "baselines=null", "reliance=false", f"paths.output_dir={tmp_path / 'run'}"))
+    _, objects = train(cfg)
+    res = json.loads((tmp_path / "run" / "results.json").read_text())
+    assert res["method"] == ("graf-ray" if features == "ray" else "graf-ray-knn") and res["global_step"] == 2
+    model = objects["model"].eval()
+    loaded = GRaFModule.load_from_checkpoint(tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu").eval()
+    assert loaded.hparams.neighbour_features == features
+    batch = next(iter(objects["datamodule"].test_dataloader()))
+    with torch.no_grad():
+        assert torch.equal(model.predict_spectra(batch), loaded.predict_spectra(batch))
+
+
+def test_ray_knn_refuses_the_pooled_residual_and_unknown_modes_are_refused():
+    with pytest.raises(ValueError, match="ray_knn already adds"):
+        GRaFModule(**TINY, neighbour_features="ray_knn", residual=True)
+    with pytest.raises(ValueError, match="neighbour_features must be one of"):
+        GRaFModule(**TINY, neighbour_features="rays")

@@ -1,0 +1,84 @@
+"""Neighbour reliance (issue 22, point 1): every test of a neighbour-conditioned method also measures its PSNR
+with each target's neighbours replaced by another target's (a seeded derangement within the scene, same L);
+``test/reliance_db`` = PSNR(true) - PSNR(swapped) says at once whether a model reads its neighbours."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from graf.cli.common import build, evaluate_model, format_metrics_table
+from graf.cli.evaluate import evaluate
+from graf.data.datamodule import derangement
+from graf.models.base import SpectrumModule
+
+
+@pytest.mark.parametrize("n", [2, 3, 7, 40])
+def test_derangement_moves_every_index_and_is_seeded(n):
+    p = derangement(n, np.random.default_rng(5))
+    assert sorted(p.tolist()) == list(range(n)) and not (p == np.arange(n)).any()
+    assert (p == derangement(n, np.random.default_rng(5))).all()
+
+
+def test_swapped_neighbours_are_another_targets_of_the_same_scene(compose_cfg):
+    cfg = compose_cfg("eval", ("model=knn",))
+    dm = build(cfg, trains=False)["datamodule"]
+    rows, idx, mask = dm.split_neighbors("test")
+    s_rows, s_idx, s_mask = dm.swapped_neighbors("test", seed=0)
+    assert torch.equal(rows, s_rows)
+    lists = [tuple(i[m].tolist()) for i, m in zip(idx, mask)]
+    swapped = [tuple(i[m].tolist()) for i, m in zip(s_idx, s_mask)]
+    assert sorted(lists) == sorted(swapped)  # the same lists, each given to another target
+    assert all(a != b for a, b in zip(lists, swapped))
+    assert all(int(r) not in s for r, s in zip(rows, swapped))  # never the target itself
+    assert dm.swapped_neighbors("test", seed=1)[1].tolist() != s_idx.tolist()
+
+
+def test_knn_reads_its_neighbours_on_the_dense_real_scene(compose_cfg):
+    cfg = compose_cfg("eval", ("model=knn", "neighbors.exclude_within=0"))
+    metrics, _ = evaluate(cfg, overrides=[])
+    res = json.loads((Path(cfg.paths.output_dir) / "results.json").read_text())
+    assert metrics["test/reliance_db"] > 3.0, metrics  # a wrong neighbour set costs KNN several dB
+    assert res["metrics"]["test/reliance_db"] == pytest.approx(
+        res["metrics"]["test/psnr"] - res["metrics"]["test/psnr_swapped"])
+    assert "reliance dB" in format_metrics_table([res])
+
+
+class _IgnoresNeighbours(SpectrumModule):
+    """Predicts from the target position alone: its output cannot depend on the neighbours."""
+
+    def predict_spectra(self, batch):
+        p = batch["tgt_pos"].float()
+        el = torch.linspace(0, 1, 90)[None, :, None]
+        az = torch.linspace(0, 1, 360)[None, None, :]
+        return (0.5 + 0.4 * torch.sin(6 * el + p[:, 0, None, None]) * torch.cos(4 * az + p[:, 1, None, None])).clamp(0, 1)
+
+
+def test_a_model_that_ignores_its_neighbours_has_zero_reliance(compose_cfg):
+    cfg = compose_cfg("eval", ("model=knn",))
+    dm = build(cfg, trains=False)["datamodule"]
+    metrics, _ = evaluate_model(cfg, _IgnoresNeighbours(), dm)
+    assert metrics["test/reliance_db"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_knn_dl_and_the_baselines_report_reliance_and_nerf2_none(compose_cfg):
+    cfg = compose_cfg("train", ("model=knn_dl", "trainer.max_steps=1"))
+    from graf.cli.train import train
+
+    train(cfg)
+    res = json.loads((Path(cfg.paths.output_dir) / "results.json").read_text())
+    assert res["metrics"]["test/reliance_db"] > 0 and res["baselines"]["knn"]["metrics"]["test/reliance_db"] > 0
+    nerf = compose_cfg("eval", ("model=nerf2_cpu", "model.chunk_rays=32400", "trainer.limit_test_batches=1",
+                                "validate=false"))
+    m, _ = evaluate_model(nerf, build(nerf, trains=False)["model"], build(nerf, trains=False)["datamodule"])
+    assert m["test/reliance_db"] is None and m["test/psnr_swapped"] is None
+
+
+def test_reliance_can_be_switched_off(compose_cfg):
+    cfg = compose_cfg("eval", ("model=knn", "reliance=false"))
+    metrics, _ = evaluate(cfg, overrides=[])
+    assert metrics["test/reliance_db"] is None
