@@ -23,7 +23,8 @@ from graf.data.spectrum_set import DataFormatError
 
 RESULT_KEYS = {"method", "scene", "band_hz", "n_train", "n_test", "metrics", "seconds", "config", "splits"}
 TEST_KEYS = {"test/mse", "test/psnr", "test/ssim", "test/lpips"}
-METRIC_KEYS = TEST_KEYS | {k.replace("test/", "val/") for k in TEST_KEYS} | {"test/psnr_swapped", "test/reliance_db"}
+METRIC_KEYS = TEST_KEYS | {k.replace("test/", "val/") for k in TEST_KEYS} | {"test/psnr_swapped", "test/reliance_db",
+                                                                       "val/psnr_swapped", "val/reliance_db"}
 
 
 def _results(cfg) -> dict:

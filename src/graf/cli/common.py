@@ -131,8 +131,8 @@ def cli_errors(main):
 METRIC_NAMES = ("mse", "psnr", "ssim", "lpips")
 # test/psnr_swapped: PSNR with every target's neighbours replaced by another target's; test/reliance_db: test/psnr
 # minus it (how much a method reads its neighbours; None for a method that takes none)
-EVAL_METRICS = tuple(f"{s}/{m}" for s in ("val", "test") for m in METRIC_NAMES) + ("test/psnr_swapped",
-                                                                                    "test/reliance_db")
+EVAL_METRICS = tuple(f"{s}/{m}" for s in ("val", "test") for m in METRIC_NAMES) + tuple(
+    f"{s}/{m}" for s in ("val", "test") for m in ("psnr_swapped", "reliance_db"))
 
 
 def scene_configs(node) -> list[DictConfig]:
@@ -465,30 +465,32 @@ def evaluate_model(cfg: DictConfig, model, dm, loggers=(), timing: dict | None =
         trainer.test(model=model, datamodule=dm, verbose=False)
         metrics.update({k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")})
     t2 = time.perf_counter()
-    if cfg.get("test", True) and cfg.get("reliance", True) and getattr(model, "uses_neighbours", True):
-        swapped = swapped_psnr(cfg, model, dm)
-        if swapped is not None:
-            metrics["test/psnr_swapped"] = swapped
-            metrics["test/reliance_db"] = metrics["test/psnr"] - swapped
+    if cfg.get("reliance", True) and getattr(model, "uses_neighbours", True):
+        for split, done in (("val", cfg.get("validate", True)), ("test", cfg.get("test", True))):
+            swapped = swapped_psnr(cfg, model, dm, split) if done else None
+            if swapped is not None and metrics.get(f"{split}/psnr") is not None:
+                metrics[f"{split}/psnr_swapped"] = swapped
+                metrics[f"{split}/reliance_db"] = metrics[f"{split}/psnr"] - swapped
     if timing is not None:
         timing.update(val_s=round(t1 - t0, 3), test_s=round(t2 - t1, 3), reliance_s=round(time.perf_counter() - t2, 3))
     return {k: metrics.get(k) for k in EVAL_METRICS}, collector.arrays()
 
 
-def swapped_psnr(cfg: DictConfig, model, dm) -> float | None:
-    """Neighbour reliance's second pass: the test PSNR with each target's neighbours replaced by another
+def swapped_psnr(cfg: DictConfig, model, dm, split: str = "test") -> float | None:
+    """Neighbour reliance's second pass: the ``split`` (test or val) PSNR with each target's neighbours replaced by another
     target's of the same scene (a derangement seeded by ``reliance_seed``; the same L, positions and spectra of
     real neighbours, only the wrong ones).  A model that reads its neighbours loses PSNR; one that ignores them
-    scores the same.  None when a scene has a single test target."""
-    if dm.swapped_neighbors(dm.eval_split, int(cfg.get("reliance_seed") or 0)) is None:
+    scores the same.  None when a scene has a single target in the split."""
+    seed = int(cfg.get("reliance_seed") or 0)
+    if dm.swapped_neighbors(dm.eval_split if split == "test" else "val", seed) is None:
         return None
     trainer = evaluation_trainer(cfg)
-    dm.swap_seed = int(cfg.get("reliance_seed") or 0)
+    dm.swap_seed = seed
     try:
-        trainer.test(model=model, datamodule=dm, verbose=False)
+        (trainer.test if split == "test" else trainer.validate)(model=model, datamodule=dm, verbose=False)
     finally:
         dm.swap_seed = None
-    return float(trainer.callback_metrics["test/psnr"])
+    return float(trainer.callback_metrics[f"{split}/psnr"])
 
 
 def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -> dict:

@@ -1,0 +1,203 @@
+"""graf-curves: learning curves on validation data (``conf/curves.yaml``).
+
+    graf-curves out=sweeps/learning_curves [until=1000] ['only_regimes=[rfid_sparse]'] ['only_methods=[ray]']
+
+For each regime and method, one training trajectory: a ``graf-train`` run per evaluation step of ``steps``
+(up to the regime's ``max_steps``), into ``<out>/<regime>/<method>/step_<N>/``, each resuming the previous
+step's ``checkpoints/last.ckpt`` with a longer ``trainer.max_steps`` (the schedule's length is the regime's
+budget at every point, so the points lie on one run).  Every run validates (``test=false``: the curves choose
+nothing on test data) and measures validation reliance.  KNN, which trains nothing, is validated once per
+regime into ``<out>/<regime>/knn/``.  A point whose results.json exists is skipped, so the command resumes
+where it stopped, and ``until`` runs the curve only so far; a failed run is recorded in ``failed.json`` and
+ends that method's curve (later points need its checkpoint) while the others go on.
+
+After every run: ``curves.csv``, ``curves.md``, ``results.json`` (``rows``: regime, method, step, val_psnr,
+val_ssim, val_lpips, val_reliance_db, fit_s (cumulative wall seconds of training), s_per_step; and ``knn``:
+each regime's KNN figures) and ``curves.png`` (PSNR, SSIM and LPIPS against steps on a log axis, one row per
+regime, KNN as a dashed line).  A cross-scene regime's figures are the means over its validation scenes.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import os
+import sys
+from pathlib import Path
+
+import hydra
+import numpy as np
+from omegaconf import DictConfig
+
+from graf.cli.common import CONF_PATH, ConfigError, _output_dir, cli_errors, task_wrapper
+from graf.cli.pareto import _run
+from graf.io import atomic_write_json, atomic_write_text
+
+log = logging.getLogger("graf")
+
+COLUMNS = ("regime", "method", "step", "val_psnr", "val_ssim", "val_lpips", "val_reliance_db", "fit_s", "s_per_step")
+FIGURES = (("val/psnr", "val_psnr", "PSNR (dB)"), ("val/ssim", "val_ssim", "SSIM"), ("val/lpips", "val_lpips", "LPIPS"))
+QUIET = ["logger=none", "plot_count=0", "baselines=null", "test=false"]
+
+
+def _subset(items: dict, keep, what: str) -> dict:
+    if keep is None:
+        return dict(items)
+    unknown = set(keep) - set(items)
+    if unknown:
+        raise ConfigError(f"{what}: unknown keys {sorted(unknown)} (known: {sorted(items)})")
+    return {k: v for k, v in items.items() if k in set(keep)}
+
+
+def val_figures(result: dict) -> dict:
+    """``{val/psnr, val/ssim, val/lpips, val/reliance_db}`` of a run: its own, or the mean over its evaluations
+    (a cross-scene run validates each scene on its own)."""
+    keys = ("val/psnr", "val/ssim", "val/lpips", "val/reliance_db")
+    evals = result.get("evaluations") or [{"metrics": result.get("metrics") or {}}]
+    out = {}
+    for k in keys:
+        v = [e["metrics"].get(k) for e in evals if (e.get("metrics") or {}).get(k) is not None]
+        out[k] = float(np.mean(v)) if v else None
+    return out
+
+
+def points(cfg: DictConfig, regime: DictConfig) -> list[int]:
+    steps = sorted({int(s) for s in cfg.steps if int(s) <= int(regime.max_steps)} | {int(regime.max_steps)})
+    return [s for s in steps if cfg.get("until") is None or s <= int(cfg.until)]
+
+
+def collect(out: Path, cfg: DictConfig) -> tuple[list[dict], dict]:
+    rows, knn = [], {}
+    for rname, regime in _subset(cfg.regimes, cfg.get("only_regimes"), "only_regimes").items():
+        f = out / rname / "knn" / "results.json"
+        if f.exists():
+            knn[rname] = val_figures(json.loads(f.read_text()))
+        for mname in _subset(cfg.methods, cfg.get("only_methods"), "only_methods"):
+            fit_s = 0.0
+            for step in points(cfg, regime):
+                f = out / rname / mname / f"step_{step}" / "results.json"
+                if not f.exists():
+                    break
+                r = json.loads(f.read_text())
+                t = r.get("timing") or {}
+                fit_s += float(t.get("fit_s") or 0.0)
+                v = val_figures(r)
+                rows.append({"regime": rname, "method": mname, "step": int(r.get("global_step", step)),
+                             "val_psnr": v["val/psnr"], "val_ssim": v["val/ssim"], "val_lpips": v["val/lpips"],
+                             "val_reliance_db": v["val/reliance_db"], "fit_s": round(fit_s, 1),
+                             "s_per_step": t.get("fit_s_per_step")})
+    return rows, knn
+
+
+def _fmt(v, spec):
+    return "n/a" if v is None else format(v, spec)
+
+
+def write_outputs(out: Path, rows: list[dict], knn: dict, failed: list[dict]) -> None:
+    lines = ["| regime | method | step | val PSNR | val SSIM | val LPIPS | val reliance dB | train s (cum.) | s/step |",
+             "|" + "---|" * 9]
+    for r in rows:
+        lines.append(f"| {r['regime']} | {r['method']} | {r['step']} | {_fmt(r['val_psnr'], '.2f')} | "
+                     f"{_fmt(r['val_ssim'], '.3f')} | {_fmt(r['val_lpips'], '.3f')} | {_fmt(r['val_reliance_db'], '.2f')} | "
+                     f"{_fmt(r['fit_s'], '.0f')} | {_fmt(r['s_per_step'], '.3f')} |")
+    for rname, k in knn.items():
+        lines.append(f"| {rname} | knn (line) | 0 | {_fmt(k['val/psnr'], '.2f')} | {_fmt(k['val/ssim'], '.3f')} | "
+                     f"{_fmt(k['val/lpips'], '.3f')} | {_fmt(k['val/reliance_db'], '.2f')} | 0 | n/a |")
+    atomic_write_text(out / "curves.md", "\n".join(lines) + "\n")
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=COLUMNS)
+    w.writeheader()
+    w.writerows(rows)
+    atomic_write_text(out / "curves.csv", buf.getvalue())
+    atomic_write_json(out / "results.json", {"task": "curves", "rows": rows, "knn": knn, "failed": failed})
+    if rows or knn:
+        plot(out / "curves.png", rows, knn)
+
+
+def plot(path: Path, rows: list[dict], knn: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    regimes = sorted({r["regime"] for r in rows} | set(knn))
+    fig, axes = plt.subplots(len(regimes), len(FIGURES), figsize=(13, 3.3 * len(regimes)), squeeze=False,
+                             constrained_layout=True)
+    for i, rname in enumerate(regimes):
+        for j, (key, col, label) in enumerate(FIGURES):
+            ax = axes[i][j]
+            for m in sorted({r["method"] for r in rows if r["regime"] == rname}):
+                pts = [(r["step"], r[col]) for r in rows if r["regime"] == rname and r["method"] == m and r[col] is not None]
+                if pts:
+                    ax.plot(*zip(*pts), marker="o", label=m)
+            if rname in knn and knn[rname].get(key) is not None:
+                ax.axhline(knn[rname][key], color="k", ls="--", lw=1, label="knn")
+            ax.set_xscale("log")
+            ax.set_xlabel("training steps")
+            ax.set_ylabel(f"validation {label}")
+            ax.set_title(rname)
+            ax.grid(alpha=0.3)
+        axes[i][0].legend(fontsize=8)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+@task_wrapper
+def curves(cfg: DictConfig) -> dict:
+    out = Path(cfg.out) if cfg.get("out") else _output_dir(cfg)
+    out.mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ)
+    if cfg.get("threads"):
+        env["OMP_NUM_THREADS"] = str(int(cfg.threads))
+    py, timeout = sys.executable, float(cfg.run_timeout_s)
+    common = [f"data_root={cfg.data_root}"] + ([f"torch_threads={int(cfg.threads)}"] if cfg.get("threads") else [])
+    failed_file = out / "failed.json"
+    failed = json.loads(failed_file.read_text()) if failed_file.exists() else []
+    train = [py, "-m", "graf.cli.train"]
+    for rname, regime in _subset(cfg.regimes, cfg.get("only_regimes"), "only_regimes").items():
+        base = [*regime.overrides, *common, *QUIET]
+        knn_dir = out / rname / "knn"
+        if not (knn_dir / "results.json").exists():
+            ok, tail = _run([*train, *base, "model=knn", f"hydra.run.dir={knn_dir}"], knn_dir, env, timeout)
+            if not ok:
+                failed.append({"regime": rname, "method": "knn", "step": 0, "log": tail})
+        for mname, method in _subset(cfg.methods, cfg.get("only_methods"), "only_methods").items():
+            extra = list((method.get("regimes") or {}).get(rname) or [])
+            prev = None
+            for step in points(cfg, regime):
+                folder = out / rname / mname / f"step_{step}"
+                if (folder / "results.json").exists():
+                    prev = folder
+                    continue
+                cmd = [*train, *base, *method.overrides, *extra, f"{method.schedule}={int(regime.max_steps)}",
+                       f"trainer.max_steps={step}", f"callbacks.model_checkpoint.every_n_train_steps={step}",
+                       f"hydra.run.dir={folder}"]
+                if prev is not None:
+                    cmd.append(f"ckpt_path={prev / 'checkpoints' / 'last.ckpt'}")
+                log.info("%s / %s: training to step %d%s", rname, mname, step, f" from {prev.name}" if prev else "")
+                ok, tail = _run(cmd, folder, env, timeout)
+                if not ok:
+                    failed.append({"regime": rname, "method": mname, "step": step, "log": tail})
+                    log.error("%s / %s step %d failed (the curve stops here):\n%s", rname, mname, step, tail)
+                    atomic_write_json(failed_file, failed)
+                    break
+                prev = folder
+                rows, knn = collect(out, cfg)
+                write_outputs(out, rows, knn, failed)
+    atomic_write_json(failed_file, failed)
+    rows, knn = collect(out, cfg)
+    write_outputs(out, rows, knn, failed)
+    print((out / "curves.md").read_text())
+    return {"rows": rows, "knn": knn, "failed": failed}
+
+
+@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="curves")
+@cli_errors
+def main(cfg: DictConfig) -> None:
+    curves(cfg)
+
+
+if __name__ == "__main__":
+    main()
