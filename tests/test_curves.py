@@ -36,3 +36,4 @@ def test_curves_run_resume_and_validate_only(tmp_path, make_scene):
     res = json.loads((out / "results.json").read_text())
     assert [r["step"] for r in res["rows"] if r["method"] == "pooled"] == [1, 2, 3]
     assert (out / "curves.png").is_file() and "knn (line)" in (out / "curves.md").read_text()
+    assert sorted(p.parent.parent.name for p in (out / "tiny" / "pooled").rglob("last.ckpt")) == ["step_3"]

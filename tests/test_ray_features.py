@@ -11,7 +11,7 @@ import torch
 
 from graf.cli.train import train
 from graf.models.graf import GRaFModule
-from graf.models.graf.ray_features import pixel_window, upsample_wrap
+from graf.models.graf.ray_features import pad_wrap, pixel_window, sample_wrap, upsample_wrap
 from graf.models.knn import KNNModule
 
 TINY = dict(encoder_widths=[4, 8, 8, 8], encoder_downsample=2, max_samples=4, rays_per_step=64, chunk_rays=4096,
@@ -35,6 +35,14 @@ def test_upsampled_features_wrap_in_azimuth_and_not_in_elevation():
     rows = torch.arange(h, dtype=torch.float32)[:, None].expand(1, 1, h, w)
     up = upsample_wrap(rows)[0, 0]
     assert up[0, 5] == 0 and up[89, 5] == h - 1  # clamped at both ends, never wrapped to the other pole
+
+
+def test_sampling_at_the_drawn_pixels_equals_the_upsampled_map_bit_for_bit():
+    m = torch.randn(2, 3, 4, 3, 12)
+    up = upsample_wrap(m.flatten(0, 1)).view(2, 3, 4, 90, 360)
+    bi, pix = torch.randint(0, 2, (500,)), torch.randint(0, 32400, (500,))
+    pix[:4] = torch.tensor([0, 359, 32040, 32399])  # the seam and the poles
+    assert torch.equal(sample_wrap(pad_wrap(m), bi, pix, 12), up[bi, :, :, pix // 360, pix % 360])
 
 
 def test_pixel_window_reads_the_rays_own_pixel_and_wraps_the_azimuth_seam():

@@ -4,7 +4,8 @@
 
 For each regime and method, one training trajectory: a ``graf-train`` run per evaluation step of ``steps``
 (up to the regime's ``max_steps``), into ``<out>/<regime>/<method>/step_<N>/``, each resuming the previous
-step's ``checkpoints/last.ckpt`` with a longer ``trainer.max_steps`` (the schedule's length is the regime's
+step's ``checkpoints/last.ckpt`` with a longer ``trainer.max_steps`` (once the next point is done, a point's
+checkpoint is removed unless ``keep_checkpoints=true``: a curve keeps its newest, which a later run resumes) (the schedule's length is the regime's
 budget at every point, so the points lie on one run).  Every run validates (``test=false``: the curves choose
 nothing on test data) and measures validation reliance.  KNN, which trains nothing, is validated once per
 regime into ``<out>/<regime>/knn/``.  A point whose results.json exists is skipped, so the command resumes
@@ -24,6 +25,7 @@ import io
 import json
 import logging
 import os
+import shutil
 import sys
 from pathlib import Path
 
@@ -39,7 +41,7 @@ log = logging.getLogger("graf")
 
 COLUMNS = ("regime", "method", "step", "val_psnr", "val_ssim", "val_lpips", "val_reliance_db", "fit_s", "s_per_step")
 FIGURES = (("val/psnr", "val_psnr", "PSNR (dB)"), ("val/ssim", "val_ssim", "SSIM"), ("val/lpips", "val_lpips", "LPIPS"))
-QUIET = ["logger=none", "plot_count=0", "baselines=null", "test=false"]
+QUIET = ["logger=none", "plot_count=0", "baselines=null", "test=false", "trainer.enable_progress_bar=false"]
 
 
 def _subset(items: dict, keep, what: str) -> dict:
@@ -183,6 +185,12 @@ def curves(cfg: DictConfig) -> dict:
                     log.error("%s / %s step %d failed (the curve stops here):\n%s", rname, mname, step, tail)
                     atomic_write_json(failed_file, failed)
                     break
+                if not cfg.get("keep_checkpoints"):  # the curve resumes from its newest last.ckpt only
+                    for f in (folder / "checkpoints").glob("*.ckpt"):
+                        if f.name != "last.ckpt":  # ModelCheckpoint's copy of the same weights
+                            f.unlink()
+                    if prev is not None:
+                        shutil.rmtree(prev / "checkpoints", ignore_errors=True)
                 prev = folder
                 rows, knn = collect(out, cfg)
                 write_outputs(out, rows, knn, failed)

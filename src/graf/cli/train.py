@@ -176,24 +176,19 @@ def check_resume(cfg: DictConfig, model, dm, path) -> dict:
     check_checkpoint(ckpt, type(model), path)
     saved = dict(ckpt.get("hyper_parameters") or {})
     allowed = set(getattr(type(model), "INFERENCE_SETTINGS", ()))
-    now = dict(model.hparams)
-    diff = {k: (saved.get(k, "<unset>"), now.get(k, "<unset>")) for k in sorted(set(saved) | set(now))
-            if k not in allowed and saved.get(k, "<unset>") != now.get(k, "<unset>")}
+    info = ckpt.get("graf") or {}
+    run_then, run_now = info.get("run") or {}, run_settings(cfg)
+    then = {"model": {k: v for k, v in saved.items() if k not in allowed},
+            **({g: run_then.get(g) for g in RESUME_FIXED} if run_then else {})}
+    now = {"model": {k: v for k, v in dict(model.hparams).items() if k not in allowed},
+           **({g: run_now.get(g) for g in RESUME_FIXED} if run_then else {})}
+    diff = _dict_diff(then, now)
     if diff:
         raise CheckpointError(
-            f"ckpt_path={path}: resuming with other model settings than it was trained with: "
-            + "; ".join(f"model.{k}: checkpoint {a!r}, this run {b!r}" for k, (a, b) in diff.items())
-            + ". Resume with the checkpoint's settings, or start from its weights with finetune.init_from=")
-    info = ckpt.get("graf") or {}
-    run_then = info.get("run") or {}
-    run_now = run_settings(cfg)
-    fixed = {f"{g}.{k}" if k else g: (a, b) for g in RESUME_FIXED
-             for k, (a, b) in _dict_diff(run_then.get(g), run_now.get(g)).items()} if run_then else {}
-    if fixed:
-        raise CheckpointError(
             f"ckpt_path={path}: resuming with other settings than it was trained with: "
-            + "; ".join(f"{k}: checkpoint {a!r}, this run {b!r}" for k, (a, b) in fixed.items())
-            + ". They change the training stream; resume with the checkpoint's settings")
+            + "; ".join(f"{k}: checkpoint {a!r}, this run {b!r}" for k, (a, b) in diff.items())
+            + ". They change what is trained: resume with the checkpoint's settings (or start from its weights with "
+              "finetune.init_from=)")
     trained = info.get("scenes") or {}
     if trained and any(fp.get("digest") for fp in (v.get("fingerprint") or {} for v in trained.values())):
         other = [d.name for d, fp in zip(dm.sets, dm.fingerprints()) if find_scene(trained, d.name, fp) is None]

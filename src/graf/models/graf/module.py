@@ -48,7 +48,7 @@ from torch import nn
 from graf.models.base import SpectrumModule, adam_exponential_decay
 from graf.models.graf.attention import CrossAttentionBlock, SelfAttentionBlock
 from graf.models.graf.encoder import ResNetEncoder
-from graf.models.graf.ray_features import RayNeighbourTokens, pixel_window, upsample_wrap
+from graf.models.graf.ray_features import RayNeighbourTokens, pad_wrap, pixel_window, sample_wrap
 from graf.geometry.encoding import PositionalEncoding, sinusoidal_encoding, to_gateway_axes, to_gateway_frame
 from graf.geometry.grid import local_directions
 from graf.geometry.grid import N_AZIMUTH, N_ELEVATION, N_RAYS
@@ -308,14 +308,15 @@ class GRaFModule(SpectrumModule):
         return torch.where(mask[..., None], tokens, torch.zeros_like(tokens)), mask
 
     def encode_ray_neighbours(self, batch: dict) -> dict:
-        """Ray-aligned mode: each neighbour's projected feature map at every pixel ``ray_maps [B, L, k, P]``, the
+        """Ray-aligned mode: each neighbour's projected feature map ``ray_maps [B, L, k, h, w + 2]`` (azimuth-padded,
+        read per ray by :func:`sample_wrap`: bilinear at the ray's pixel, never upsampled whole), the
         spectra ``src [B, L, 90, 360]`` (padded ones zero), the geometry's share of the token MLP ``geo [B, L,
         hidden]`` and, for ``ray_knn``, IDW's log-weights ``idw_logits [B, L]``."""
         spectra, mask = batch["src_spectra"].float(), batch["src_mask"].bool()
         B, L = mask.shape
-        maps = upsample_wrap(self.ray_proj(self.encoder.forward_map(spectra[mask].unsqueeze(1))))  # [N, k, 90, 360]
-        ray_maps = maps.new_zeros(B, L, maps.shape[1], N_RAYS)
-        ray_maps[mask] = maps.flatten(2)
+        maps = pad_wrap(self.ray_proj(self.encoder.forward_map(spectra[mask].unsqueeze(1))))  # [N, k, h, w + 2]
+        ray_maps = maps.new_zeros(B, L, *maps.shape[1:])
+        ray_maps[mask] = maps
         src_pos, tgt_pos = batch["src_pos"].float(), batch["tgt_pos"].float()
         offset = src_pos - tgt_pos[:, None, :]
         pe_off = self.pe(to_gateway_axes(offset, batch["gw_rot"].float()) / self.length_unit)
@@ -422,7 +423,8 @@ class GRaFModule(SpectrumModule):
         base = None
         if self.ray_aligned:  # each ray's voxels attend to that ray's own neighbour tokens
             window = pixel_window(ctx["src"], bi, pix, self.pixel_window)  # [n, L, K]
-            ctx_tokens, logits = self.ray_tokens(ctx["ray_maps"][bi, :, :, pix], window, ctx["geo"][bi])
+            feats = sample_wrap(ctx["ray_maps"], bi, pix, ctx["ray_maps"].shape[-1] - 2)  # [n, L, k]
+            ctx_tokens, logits = self.ray_tokens(feats, window, ctx["geo"][bi])
             x, km = q, None if key_mask is None else key_mask[bi]
             if self.neighbour_features == "ray_knn":  # convex weights at this pixel: IDW at init, then learned
                 w = torch.softmax(ctx["idw_logits"][bi] + logits, dim=-1)

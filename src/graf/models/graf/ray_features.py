@@ -45,6 +45,38 @@ def upsample_wrap(maps: torch.Tensor) -> torch.Tensor:
     return rows[..., x0] * (1 - wx) + rows[..., x1] * wx
 
 
+def _centre_coords(h: int, w: int, device) -> tuple:
+    """Bilinear corners and weights of every elevation row (in a map of ``h`` rows, clamped) and azimuth
+    column (in a map of ``w`` columns padded by one wrapped column each side) at the pixel centres."""
+    y = ((torch.arange(N_ELEVATION, device=device, dtype=torch.float32) + 0.5) * (h / N_ELEVATION) - 0.5).clamp(0, h - 1)
+    x = (torch.arange(N_AZIMUTH, device=device, dtype=torch.float32) + 0.5) * (w / N_AZIMUTH) - 0.5 + 1.0
+    y0 = y.floor().long().clamp(0, h - 1)
+    x0 = x.floor().long()
+    return y0, (y0 + 1).clamp(max=h - 1), y - y0.float(), x0, (x0 + 1).clamp(max=w + 1), x - x0.float()
+
+
+def pad_wrap(maps: torch.Tensor) -> torch.Tensor:
+    """``[..., h, w]`` -> ``[..., h, w + 2]``: one wrapped azimuth column on each side."""
+    return torch.cat([maps[..., -1:], maps, maps[..., :1]], dim=-1)
+
+
+def sample_wrap(padded: torch.Tensor, bi: torch.Tensor, pix: torch.Tensor, w: int) -> torch.Tensor:
+    """``upsample_wrap`` read at the given pixels only: ``padded [B, L, k, h, w + 2]`` (:func:`pad_wrap` of the
+    maps), items ``bi [n]``, pixels ``pix [n]`` -> ``[n, L, k]``, the same values (the same arithmetic in the
+    same order) as ``upsample_wrap(maps)[b, l, :, row, col]``, at a cost linear in the rays drawn."""
+    h = padded.shape[-2]
+    y0, y1, wy, x0, x1, wx = _centre_coords(h, w, padded.device)
+    r, c = pix // N_AZIMUTH, pix % N_AZIMUTH
+    wy, wx = wy.to(padded.dtype)[r][:, None, None], wx.to(padded.dtype)[c][:, None, None]
+
+    def at(rows, cols):  # [n, L, k]
+        return padded[bi, :, :, rows, cols]
+
+    top = at(y0[r], x0[c]) * (1 - wy) + at(y1[r], x0[c]) * wy
+    bottom = at(y0[r], x1[c]) * (1 - wy) + at(y1[r], x1[c]) * wy
+    return top * (1 - wx) + bottom * wx
+
+
 def pixel_window(spectra: torch.Tensor, bi: torch.Tensor, pix: torch.Tensor, radius: int) -> torch.Tensor:
     """Values ``[n, L, (2r+1)^2]`` of every neighbour spectrum (``spectra [B, L, 90, 360]``) in the window of
     radius ``r`` around pixel ``pix [n]`` (``row * 360 + col``) of item ``bi [n]``; the azimuth wraps, the
