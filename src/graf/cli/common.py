@@ -471,6 +471,10 @@ def evaluate_model(cfg: DictConfig, model, dm, loggers=(), timing: dict | None =
             if swapped is not None and metrics.get(f"{split}/psnr") is not None:
                 metrics[f"{split}/psnr_swapped"] = swapped
                 metrics[f"{split}/reliance_db"] = metrics[f"{split}/psnr"] - swapped
+                for lg in trainer.loggers:  # beside the split's other figures (csv, wandb)
+                    lg.log_metrics({f"{split}/psnr_swapped": swapped,
+                                    f"{split}/reliance_db": metrics[f"{split}/reliance_db"]}, step=trainer.global_step)
+                    lg.save()
     if timing is not None:
         timing.update(val_s=round(t1 - t0, 3), test_s=round(t2 - t1, 3), reliance_s=round(time.perf_counter() - t2, 3))
     return {k: metrics.get(k) for k in EVAL_METRICS}, collector.arrays()
