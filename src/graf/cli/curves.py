@@ -20,8 +20,6 @@ regime, KNN as a dashed line).  A cross-scene regime's figures are the means ove
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import logging
 import os
@@ -35,6 +33,7 @@ from omegaconf import DictConfig
 
 from graf.cli.common import CONF_PATH, ConfigError, _output_dir, cli_errors, task_wrapper
 from graf.cli.pareto import _run
+from graf.cli.table import to_csv
 from graf.io import atomic_write_json, atomic_write_text
 
 log = logging.getLogger("graf")
@@ -108,11 +107,7 @@ def write_outputs(out: Path, rows: list[dict], knn: dict, failed: list[dict]) ->
         lines.append(f"| {rname} | knn (line) | 0 | {_fmt(k['val/psnr'], '.2f')} | {_fmt(k['val/ssim'], '.3f')} | "
                      f"{_fmt(k['val/lpips'], '.3f')} | {_fmt(k['val/reliance_db'], '.2f')} | 0 | n/a |")
     atomic_write_text(out / "curves.md", "\n".join(lines) + "\n")
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=COLUMNS)
-    w.writeheader()
-    w.writerows(rows)
-    atomic_write_text(out / "curves.csv", buf.getvalue())
+    atomic_write_text(out / "curves.csv", to_csv(COLUMNS, [[r[c] for c in COLUMNS] for r in rows]))
     atomic_write_json(out / "results.json", {"task": "curves", "rows": rows, "knn": knn, "failed": failed})
     if rows or knn:
         plot(out / "curves.png", rows, knn)

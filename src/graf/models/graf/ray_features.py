@@ -30,17 +30,10 @@ def upsample_wrap(maps: torch.Tensor) -> torch.Tensor:
     """``[N, k, h, w]`` maps over the whole 90 x 360 grid -> ``[N, k, 90, 360]``: each spectrum pixel's value
     bilinear at its centre, with the azimuth periodic (the last map column is the first one's neighbour) and
     the elevation clamped (no wrap).  A map already at 90 x 360 comes back unchanged."""
-    N, k, h, w = maps.shape
-    dev = maps.device
-    padded = torch.cat([maps[..., -1:], maps, maps[..., :1]], dim=-1)  # [N, k, h, w + 2]: one column each side
-    y = ((torch.arange(N_ELEVATION, device=dev, dtype=torch.float32) + 0.5) * (h / N_ELEVATION) - 0.5).clamp(0, h - 1)
-    x = (torch.arange(N_AZIMUTH, device=dev, dtype=torch.float32) + 0.5) * (w / N_AZIMUTH) - 0.5 + 1.0
-    y0 = y.floor().long().clamp(0, h - 1)
-    y1 = (y0 + 1).clamp(max=h - 1)
-    x0 = x.floor().long()
-    x1 = (x0 + 1).clamp(max=w + 1)
-    wy = (y - y0.float()).to(maps.dtype)[:, None]
-    wx = (x - x0.float()).to(maps.dtype)
+    h, w = maps.shape[-2:]
+    padded = pad_wrap(maps)  # [N, k, h, w + 2]: one wrapped column each side
+    y0, y1, wy, x0, x1, wx = _centre_coords(h, w, maps.device)
+    wy, wx = wy.to(maps.dtype)[:, None], wx.to(maps.dtype)
     rows = padded[:, :, y0] * (1 - wy) + padded[:, :, y1] * wy  # [N, k, 90, w + 2]
     return rows[..., x0] * (1 - wx) + rows[..., x1] * wx
 
