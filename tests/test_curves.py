@@ -37,3 +37,9 @@ def test_curves_run_resume_and_validate_only(tmp_path, make_scene):
     assert [r["step"] for r in res["rows"] if r["method"] == "pooled"] == [1, 2, 3]
     assert (out / "curves.png").is_file() and "knn (line)" in (out / "curves.md").read_text()
     assert sorted(p.parent.parent.name for p in (out / "tiny" / "pooled").rglob("last.ckpt")) == ["step_3"]
+    # a run of a subset (one method, an earlier until) trains nothing and keeps every other published row
+    subset = [a for a in args if not a.startswith("only_methods=")] + ["only_methods=[pooled]", "until=1"]
+    p = subprocess.run(subset, capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr[-3000:]
+    again = json.loads((out / "results.json").read_text())
+    assert again["rows"] == res["rows"] and "| ray_knn | 3 |" in (out / "curves.md").read_text()

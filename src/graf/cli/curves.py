@@ -64,20 +64,23 @@ def val_figures(result: dict) -> dict:
     return out
 
 
-def points(cfg: DictConfig, regime: DictConfig) -> list[int]:
+def points(cfg: DictConfig, regime: DictConfig, until: bool = True) -> list[int]:
+    """The regime's evaluation steps (its budget included); with ``until``, only those at or below ``cfg.until``."""
     steps = sorted({int(s) for s in cfg.steps if int(s) <= int(regime.max_steps)} | {int(regime.max_steps)})
-    return [s for s in steps if cfg.get("until") is None or s <= int(cfg.until)]
+    return [s for s in steps if not until or cfg.get("until") is None or s <= int(cfg.until)]
 
 
 def collect(out: Path, cfg: DictConfig) -> tuple[list[dict], dict]:
+    """Every finished point on disk of every configured regime and method, whatever this invocation's
+    ``only_regimes``, ``only_methods`` and ``until`` (a run of a subset must not drop the others' rows)."""
     rows, knn = [], {}
-    for rname, regime in _subset(cfg.regimes, cfg.get("only_regimes"), "only_regimes").items():
+    for rname, regime in cfg.regimes.items():
         f = out / rname / "knn" / "results.json"
         if f.exists():
             knn[rname] = val_figures(json.loads(f.read_text()))
-        for mname in _subset(cfg.methods, cfg.get("only_methods"), "only_methods"):
+        for mname in cfg.methods:
             fit_s = 0.0
-            for step in points(cfg, regime):
+            for step in points(cfg, regime, until=False):
                 f = out / rname / mname / f"step_{step}" / "results.json"
                 if not f.exists():
                     break
@@ -186,6 +189,9 @@ def curves(cfg: DictConfig) -> dict:
                             f.unlink()
                     if prev is not None:
                         shutil.rmtree(prev / "checkpoints", ignore_errors=True)
+                # a point that now succeeded is no longer a failure (an earlier attempt's record goes)
+                failed = [f for f in failed if (f["regime"], f["method"], f["step"]) != (rname, mname, step)]
+                atomic_write_json(failed_file, failed)
                 prev = folder
                 rows, knn = collect(out, cfg)
                 write_outputs(out, rows, knn, failed)
