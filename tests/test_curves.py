@@ -7,7 +7,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 
+
+@pytest.mark.slow  # 75 s on the 2-core CI machine: the default run must stay under 15 min
 def test_curves_run_resume_and_validate_only(tmp_path, make_scene):
     folder = make_scene(n=24)
     out = tmp_path / "curves"
