@@ -43,13 +43,22 @@ def matrix(report: dict) -> str:
     return "\n\n".join(out)
 
 
-def vs_l(report: dict) -> str:
+def pairs(rows: list[dict]) -> str:
+    """'conference_v1 -> v2/v3 and office_v1 -> v2/v3': the (trained on -> tested on) pairs the rows average."""
+    by = {}
+    for r in rows:
+        if r.get("L") not in (None, "") and not r.get("within_scene") and r.get("trained_on") not in (None, "", "-"):
+            by.setdefault(str(r["trained_on"]), set()).add(str(r["eval_scene"]).rsplit("_", 1)[-1])
+    return " and ".join(f"{t} -> {'/'.join(sorted(v))}" for t, v in sorted(by.items()))
+
+
+def vs_l(report: dict, rows: list[dict]) -> str:
     data = report["vs_L"]
     ls = sorted({int(x) for pts in data.values() for x in pts})
     out = []
     for _, name, f in METRICS:
         body = [[m, *[fmt(pts.get(str(x), {}).get(name), f) for x in ls]] for m, pts in data.items()]
-        out.append(f"**{name}** vs L (mean over conference_v1 -> v2/v3 and office_v1 -> v2/v3)\n\n"
+        out.append(f"**{name}** vs L (mean over {pairs(rows)})\n\n"
                    + md(["method", *[f"L = {x}" for x in ls]], body))
     return "\n\n".join(out)
 
@@ -91,7 +100,7 @@ def main() -> None:
     if "matrix" in report:
         print(matrix(report))
     if "vs_L" in report:
-        print(vs_l(report))
+        print(vs_l(report, rows))
     if "vs_fraction" in report:
         print(unseen(rows))
     if "band_matrix" in report:

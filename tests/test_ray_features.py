@@ -73,9 +73,10 @@ def _batch(B=2, L=3, seed=0, colocated=False):
             "scene_index": torch.zeros(B, dtype=torch.long), "tgt_id": torch.arange(B)}
 
 
-def test_ray_knn_at_step_0_is_idw_knn_on_the_same_neighbours():
+@pytest.mark.parametrize("features", ["ray_knn", "ray_weights"])
+def test_knn_based_modes_at_step_0_are_idw_knn_on_the_same_neighbours(features):
     torch.manual_seed(0)
-    model = GRaFModule(**TINY, neighbour_features="ray_knn").eval()
+    model = GRaFModule(**TINY, neighbour_features=features).eval()
     batch = _batch()
     with torch.no_grad():
         pred = model.predict_spectra(batch)
@@ -83,9 +84,10 @@ def test_ray_knn_at_step_0_is_idw_knn_on_the_same_neighbours():
     assert (pred - knn).abs().max() < 1e-5
 
 
-def test_a_colocated_neighbour_with_its_identity_weight_is_reproduced():
+@pytest.mark.parametrize("features", ["ray_knn", "ray_weights"])
+def test_a_colocated_neighbour_with_its_identity_weight_is_reproduced(features):
     torch.manual_seed(0)
-    model = GRaFModule(**TINY, neighbour_features="ray_knn").eval()
+    model = GRaFModule(**TINY, neighbour_features=features).eval()
     batch = _batch(colocated=True)
     with torch.no_grad():
         pred = model.predict_spectra(batch)
@@ -108,7 +110,7 @@ def test_ray_mode_reads_each_neighbour_at_the_rays_own_pixel():
     assert torch.equal(after[1], before[1])  # the other target's rays never see it
 
 
-@pytest.mark.parametrize("features", ["ray", "ray_knn"])
+@pytest.mark.parametrize("features", ["ray", "ray_knn", "ray_weights"])
 def test_ray_options_compose_train_and_round_trip_a_checkpoint(compose_cfg, features, tmp_path):
     cfg = compose_cfg("train", ("experiment=graf_rfid_s23", f"model.neighbour_features={features}",
                                 "trainer.max_steps=2", "model.rays_per_step=64", "model.max_samples=4",
@@ -116,7 +118,7 @@ def test_ray_options_compose_train_and_round_trip_a_checkpoint(compose_cfg, feat
                                 "baselines=null", "reliance=false", f"paths.output_dir={tmp_path / 'run'}"))
     _, objects = train(cfg)
     res = json.loads((tmp_path / "run" / "results.json").read_text())
-    assert res["method"] == ("graf-ray" if features == "ray" else "graf-ray-knn") and res["global_step"] == 2
+    assert res["method"] == "graf-" + features.replace("_", "-") and res["global_step"] == 2
     model = objects["model"].eval()
     loaded = GRaFModule.load_from_checkpoint(tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu").eval()
     assert loaded.hparams.neighbour_features == features
@@ -128,5 +130,28 @@ def test_ray_options_compose_train_and_round_trip_a_checkpoint(compose_cfg, feat
 def test_ray_knn_refuses_the_pooled_residual_and_unknown_modes_are_refused():
     with pytest.raises(ValueError, match="ray_knn already adds"):
         GRaFModule(**TINY, neighbour_features="ray_knn", residual=True)
+    with pytest.raises(ValueError, match="ray_weights already adds"):
+        GRaFModule(**TINY, neighbour_features="ray_weights", residual=True)
     with pytest.raises(ValueError, match="neighbour_features must be one of"):
         GRaFModule(**TINY, neighbour_features="rays")
+
+
+def test_ray_weights_predicts_only_convex_combinations_of_what_the_neighbours_measured_even_after_training():
+    """Trained or not, every pixel of a ray_weights prediction lies between the neighbours' values there."""
+    torch.manual_seed(0)
+    model = GRaFModule(**TINY, neighbour_features="ray_weights")
+    batch = _batch()
+    opt = torch.optim.SGD(model.parameters(), lr=0.5)
+    for _ in range(3):  # move the weights away from IDW
+        pix = torch.randint(0, 90 * 360, (batch["tgt_pos"].shape[0], 64))
+        pred = model.render(model.prepare(batch), pix)
+        loss = (pred - batch["tgt_spectrum"].flatten(1).gather(1, pix)).pow(2).mean()
+        opt.zero_grad(), loss.backward(), opt.step()
+    assert model.weight_query.weight.abs().sum() > 0
+    model.eval()
+    with torch.no_grad():
+        pred = model.predict_spectra(batch)
+    knn = KNNModule(weighting="idw").predict_spectra(batch)
+    src = batch["src_spectra"]
+    assert (pred >= src.min(dim=1).values - 1e-5).all() and (pred <= src.max(dim=1).values + 1e-5).all()
+    assert (pred - knn).abs().max() > 1e-6  # it has learned something other than IDW

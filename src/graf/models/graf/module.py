@@ -59,8 +59,11 @@ WEIGHTINGS = ("idw", "barycentric")
 # how the rays read the neighbours: pooled (the seed's: one token per neighbour spectrum), ray (per-ray tokens
 # from each neighbour's feature map and pixel values at the ray's own direction), ray_knn (ray, plus a per-ray
 # convex combination of the neighbours' pixel values that equals IDW KNN at initialisation, corrected by the
-# ray tracer): see graf.models.graf.ray_features
-NEIGHBOUR_FEATURES = ("pooled", "ray", "ray_knn")
+# ray tracer), ray_weights (ray, and the output is only that per-ray convex combination, its weights corrected by
+# the neighbour tokens and by the ray tracer's state: never an additive term, so every predicted pixel is a
+# weighted average of what the neighbours measured there): see graf.models.graf.ray_features
+NEIGHBOUR_FEATURES = ("pooled", "ray", "ray_knn", "ray_weights")
+KNN_BASED = ("ray_knn", "ray_weights")  # modes equal to IDW KNN at initialisation
 LOSSES = ("mse", "log_mse")
 LOG_MSE_EPS = 1e-6
 # The scene index enters the PE as a coordinate ``index * SCENE_INDEX_SCALE``: with a raw integer n every
@@ -119,8 +122,8 @@ class GRaFModule(SpectrumModule):
         if ray_feature_dim < 1 or pixel_window < 0:
             raise ValueError(f"model.ray_feature_dim must be >= 1 and model.pixel_window >= 0, got {ray_feature_dim}, "
                              f"{pixel_window}")
-        if neighbour_features == "ray_knn" and residual:
-            raise ValueError("model.neighbour_features=ray_knn already adds its own per-ray KNN base: "
+        if neighbour_features in KNN_BASED and residual:
+            raise ValueError(f"model.neighbour_features={neighbour_features} already adds its own per-ray KNN base: "
                              "model.residual must be false")
         if weighting not in WEIGHTINGS:
             raise ValueError(f"model.weighting must be one of {WEIGHTINGS}, got {weighting!r}")
@@ -173,7 +176,12 @@ class GRaFModule(SpectrumModule):
         self.voxel_distance = nn.Linear(d, d)
         self.ray_blocks = nn.ModuleList(SelfAttentionBlock(d, ray_heads, ray_head_dim, ffn_dim, kernel=attention)
                                         for _ in range(ray_blocks))
-        self.head = nn.Linear(d, 2)
+        if neighbour_features == "ray_weights":  # the ray tracer's state -> a query over the L per-ray tokens
+            self.weight_query = nn.Linear(d, d)   # whose scores correct the convex weights (zero at init)
+            nn.init.zeros_(self.weight_query.weight)
+            nn.init.zeros_(self.weight_query.bias)
+        else:
+            self.head = nn.Linear(d, 2)
         if self.residual or neighbour_features == "ray_knn":  # the model starts as (per-ray) KNN
             nn.init.zeros_(self.head.weight)
             nn.init.zeros_(self.head.bias)
@@ -323,7 +331,7 @@ class GRaFModule(SpectrumModule):
         dist_wl = torch.linalg.vector_norm(offset, dim=-1, keepdim=True) / batch["wavelength"].float()[:, None, None]
         ctx = {"ray_maps": ray_maps, "src": spectra.masked_fill(~mask[..., None, None], 0.0),
                "geo": self.ray_tokens.geometry(torch.cat([pe_off, torch.log1p(dist_wl)], dim=-1))}
-        if self.neighbour_features == "ray_knn":
+        if self.neighbour_features in KNN_BASED:
             ctx["idw_logits"] = torch.log(idw_weights(batch["tgt_pos"], batch["src_pos"], mask).float()).masked_fill(
                 ~mask, float("-inf"))
         return ctx
@@ -429,6 +437,8 @@ class GRaFModule(SpectrumModule):
             if self.neighbour_features == "ray_knn":  # convex weights at this pixel: IDW at init, then learned
                 w = torch.softmax(ctx["idw_logits"][bi] + logits, dim=-1)
                 base = (w * window[..., window.shape[-1] // 2]).sum(dim=-1)  # [n]
+            elif self.neighbour_features == "ray_weights":
+                logits = ctx["idw_logits"][bi] + logits
         elif one_item:  # every voxel of the group attends to the same target's neighbours: one long query axis
             b = int(bi[0])
             x = q.reshape(1, n * S, self.d_model)
@@ -439,6 +449,12 @@ class GRaFModule(SpectrumModule):
             x = blk(x, ctx_tokens, km)
         v = self.mlp2(x).view(n, S, self.d_model) + code
         v = self._ray_transformer(v)
+        if self.neighbour_features == "ray_weights":  # the ray's state scores its neighbour tokens: the weights'
+            state = self.weight_query(v.float().mean(dim=1))  # correction; the value is their convex combination
+            scores = (state[:, None, :] * ctx_tokens.float()).sum(dim=-1) / math.sqrt(self.d_model)  # [n, L]
+            w = torch.softmax(logits.float() + scores, dim=-1)
+            value = (w * window[..., window.shape[-1] // 2].float()).sum(dim=-1)  # [n]
+            return torch.stack([value, torch.zeros_like(value)], dim=-1)
         out = self.head(v.float().mean(dim=1)).float()
         if base is not None:  # ray_knn: the ray tracer corrects the per-ray KNN value (re + base, im)
             out = torch.stack([out[:, 0] + base.float(), out[:, 1]], dim=-1)
