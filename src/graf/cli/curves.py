@@ -123,6 +123,9 @@ def plot(path: Path, rows: list[dict], knn: dict) -> None:
     import matplotlib.pyplot as plt
 
     regimes = sorted({r["regime"] for r in rows} | set(knn))
+    # one colour per method in every panel, so a method reads the same across regimes
+    cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    colour = {m: cycle[k % len(cycle)] for k, m in enumerate(sorted({r["method"] for r in rows}))}
     fig, axes = plt.subplots(len(regimes), len(FIGURES), figsize=(13, 3.3 * len(regimes)), squeeze=False,
                              constrained_layout=True)
     for i, rname in enumerate(regimes):
@@ -131,7 +134,7 @@ def plot(path: Path, rows: list[dict], knn: dict) -> None:
             for m in sorted({r["method"] for r in rows if r["regime"] == rname}):
                 pts = [(r["step"], r[col]) for r in rows if r["regime"] == rname and r["method"] == m and r[col] is not None]
                 if pts:
-                    ax.plot(*zip(*pts), marker="o", label=m)
+                    ax.plot(*zip(*pts), marker="o", label=m, color=colour[m])
             if rname in knn and knn[rname].get(key) is not None:
                 ax.axhline(knn[rname][key], color="k", ls="--", lw=1, label="knn")
             ax.set_xscale("log")
