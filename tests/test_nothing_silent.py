@@ -305,10 +305,28 @@ def test_sigterm_stops_at_the_next_step_saves_a_checkpoint_and_resumes(tmp_path)
     step = torch.load(ckpt, map_location="cpu", weights_only=False)["global_step"]
     assert 0 < step == record["global_step"] < 100000
     assert "resume with the same command and ckpt_path=" in err and not (out / "results.json").exists()
+    # resumed in its own folder, as a study resumes its base model: last.ckpt, which the pre-emption wrote and
+    # every reader opens, must end up holding the final step (not a versioned last-v1.ckpt beside a stale one)
     p = _cli("graf-train", "model=knn_dl", f"trainer.max_steps={step + 3}", "baselines=null",
              "callbacks.model_checkpoint.every_n_train_steps=100000", *QUIET, f"ckpt_path={ckpt}",
-             f"hydra.run.dir={tmp_path / 'resumed'}", cwd=tmp_path)
+             f"hydra.run.dir={out}", cwd=tmp_path)
     assert p.returncode == 0, p.stderr[-2000:]
-    res = json.loads((tmp_path / "resumed" / "results.json").read_text())
+    res = json.loads((out / "results.json").read_text())
     assert res["training"]["start_step"] == step and res["global_step"] == step + 3
+    assert torch.load(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)["global_step"] == step + 3
+    assert not list((out / "checkpoints").glob("last-v*.ckpt"))
+    assert not (out / "preempted.json").exists()
+
+
+def test_a_base_model_whose_last_checkpoint_is_stale_is_refused(tmp_path):
+    from graf.cli.train import check_base_checkpoint
+
+    folder = tmp_path / "base"
+    (folder / "checkpoints").mkdir(parents=True)
+    (folder / "results.json").write_text(json.dumps({"global_step": 300}))
+    torch.save({"state_dict": {}, "global_step": 7}, folder / "checkpoints" / "last.ckpt")
+    with pytest.raises(CheckpointError, match="holds step 7.*step 300"):
+        check_base_checkpoint(folder)
+    torch.save({"state_dict": {}, "global_step": 300}, folder / "checkpoints" / "last.ckpt")
+    check_base_checkpoint(folder)  # the same step: accepted
 

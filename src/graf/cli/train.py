@@ -77,6 +77,7 @@ def train(cfg: DictConfig) -> tuple[dict, dict]:
         except SIGTERMException:
             raise preempted(cfg, trainer, step0) from None
         fit_s, steps = time.perf_counter() - t0, max(0, trainer.global_step - step0)
+        check_last_checkpoint(trainer, out)
         objects["timing"] = {"fit_s": round(fit_s, 3), "fit_steps": int(steps),
                              "fit_s_per_step": round(fit_s / steps, 4) if steps else None}
         objects["training"] = training_record(trainer, step0)
@@ -94,6 +95,29 @@ def train(cfg: DictConfig) -> tuple[dict, dict]:
     # the final weights are validated and tested (nothing is chosen on the test split)
     metrics = test_and_report(cfg, objects, started, task="train")
     return metrics, objects
+
+
+def check_last_checkpoint(trainer, out: Path) -> None:
+    """After a finished fit: the ``last.ckpt`` that every reader opens (fine-tuning from a study's base,
+    graf-curves' next point, a search's best trial) must hold the weights training ended with.  Refuse, naming
+    the files, when it holds another step (e.g. a pre-emption's checkpoint left behind while the final weights
+    went to a versioned copy); a finished run's stale ``preempted.json`` is removed."""
+    for cb in getattr(trainer, "checkpoint_callbacks", []):
+        if not getattr(cb, "save_last", False) or not getattr(cb, "dirpath", None):
+            continue
+        last = Path(cb.dirpath) / "last.ckpt"
+        if not last.is_file():
+            continue
+        step = int(read_checkpoint(last).get("global_step", -1))
+        if step != int(trainer.global_step):
+            raise CheckpointError(
+                f"{last}: holds step {step}, but training ended at step {int(trainer.global_step)} (its final weights "
+                f"are in {cb.last_model_path or 'no file'}); readers of last.ckpt would get stale weights: keep "
+                "callbacks.model_checkpoint.enable_version_counter=false")
+    stale = out / "preempted.json"
+    if stale.is_file():
+        log.info("%s: the pre-empted run has finished; removing its preempted.json", out)
+        stale.unlink()
 
 
 def check_training_length(cfg: DictConfig) -> None:
@@ -340,6 +364,7 @@ def ensure_base(cfg: DictConfig) -> None:
                               f"this job needs {' '.join(overrides)}: remove that folder or use another "
                               "hydra.sweep.dir")
     if (folder / "results.json").is_file():
+        check_base_checkpoint(folder)
         return
     folder.mkdir(parents=True, exist_ok=True)
     atomic_write_json(record, overrides)
@@ -349,6 +374,20 @@ def ensure_base(cfg: DictConfig) -> None:
 
     base_cfg = compose(config_name="train", overrides=overrides + ([f"ckpt_path={last}"] if last.is_file() else []))
     train(base_cfg)
+
+
+def check_base_checkpoint(folder: Path) -> None:
+    """A finished base model's ``checkpoints/last.ckpt`` must hold the step its ``results.json`` reports:
+    otherwise every job fine-tuned from it starts from other weights than the ones the base was tested with."""
+    done = json.loads((folder / "results.json").read_text())
+    want = done.get("global_step")
+    last = folder / "checkpoints" / "last.ckpt"
+    if want is None or not last.is_file():
+        return
+    step = int(read_checkpoint(last).get("global_step", -1))
+    if step != int(want):
+        raise CheckpointError(f"{last}: holds step {step}, but {folder / 'results.json'} reports the base model "
+                              f"trained to step {want}: the checkpoint is stale (remove {folder} and run again)")
 
 
 def load_weights(model, path) -> None:
