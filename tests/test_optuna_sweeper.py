@@ -111,6 +111,29 @@ def test_a_sweep_killed_after_its_second_trial_resumes_to_exactly_four_trials(tm
     assert len(load(tmp_path).trials) == len(study.trials)
 
 
+def test_a_preempted_trial_stops_the_sweep_with_code_143_and_is_run_again_on_resume(tmp_path):
+    probe = tmp_path / "probe"
+    probe.mkdir()
+    assert run_app(probe, "hydra.sweeper.n_trials=2").returncode == 0
+    second = next(t.params["x"] for t in load(probe).trials if t.number == 1)
+    r = run_app(tmp_path, f"preempt_at={second}")
+    assert r.returncode == 143, r.stderr[-3000:]
+    assert "queued again" in r.stdout + r.stderr
+    study = load(tmp_path)
+    assert [t.state for t in study.trials] == [TrialState.COMPLETE, TrialState.FAIL, TrialState.WAITING]
+    assert study.trials[1].user_attrs.get("graf.interrupted") and study.trials[2].user_attrs["graf.requeued_from"] == 1
+    assert (tmp_path / "sweep" / "trials.csv").is_file()  # the outputs are written before it stops
+
+    r = run_app(tmp_path, f"preempt_at={second}")  # the same command again
+    assert r.returncode == 0, r.stderr[-3000:]
+    study = load(tmp_path)
+    complete = [t for t in study.trials if t.state == TrialState.COMPLETE]
+    assert len(complete) == 4 and len({t.params["x"] for t in complete}) == 4
+    assert [t.number for t in complete if t.user_attrs.get("graf.requeued_from") == 1] == [2]
+    assert study.trials[2].params == study.trials[1].params  # the pre-empted configuration, run again
+    assert set(trained(tmp_path).values()) == {1}  # no configuration trained twice
+
+
 def test_two_processes_on_one_storage_complete_four_trials_without_duplicates(tmp_path):
     procs = [run_app(tmp_path, "work_s=0.5", "hydra.sweeper.threads_per_job=1", wait=False) for _ in range(2)]
     for p in procs:

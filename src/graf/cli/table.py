@@ -243,6 +243,15 @@ class SweepTable(Callback):
                 log.info("sweep table: %s", sweep_dir / "table.md")
         except Exception:  # a table is a convenience: never break the sweep
             log.exception("could not write the sweep table in %s", sweep_dir)
+        # a job stopped by SIGTERM (a cluster pre-empting the multirun) stops the multirun: the next jobs would be
+        # pre-empted too, or run on after the user asked to stop; the same command resumes (finished jobs are
+        # skipped; a study's base model resumes from its checkpoint).  An Optuna search's trial is the sweeper's
+        # to handle (queued again, then the search stops).
+        if job_return.status == JobStatus.FAILED and getattr(job_return._return_value, "exit_code", None) == 143 \
+                and config.get("optuna_trial") is None:
+            log.error("job %s was pre-empted (SIGTERM): the multirun stops here; run the same command again to resume",
+                      config.hydra.job.num)
+            raise SystemExit(143)
 
 
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="table")

@@ -179,9 +179,17 @@ def preempted(cfg: DictConfig, trainer, step0: int) -> Preempted:
     if saved:
         msg = (f"SIGTERM: training stopped at step {saved['global_step']} of {int(trainer.max_steps)}; checkpoint saved "
                f"to {saved['checkpoint']}; resume with the same command and ckpt_path={saved['checkpoint']}")
-    else:
-        msg = (f"SIGTERM: training stopped at step {int(trainer.global_step)} with no checkpoint saved (callbacks="
-               "none has no pre-emption callback)")
+    elif not any(isinstance(cb, Preemption) for cb in trainer.callbacks):
+        msg = (f"SIGTERM: training stopped at step {int(trainer.global_step)} with no checkpoint saved (this run's "
+               "callbacks have no pre-emption callback, graf.callbacks.Preemption)")
+    else:  # the signal came between training steps (during a validation): the last checkpoint is what there is
+        last = next((cb.last_model_path for cb in trainer.checkpoint_callbacks if getattr(cb, "last_model_path", "")),
+                    None)
+        msg = (f"SIGTERM: stopped at step {int(trainer.global_step)} of {int(trainer.max_steps)} outside a training "
+               f"step (during validation); " + (f"resume with the same command and ckpt_path={last}" if last
+                                                 else "no checkpoint was written"))
+        record["checkpoint"] = last
+        atomic_write_json(out / "preempted.json", record)
     return Preempted(msg)
 
 

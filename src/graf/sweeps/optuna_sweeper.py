@@ -59,6 +59,18 @@ class SweepError(RuntimeError):
     """The sweep cannot go on (too many failed trials, a storage holding another search)."""
 
 
+class SweepPreempted(RuntimeError):
+    """A trial was stopped by SIGTERM (a cluster pre-empting the job): its parameters are queued again (resuming
+    from its checkpoint) and the sweep stops with the pre-emption's exit code; the same command resumes it."""
+
+    exit_code = 143
+
+
+def is_preempted(exc: BaseException | None) -> bool:
+    """A job stopped on purpose by SIGTERM (``graf.cli.train.Preempted``: it carries exit code 143)."""
+    return getattr(exc, "exit_code", None) == 143
+
+
 # ----------------------------------------------------------------------------------------------------------
 # processes
 def _process_start(pid: int) -> float | None:
@@ -109,7 +121,11 @@ def _sqlite_path(url: str) -> Path | None:
 
 # ----------------------------------------------------------------------------------------------------------
 def make_sampler(name: str, space: SearchSpace, n_objectives: int, seed: int,
-                 population_size: int | None = None) -> optuna.samplers.BaseSampler:
+                 population_size: int | None = None, grid_seed: int | None = None) -> optuna.samplers.BaseSampler:
+    """``seed`` seeds a sampler of this process (varied per run and worker); a grid is shuffled by ``grid_seed``
+    instead, the same in every process and run of a study: a trial stores its point as an index into the
+    shuffled grid, so another shuffle (a resumed run, a second worker) would read those indices as other points,
+    try some twice and leave others out."""
     name = (name or "auto").lower()
     if name == "auto":
         name = "nsga2" if n_objectives > 1 else ("grid" if space.all_categorical else "tpe")
@@ -119,7 +135,7 @@ def make_sampler(name: str, space: SearchSpace, n_objectives: int, seed: int,
         if not space.all_categorical:
             raise SearchSpaceError("sampler grid needs every parameter to be a choice(...): "
                                    f"{', '.join(k for k, d in space.distributions.items() if not hasattr(d, 'choices'))}")
-        return _Grid(space.grid(), seed=seed)
+        return _Grid(space.grid(), seed=seed if grid_seed is None else grid_seed)
     if name == "nsga2":
         if population_size is not None and int(population_size) < 2:
             raise SearchSpaceError(f"hydra.sweeper.population_size={population_size}: NSGA-II needs at least 2")
@@ -276,7 +292,7 @@ class OptunaSweep:
             self._check_same_search(study, space, names)
             study.sampler = make_sampler(self.sampler_name, space, len(names),
                                          self.seed + len(study.trials) + 7919 * self.worker_rank,
-                                         self.population_size)
+                                         self.population_size, grid_seed=self.seed)
         log.info("study %s in %s: %d trial(s) stored of n_trials=%d; objective %s (%s); threads per trial %d",
                  name, url, len(study.trials), n_trials, names, self.directions, self.threads())
         workers = self._start_workers(sweep_dir, url, name) if self.worker_rank == 0 and self.n_jobs > 1 else []
@@ -295,6 +311,13 @@ class OptunaSweep:
                     error = step
                     break
                 returns.append(self._run_trial(study, step, ctx))
+        except SweepPreempted as exc:
+            from graf.sweeps.outputs import write_outputs
+
+            if self.worker_rank == 0:
+                write_outputs(study, ctx["sweep_dir"], space, ctx["names"], plots=False)
+            log.error("%s", exc)
+            raise SystemExit(exc.exit_code) from None
         finally:
             for p in workers:
                 p.wait()
@@ -334,7 +357,6 @@ class OptunaSweep:
         return procs
 
     def _recover_interrupted(self, study, ctx) -> None:
-        storage = study._storage
         for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
             owner = t.user_attrs.get(OWNER)
             alive = owner_alive(owner)
@@ -342,18 +364,26 @@ class OptunaSweep:
                 continue
             if owner is None and t.datetime_start and (time.time() - t.datetime_start.timestamp()) < 60:
                 continue  # just asked by another process, its owner not written yet
+            log.warning("trial %d: its process %s is gone", t.number, owner)
             try:
-                storage.set_trial_user_attr(t._trial_id, INTERRUPTED, True)
-                storage.set_trial_state_values(t._trial_id, TrialState.FAIL)
+                self._requeue(study, t, t.user_attrs.get(OUTPUT))
             except Exception:  # finished meanwhile, or recovered by another process
                 continue
-            attrs = {REQUEUED: t.number}
-            ckpt = Path(t.user_attrs.get(OUTPUT, "")) / "checkpoints" / "last.ckpt" if t.user_attrs.get(OUTPUT) else None
-            if ckpt is not None and ckpt.is_file():
-                attrs[RESUME] = str(ckpt)
-            study.enqueue_trial(t.params, user_attrs=attrs)
-            log.warning("trial %d was interrupted (its process %s is gone): stored as failed, its parameters queued "
-                        "again%s", t.number, owner, f" (resuming from {ckpt})" if RESUME in attrs else "")
+
+    def _requeue(self, study, trial, output_dir: str | None) -> None:
+        """A trial that did not end by its own fault (its process killed, or pre-empted): stored as failed but
+        not counted as the configuration's failure, and its parameters queued again, resuming from its last
+        checkpoint when it has one."""
+        storage = study._storage
+        storage.set_trial_user_attr(trial._trial_id, INTERRUPTED, True)
+        storage.set_trial_state_values(trial._trial_id, TrialState.FAIL)
+        attrs = {REQUEUED: trial.number}
+        ckpt = Path(output_dir) / "checkpoints" / "last.ckpt" if output_dir else None
+        if ckpt is not None and ckpt.is_file():
+            attrs[RESUME] = str(ckpt)
+        study.enqueue_trial(trial.params, user_attrs=attrs)
+        log.warning("trial %d was interrupted: stored as failed, its parameters queued again%s", trial.number,
+                    f" (resuming from {ckpt})" if RESUME in attrs else "")
 
     def _next(self, study, ctx):
         """Under the storage lock: recover interrupted trials, then either ``"done"``, ``"wait"`` (others
@@ -456,6 +486,11 @@ class OptunaSweep:
             if isinstance(exc, optuna.TrialPruned):
                 study.tell(trial, state=TrialState.PRUNED)
                 log.info("trial %d pruned: %s", trial.number, exc)
+            elif is_preempted(exc):
+                self._requeue(study, trial, str(ret.hydra_cfg.hydra.runtime.output_dir)
+                              if getattr(ret, "hydra_cfg", None) is not None else None)
+                raise SweepPreempted(f"trial {trial.number} was pre-empted ({exc}); its parameters are queued again: "
+                                     "run the same command to resume the search")
             else:
                 trial.set_user_attr(ERROR, f"{type(exc).__name__}: {exc}"[:2000])
                 study.tell(trial, state=TrialState.FAIL)

@@ -1,7 +1,8 @@
 """A tiny Hydra app for the Optuna sweeper's tests (tests/test_optuna_sweeper.py): no torch, a trial takes
 milliseconds.  Each trial writes ``started_x<x>_<pid>`` and, when it ends normally, ``finished_x<x>`` into
 ``marks`` (the configurations actually trained); ``slow_at`` (or $SWEEP_APP_SLOW_AT) sleeps (to be killed), ``raise_at`` raises,
-``nan_at`` returns NaN.  ``lightning=true``: a trial trains a tiny Lightning model with validation every 2 steps
+``nan_at`` returns NaN, ``preempt_at`` stops the first trial with that x as a pre-empted graf-train does (an
+exception with ``exit_code`` 143).  ``lightning=true``: a trial trains a tiny Lightning model with validation every 2 steps
 and graf's pruning callback; the first trial to run logs val/psnr 10, every later one -10 (so a median
 pruner prunes them)."""
 
@@ -12,6 +13,10 @@ from pathlib import Path
 
 import hydra
 from omegaconf import DictConfig
+
+
+class Preempted(Exception):
+    exit_code = 143  # as graf.cli.train.Preempted
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
@@ -25,6 +30,9 @@ def main(cfg: DictConfig) -> float:
         time.sleep(float(cfg.slow_s))
     if cfg.raise_at is not None and x == int(cfg.raise_at):
         raise RuntimeError(f"trial with x={x} fails on purpose")
+    if cfg.preempt_at is not None and x == int(cfg.preempt_at) and not (marks / "preempted_once").exists():
+        (marks / "preempted_once").touch()
+        raise Preempted(f"SIGTERM: trial with x={x} pre-empted on purpose")
     time.sleep(float(cfg.work_s))
     if cfg.lightning:
         return lightning_trial(cfg, marks)
