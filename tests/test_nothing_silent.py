@@ -330,3 +330,34 @@ def test_a_base_model_whose_last_checkpoint_is_stale_is_refused(tmp_path):
     torch.save({"state_dict": {}, "global_step": 300}, folder / "checkpoints" / "last.ckpt")
     check_base_checkpoint(folder)  # the same step: accepted
 
+
+
+def test_a_preempted_job_stops_a_studys_multirun_and_is_recorded(tmp_path):
+    """Hydra's basic launcher runs a study's jobs one after another: a job stopped by SIGTERM (graf-train's
+    Preempted, exit code 143) is recorded in failed.json and stops the multirun with 143 (the same command resumes
+    it), while an ordinary failure is recorded and the multirun goes on; an Optuna trial is left to its sweeper."""
+    from hydra.core.utils import JobReturn, JobStatus
+    from hydra.types import RunMode
+    from omegaconf import OmegaConf
+
+    from graf.cli.table import SweepTable
+    from graf.cli.train import Preempted
+
+    def job(exc, num, **extra):
+        cfg = OmegaConf.create({"hydra": {"mode": None, "sweep": {"dir": str(tmp_path)}, "job": {"num": num},
+                                          "overrides": {"task": [f"x={num}"]}}, **extra})
+        cfg.hydra.mode = RunMode.MULTIRUN
+        ret = JobReturn()
+        ret.status, ret.return_value = JobStatus.FAILED, exc
+        return cfg, ret
+
+    cfg, ret = job(RuntimeError("an ordinary failure"), 0)
+    SweepTable().on_job_end(cfg, ret)  # recorded, the multirun goes on
+    cfg, ret = job(Preempted("SIGTERM: training stopped at step 7 of 300"), 1)
+    with pytest.raises(SystemExit) as stop:
+        SweepTable().on_job_end(cfg, ret)
+    assert stop.value.code == 143
+    failed = json.loads((tmp_path / "failed.json").read_text())
+    assert [f["job"] for f in failed] == [0, 1] and "Preempted" in failed[1]["error"]
+    cfg, ret = job(Preempted("SIGTERM"), 2, optuna_trial={"number": 2})
+    SweepTable().on_job_end(cfg, ret)  # a search trial: the sweeper queues it again and stops the search itself
