@@ -331,7 +331,6 @@ def test_a_base_model_whose_last_checkpoint_is_stale_is_refused(tmp_path):
     check_base_checkpoint(folder)  # the same step: accepted
 
 
-
 def test_a_preempted_job_stops_a_studys_multirun_and_is_recorded(tmp_path):
     """Hydra's basic launcher runs a study's jobs one after another: a job stopped by SIGTERM (graf-train's
     Preempted, exit code 143) is recorded in failed.json and stops the multirun with 143 (the same command resumes

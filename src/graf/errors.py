@@ -16,3 +16,11 @@ class UserError(ValueError):
 
 class ConfigError(UserError):
     """A configuration that cannot run as given; the message says what to set."""
+
+
+PREEMPTED_EXIT_CODE = 143  # 128 + SIGTERM: what a shell reports for a job ended by SIGTERM
+
+
+def is_preempted(exc: BaseException | None) -> bool:
+    """A job stopped on purpose by SIGTERM (``graf.cli.train.Preempted``, which carries this exit code)."""
+    return getattr(exc, "exit_code", None) == PREEMPTED_EXIT_CODE

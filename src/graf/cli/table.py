@@ -34,6 +34,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, ListConfig
 
 from graf.cli.common import CONF_PATH, ConfigError, cli_errors, _output_dir, task_wrapper
+from graf.errors import PREEMPTED_EXIT_CODE, is_preempted
 from graf.io import atomic_write_bytes, atomic_write_json
 
 log = logging.getLogger("graf")
@@ -247,11 +248,11 @@ class SweepTable(Callback):
         # pre-empted too, or run on after the user asked to stop; the same command resumes (finished jobs are
         # skipped; a study's base model resumes from its checkpoint).  An Optuna search's trial is the sweeper's
         # to handle (queued again, then the search stops).
-        if job_return.status == JobStatus.FAILED and getattr(job_return._return_value, "exit_code", None) == 143 \
+        if job_return.status == JobStatus.FAILED and is_preempted(job_return._return_value) \
                 and config.get("optuna_trial") is None:
             log.error("job %s was pre-empted (SIGTERM): the multirun stops here; run the same command again to resume",
                       config.hydra.job.num)
-            raise SystemExit(143)
+            raise SystemExit(PREEMPTED_EXIT_CODE)
 
 
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="table")

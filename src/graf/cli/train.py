@@ -23,6 +23,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from graf.cli.common import (CONF_PATH, ConfigError, _output_dir, build, cli_errors, expand_heldout, family,
                              run_settings, scene_configs, sweep_value, task_wrapper, test_and_report)
+from graf.errors import PREEMPTED_EXIT_CODE
 from graf.io import atomic_write_json
 from graf.models.base import CheckpointError, check_checkpoint, read_checkpoint
 
@@ -105,15 +106,10 @@ def check_last_checkpoint(trainer, out: Path) -> None:
     for cb in getattr(trainer, "checkpoint_callbacks", []):
         if not getattr(cb, "save_last", False) or not getattr(cb, "dirpath", None):
             continue
-        last = Path(cb.dirpath) / "last.ckpt"
-        if not last.is_file():
-            continue
-        step = int(read_checkpoint(last).get("global_step", -1))
-        if step != int(trainer.global_step):
-            raise CheckpointError(
-                f"{last}: holds step {step}, but training ended at step {int(trainer.global_step)} (its final weights "
-                f"are in {cb.last_model_path or 'no file'}); readers of last.ckpt would get stale weights: keep "
-                "callbacks.model_checkpoint.enable_version_counter=false")
+        require_step(Path(cb.dirpath) / "last.ckpt", int(trainer.global_step),
+                     f"training ended at step {int(trainer.global_step)} (its final weights are in "
+                     f"{cb.last_model_path or 'no file'}); readers of last.ckpt would get stale weights: keep "
+                     "callbacks.model_checkpoint.enable_version_counter=false")
     stale = out / "preempted.json"
     if stale.is_file():
         log.info("%s: the pre-empted run has finished; removing its preempted.json", out)
@@ -163,7 +159,7 @@ def training_record(trainer, step0: int) -> dict:
 class Preempted(Exception):
     """Training stopped by SIGTERM with its state saved: the command exits with :attr:`exit_code`."""
 
-    exit_code = 143  # 128 + SIGTERM: what a shell reports for a job ended by SIGTERM
+    exit_code = PREEMPTED_EXIT_CODE
 
 
 def preempted(cfg: DictConfig, trainer, step0: int) -> Preempted:
@@ -175,7 +171,6 @@ def preempted(cfg: DictConfig, trainer, step0: int) -> Preempted:
     out = _output_dir(cfg)
     record = {"preempted": "SIGTERM", "global_step": int(trainer.global_step), "start_step": int(step0),
               "max_steps": int(trainer.max_steps), "checkpoint": (saved or {}).get("checkpoint")}
-    atomic_write_json(out / "preempted.json", record)
     if saved:
         msg = (f"SIGTERM: training stopped at step {saved['global_step']} of {int(trainer.max_steps)}; checkpoint saved "
                f"to {saved['checkpoint']}; resume with the same command and ckpt_path={saved['checkpoint']}")
@@ -189,7 +184,7 @@ def preempted(cfg: DictConfig, trainer, step0: int) -> Preempted:
                f"step (during validation); " + (f"resume with the same command and ckpt_path={last}" if last
                                                  else "no checkpoint was written"))
         record["checkpoint"] = last
-        atomic_write_json(out / "preempted.json", record)
+    atomic_write_json(out / "preempted.json", record)
     return Preempted(msg)
 
 
@@ -387,15 +382,20 @@ def ensure_base(cfg: DictConfig) -> None:
 def check_base_checkpoint(folder: Path) -> None:
     """A finished base model's ``checkpoints/last.ckpt`` must hold the step its ``results.json`` reports:
     otherwise every job fine-tuned from it starts from other weights than the ones the base was tested with."""
-    done = json.loads((folder / "results.json").read_text())
-    want = done.get("global_step")
-    last = folder / "checkpoints" / "last.ckpt"
-    if want is None or not last.is_file():
+    want = json.loads((folder / "results.json").read_text()).get("global_step")
+    if want is not None:
+        require_step(folder / "checkpoints" / "last.ckpt", int(want),
+                     f"{folder / 'results.json'} reports the base model trained to step {want}: the checkpoint is "
+                     f"stale (remove {folder} and run again)")
+
+
+def require_step(last: Path, want: int, why: str) -> None:
+    """Refuse a ``last.ckpt`` (when there is one) that holds another step than ``want``, saying ``why``."""
+    if not last.is_file():
         return
     step = int(read_checkpoint(last).get("global_step", -1))
-    if step != int(want):
-        raise CheckpointError(f"{last}: holds step {step}, but {folder / 'results.json'} reports the base model "
-                              f"trained to step {want}: the checkpoint is stale (remove {folder} and run again)")
+    if step != want:
+        raise CheckpointError(f"{last}: holds step {step}, but {why}")
 
 
 def load_weights(model, path) -> None:

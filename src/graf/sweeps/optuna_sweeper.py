@@ -43,6 +43,7 @@ import optuna
 from omegaconf import DictConfig, OmegaConf
 from optuna.trial import FrozenTrial, TrialState
 
+from graf.errors import PREEMPTED_EXIT_CODE, is_preempted
 from graf.io import atomic_write_json
 from graf.sweeps.search_space import SearchSpace, SearchSpaceError, parse_search_space
 
@@ -63,12 +64,7 @@ class SweepPreempted(RuntimeError):
     """A trial was stopped by SIGTERM (a cluster pre-empting the job): its parameters are queued again (resuming
     from its checkpoint) and the sweep stops with the pre-emption's exit code; the same command resumes it."""
 
-    exit_code = 143
-
-
-def is_preempted(exc: BaseException | None) -> bool:
-    """A job stopped on purpose by SIGTERM (``graf.cli.train.Preempted``: it carries exit code 143)."""
-    return getattr(exc, "exit_code", None) == 143
+    exit_code = PREEMPTED_EXIT_CODE
 
 
 # ----------------------------------------------------------------------------------------------------------
