@@ -46,3 +46,61 @@ def test_curves_run_resume_and_validate_only(tmp_path, make_scene):
     assert p.returncode == 0, p.stderr[-3000:]
     again = json.loads((out / "results.json").read_text())
     assert again["rows"] == res["rows"] and "| ray_knn | 3 |" in (out / "curves.md").read_text()
+
+
+def test_a_sigterm_is_passed_to_the_run_and_stops_the_command_with_code_143(tmp_path):
+    """graf-curves and graf-pareto run graf-train one job after another: a SIGTERM to them reaches the job in
+    progress (which saves its state), and the command stops with Preempted instead of going on to its next job."""
+    import os
+    import signal
+    import threading
+
+    from graf.cli.pareto import _run
+    from graf.errors import PREEMPTED_EXIT_CODE, Preempted
+
+    child = tmp_path / "child.py"
+    child.write_text("import signal, sys, time, pathlib\n"
+                     "def stop(*a):\n"
+                     f"    pathlib.Path({str(tmp_path / 'got_sigterm')!r}).write_text('saved')\n"
+                     "    sys.exit(143)\n"
+                     "signal.signal(signal.SIGTERM, stop)\n"
+                     "print('started', flush=True)\n"
+                     "time.sleep(60)\n")
+    started = tmp_path / "job" / "run.log"
+    t = threading.Thread(target=lambda: (_wait_for(started, "started"), os.kill(os.getpid(), signal.SIGTERM)))
+    t.start()
+    with pytest.raises(Preempted) as exc:
+        _run([sys.executable, str(child)], tmp_path / "job", dict(os.environ), timeout=60)
+    t.join()
+    assert exc.value.exit_code == PREEMPTED_EXIT_CODE and "exit code 143" in str(exc.value)
+    assert (tmp_path / "got_sigterm").read_text() == "saved"
+    assert signal.getsignal(signal.SIGTERM) is not None  # the handler before _run is back
+    ok, _ = _run([sys.executable, "-c", "print('done')"], tmp_path / "job2", dict(os.environ), timeout=60)
+    assert not ok  # it wrote no results.json; an ordinary failure, not a pre-emption
+
+
+def _wait_for(path: Path, text: str, timeout: float = 30.0) -> None:
+    import time
+
+    end = time.time() + timeout
+    while time.time() < end:
+        if path.exists() and text in path.read_text():
+            return
+        time.sleep(0.05)
+
+
+def test_a_preempted_point_resumes_from_its_own_checkpoint_and_its_seconds_count(tmp_path):
+    from graf.cli.curves import PREEMPTED_RUNS, _preempted_runs, _resume_preempted
+
+    prev, folder = tmp_path / "step_1000", tmp_path / "step_10000"
+    (folder / "checkpoints").mkdir(parents=True)
+    assert _resume_preempted(folder, None) is None  # a curve's first point starts from scratch
+    assert _resume_preempted(folder, prev) == prev / "checkpoints" / "last.ckpt"
+    ckpt = folder / "checkpoints" / "last.ckpt"
+    ckpt.write_bytes(b"state at step 4200")
+    (folder / "preempted.json").write_text(json.dumps({"global_step": 4200, "checkpoint": str(ckpt), "fit_s": 5000.0}))
+    assert _resume_preempted(folder, prev) == ckpt  # not the previous point's: 3,200 steps are not lost
+    assert not (folder / "preempted.json").exists() and [r["fit_s"] for r in _preempted_runs(folder)] == [5000.0]
+    (folder / "preempted.json").write_text(json.dumps({"global_step": 4300, "checkpoint": str(folder / "gone.ckpt")}))
+    assert _resume_preempted(folder, prev) == prev / "checkpoints" / "last.ckpt"  # nothing saved: start the point again
+    assert not (folder / "preempted.json").exists() and len(json.loads((folder / PREEMPTED_RUNS).read_text())) == 1

@@ -304,6 +304,7 @@ def test_sigterm_stops_at_the_next_step_saves_a_checkpoint_and_resumes(tmp_path)
     ckpt = Path(record["checkpoint"])
     step = torch.load(ckpt, map_location="cpu", weights_only=False)["global_step"]
     assert 0 < step == record["global_step"] < 100000
+    assert record["fit_s"] > 0  # the training seconds before the signal (graf-curves counts them)
     assert "resume with the same command and ckpt_path=" in err and not (out / "results.json").exists()
     # resumed in its own folder, as a study resumes its base model: last.ckpt, which the pre-emption wrote and
     # every reader opens, must end up holding the final step (not a versioned last-v1.ckpt beside a stale one)
@@ -340,7 +341,7 @@ def test_a_preempted_job_stops_a_studys_multirun_and_is_recorded(tmp_path):
     from omegaconf import OmegaConf
 
     from graf.cli.table import SweepTable
-    from graf.cli.train import Preempted
+    from graf.errors import Preempted
 
     def job(exc, num, **extra):
         cfg = OmegaConf.create({"hydra": {"mode": None, "sweep": {"dir": str(tmp_path)}, "job": {"num": num},

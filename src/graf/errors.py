@@ -21,6 +21,13 @@ class ConfigError(UserError):
 PREEMPTED_EXIT_CODE = 143  # 128 + SIGTERM: what a shell reports for a job ended by SIGTERM
 
 
+class Preempted(Exception):
+    """A job stopped on purpose by SIGTERM with its state saved (graf-train's training, or a command that runs
+    graf-train jobs one after another): the command exits with :attr:`exit_code`, and the same command resumes."""
+
+    exit_code = PREEMPTED_EXIT_CODE
+
+
 def is_preempted(exc: BaseException | None) -> bool:
-    """A job stopped on purpose by SIGTERM (``graf.cli.train.Preempted``, which carries this exit code)."""
+    """A job stopped on purpose by SIGTERM (:class:`Preempted`, or anything carrying its exit code)."""
     return getattr(exc, "exit_code", None) == PREEMPTED_EXIT_CODE

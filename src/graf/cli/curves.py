@@ -9,7 +9,9 @@ checkpoint is removed unless ``keep_checkpoints=true``: a curve keeps its newest
 budget at every point, so the points lie on one run).  Every run validates (``test=false``: the curves choose
 nothing on test data) and measures validation reliance.  KNN, which trains nothing, is validated once per
 regime into ``<out>/<regime>/knn/``.  A point whose results.json exists is skipped, so the command resumes
-where it stopped, and ``until`` runs the curve only so far; a failed run is recorded in ``failed.json`` and
+where it stopped; a SIGTERM stops the run in progress with its state saved (graf-train's ``preempted.json``) and
+the command with exit code 143, and the next invocation resumes that point from its own checkpoint (the
+pre-empted attempt's training seconds still count in ``fit_s``), and ``until`` runs the curve only so far; a failed run is recorded in ``failed.json`` and
 ends that method's curve (later points need its checkpoint) while the others go on.
 
 After every run: ``curves.csv``, ``curves.md``, ``results.json`` (``rows``: regime, method, step, val_psnr,
@@ -34,12 +36,14 @@ from omegaconf import DictConfig
 from graf.cli.common import CONF_PATH, ConfigError, _output_dir, cli_errors, task_wrapper
 from graf.cli.pareto import _run
 from graf.cli.table import to_csv
+from graf.errors import Preempted
 from graf.io import atomic_write_json, atomic_write_text
 
 log = logging.getLogger("graf")
 
 COLUMNS = ("regime", "method", "step", "val_psnr", "val_ssim", "val_lpips", "val_reliance_db", "fit_s", "s_per_step")
 FIGURES = (("val/psnr", "val_psnr", "PSNR (dB)"), ("val/ssim", "val_ssim", "SSIM"), ("val/lpips", "val_lpips", "LPIPS"))
+PREEMPTED_RUNS = "preempted_runs.json"  # a point's pre-empted attempts (their preempted.json records)
 QUIET = ["logger=none", "plot_count=0", "baselines=null", "test=false", "trainer.enable_progress_bar=false"]
 
 
@@ -86,13 +90,36 @@ def collect(out: Path, cfg: DictConfig) -> tuple[list[dict], dict]:
                     break
                 r = json.loads(f.read_text())
                 t = r.get("timing") or {}
-                fit_s += float(t.get("fit_s") or 0.0)
+                fit_s += float(t.get("fit_s") or 0.0) + sum(float(p.get("fit_s") or 0.0) for p in _preempted_runs(f.parent))
                 v = val_figures(r)
                 rows.append({"regime": rname, "method": mname, "step": int(r.get("global_step", step)),
                              "val_psnr": v["val/psnr"], "val_ssim": v["val/ssim"], "val_lpips": v["val/lpips"],
                              "val_reliance_db": v["val/reliance_db"], "fit_s": round(fit_s, 1),
                              "s_per_step": t.get("fit_s_per_step")})
     return rows, knn
+
+
+def _preempted_runs(folder: Path) -> list[dict]:
+    """The ``preempted.json`` records of a point's earlier, pre-empted attempts (their training seconds count)."""
+    f = folder / PREEMPTED_RUNS
+    return json.loads(f.read_text()) if f.exists() else []
+
+
+def _resume_preempted(folder: Path, prev: Path | None) -> Path | None:
+    """The checkpoint a point resumes from: its own pre-empted attempt's (``preempted.json``, whose record moves to
+    ``preempted_runs.json``), else the previous point's ``last.ckpt`` (None: the curve's first point)."""
+    f = folder / "preempted.json"
+    if f.exists():
+        record = json.loads(f.read_text())
+        ckpt = record.get("checkpoint")
+        if ckpt and Path(ckpt).exists():
+            atomic_write_json(folder / PREEMPTED_RUNS, [*_preempted_runs(folder), record])
+            f.unlink()
+            log.info("%s: resuming its pre-empted run from step %s (%s)", folder, record.get("global_step"), ckpt)
+            return Path(ckpt)
+        log.warning("%s: the pre-empted run left no checkpoint (%s); starting the point again", folder, ckpt)
+        f.unlink()
+    return None if prev is None else prev / "checkpoints" / "last.ckpt"
 
 
 def _fmt(v, spec):
@@ -177,10 +204,19 @@ def curves(cfg: DictConfig) -> dict:
                 cmd = [*train, *base, *method.overrides, *extra, f"{method.schedule}={int(regime.max_steps)}",
                        f"trainer.max_steps={step}", f"callbacks.model_checkpoint.every_n_train_steps={step}",
                        f"hydra.run.dir={folder}"]
-                if prev is not None:
-                    cmd.append(f"ckpt_path={prev / 'checkpoints' / 'last.ckpt'}")
-                log.info("%s / %s: training to step %d%s", rname, mname, step, f" from {prev.name}" if prev else "")
-                ok, tail = _run(cmd, folder, env, timeout)
+                start = _resume_preempted(folder, prev)
+                if start is not None:
+                    cmd.append(f"ckpt_path={start}")
+                log.info("%s / %s: training to step %d%s", rname, mname, step,
+                         f" from {start.parent.parent.name}" if start else "")
+                try:
+                    ok, tail = _run(cmd, folder, env, timeout)
+                    if not ok and (folder / "preempted.json").exists():  # the run alone got the SIGTERM
+                        raise Preempted(f"SIGTERM: {folder} was pre-empted; run the same command again to resume\n{tail}")
+                except Preempted:
+                    rows, knn = collect(out, cfg)
+                    write_outputs(out, rows, knn, failed)
+                    raise
                 if not ok:
                     failed.append({"regime": rname, "method": mname, "step": step, "log": tail})
                     log.error("%s / %s step %d failed (the curve stops here):\n%s", rname, mname, step, tail)

@@ -26,8 +26,10 @@ import io
 import json
 import logging
 import os
+import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -35,6 +37,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from graf.cli.common import CONF_PATH, cli_errors, _output_dir, task_wrapper
+from graf.errors import Preempted
 from graf.io import atomic_write_json, atomic_write_text
 
 log = logging.getLogger("graf")
@@ -44,16 +47,35 @@ COLUMNS = ("scene", "point", "knob", "value", "train_s", "train_s_per_step", "in
 
 
 def _run(cmd: list[str], folder: Path, env: dict, timeout: float) -> tuple[bool, str]:
-    """Run one graf command into ``folder``; ``(ok, last lines of its log)``."""
+    """Run one graf command into ``folder``; ``(ok, last lines of its log)``.  A SIGTERM to this process while
+    the command runs is passed on to it (graf-train saves its state and writes ``preempted.json``); once it has
+    stopped, :class:`graf.errors.Preempted` is raised, so the calling command stops with exit code 143 instead of
+    going on to its next run, and the same command resumes."""
     folder.mkdir(parents=True, exist_ok=True)
+    got = []
     with open(folder / "run.log", "w") as fh:
+        p = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env)
+
+        def forward(signum, frame):
+            got.append(signum)
+            p.send_signal(signum)
+
+        previous = signal.signal(signal.SIGTERM, forward) if threading.current_thread() is threading.main_thread() \
+            else None
         try:
-            p = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env, timeout=timeout)
-            ok = p.returncode == 0
-        except subprocess.TimeoutExpired:
-            ok = False
-    tail = (folder / "run.log").read_text(errors="replace").splitlines()[-5:]
-    return ok and (folder / "results.json").exists(), "\n".join(tail)
+            try:
+                p.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+        finally:
+            if previous is not None:
+                signal.signal(signal.SIGTERM, previous)
+    tail = "\n".join((folder / "run.log").read_text(errors="replace").splitlines()[-5:])
+    if got:
+        raise Preempted(f"SIGTERM: stopped while running into {folder} (exit code {p.returncode}); run the same "
+                        f"command again to resume\n{tail}")
+    return p.returncode == 0 and (folder / "results.json").exists(), tail
 
 
 def _dataset_missing(cfg: DictConfig, sim: list[str]) -> bool:

@@ -23,7 +23,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from graf.cli.common import (CONF_PATH, ConfigError, _output_dir, build, cli_errors, expand_heldout, family,
                              run_settings, scene_configs, sweep_value, task_wrapper, test_and_report)
-from graf.errors import PREEMPTED_EXIT_CODE
+from graf.errors import Preempted
 from graf.io import atomic_write_json
 from graf.models.base import CheckpointError, check_checkpoint, read_checkpoint
 
@@ -76,7 +76,7 @@ def train(cfg: DictConfig) -> tuple[dict, dict]:
         try:
             trainer.fit(model=model, datamodule=objects["datamodule"], ckpt_path=cfg.get("ckpt_path"))
         except SIGTERMException:
-            raise preempted(cfg, trainer, step0) from None
+            raise preempted(cfg, trainer, step0, time.perf_counter() - t0) from None
         fit_s, steps = time.perf_counter() - t0, max(0, trainer.global_step - step0)
         check_last_checkpoint(trainer, out)
         objects["timing"] = {"fit_s": round(fit_s, 3), "fit_steps": int(steps),
@@ -156,21 +156,17 @@ def training_record(trainer, step0: int) -> dict:
     return rec
 
 
-class Preempted(Exception):
-    """Training stopped by SIGTERM with its state saved: the command exits with :attr:`exit_code`."""
-
-    exit_code = PREEMPTED_EXIT_CODE
-
-
-def preempted(cfg: DictConfig, trainer, step0: int) -> Preempted:
+def preempted(cfg: DictConfig, trainer, step0: int, fit_s: float | None = None) -> Preempted:
     """After a SIGTERM stopped ``trainer.fit``: ``preempted.json`` in the output folder (the step, the checkpoint,
-    the command's way to resume) and the :class:`Preempted` to raise."""
+    the wall seconds the fit ran before the signal, the command's way to resume) and the :class:`Preempted` to
+    raise."""
     from graf.callbacks import Preemption
 
     saved = next((cb.saved for cb in trainer.callbacks if isinstance(cb, Preemption) and cb.saved), None)
     out = _output_dir(cfg)
     record = {"preempted": "SIGTERM", "global_step": int(trainer.global_step), "start_step": int(step0),
-              "max_steps": int(trainer.max_steps), "checkpoint": (saved or {}).get("checkpoint")}
+              "max_steps": int(trainer.max_steps), "checkpoint": (saved or {}).get("checkpoint"),
+              "fit_s": None if fit_s is None else round(float(fit_s), 3)}
     if saved:
         msg = (f"SIGTERM: training stopped at step {saved['global_step']} of {int(trainer.max_steps)}; checkpoint saved "
                f"to {saved['checkpoint']}; resume with the same command and ckpt_path={saved['checkpoint']}")

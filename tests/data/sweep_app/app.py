@@ -16,7 +16,7 @@ from omegaconf import DictConfig
 
 
 class Preempted(Exception):
-    exit_code = 143  # as graf.cli.train.Preempted
+    exit_code = 143  # as graf.errors.Preempted
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
