@@ -67,6 +67,7 @@ def test_a_sigterm_is_passed_to_the_run_and_stops_the_command_with_code_143(tmp_
                      "print('started', flush=True)\n"
                      "time.sleep(60)\n")
     started = tmp_path / "job" / "run.log"
+    before = signal.getsignal(signal.SIGTERM)
     t = threading.Thread(target=lambda: (_wait_for(started, "started"), os.kill(os.getpid(), signal.SIGTERM)))
     t.start()
     with pytest.raises(Preempted) as exc:
@@ -74,7 +75,7 @@ def test_a_sigterm_is_passed_to_the_run_and_stops_the_command_with_code_143(tmp_
     t.join()
     assert exc.value.exit_code == PREEMPTED_EXIT_CODE and "exit code 143" in str(exc.value)
     assert (tmp_path / "got_sigterm").read_text() == "saved"
-    assert signal.getsignal(signal.SIGTERM) is not None  # the handler before _run is back
+    assert signal.getsignal(signal.SIGTERM) is before  # the handler before _run is back
     ok, _ = _run([sys.executable, "-c", "print('done')"], tmp_path / "job2", dict(os.environ), timeout=60)
     assert not ok  # it wrote no results.json; an ordinary failure, not a pre-emption
 

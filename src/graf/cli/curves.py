@@ -9,10 +9,11 @@ checkpoint is removed unless ``keep_checkpoints=true``: a curve keeps its newest
 budget at every point, so the points lie on one run).  Every run validates (``test=false``: the curves choose
 nothing on test data) and measures validation reliance.  KNN, which trains nothing, is validated once per
 regime into ``<out>/<regime>/knn/``.  A point whose results.json exists is skipped, so the command resumes
-where it stopped; a SIGTERM stops the run in progress with its state saved (graf-train's ``preempted.json``) and
-the command with exit code 143, and the next invocation resumes that point from its own checkpoint (the
-pre-empted attempt's training seconds still count in ``fit_s``), and ``until`` runs the curve only so far; a failed run is recorded in ``failed.json`` and
-ends that method's curve (later points need its checkpoint) while the others go on.
+where it stopped, and ``until`` runs the curve only so far; a failed run is recorded in ``failed.json`` and
+ends that method's curve (later points need its checkpoint) while the others go on.  A SIGTERM stops the run
+in progress with its state saved (graf-train's ``preempted.json``) and the command with exit code 143; the
+next invocation resumes that point from its own checkpoint (the stopped attempt's training seconds still
+count in ``fit_s``).
 
 After every run: ``curves.csv``, ``curves.md``, ``results.json`` (``rows``: regime, method, step, val_psnr,
 val_ssim, val_lpips, val_reliance_db, fit_s (cumulative wall seconds of training), s_per_step; and ``knn``:

@@ -60,8 +60,8 @@ def _run(cmd: list[str], folder: Path, env: dict, timeout: float) -> tuple[bool,
             got.append(signum)
             p.send_signal(signum)
 
-        previous = signal.signal(signal.SIGTERM, forward) if threading.current_thread() is threading.main_thread() \
-            else None
+        main = threading.current_thread() is threading.main_thread()  # only the main thread may set handlers
+        previous = signal.signal(signal.SIGTERM, forward) if main else None
         try:
             try:
                 p.wait(timeout=timeout)
@@ -69,8 +69,8 @@ def _run(cmd: list[str], folder: Path, env: dict, timeout: float) -> tuple[bool,
                 p.kill()
                 p.wait()
         finally:
-            if previous is not None:
-                signal.signal(signal.SIGTERM, previous)
+            if main:  # None: a handler set outside Python; the default stands in for it
+                signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
     tail = "\n".join((folder / "run.log").read_text(errors="replace").splitlines()[-5:])
     if got:
         raise Preempted(f"SIGTERM: stopped while running into {folder} (exit code {p.returncode}); run the same "
