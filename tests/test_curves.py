@@ -105,3 +105,46 @@ def test_a_preempted_point_resumes_from_its_own_checkpoint_and_its_seconds_count
     (folder / "preempted.json").write_text(json.dumps({"global_step": 4300, "checkpoint": str(folder / "gone.ckpt")}))
     assert _resume_preempted(folder, prev) == prev / "checkpoints" / "last.ckpt"  # nothing saved: start the point again
     assert not (folder / "preempted.json").exists() and len(json.loads((folder / PREEMPTED_RUNS).read_text())) == 1
+
+
+def test_a_killed_point_resumes_from_its_periodic_checkpoint_and_its_saved_seconds_count(tmp_path):
+    """A run killed outright (SIGKILL: no preempted.json) left a periodic last.ckpt: the point resumes from it, not
+    from the previous point, and the seconds its saved steps cost (AttemptClock's record) count in fit_s."""
+    import torch
+
+    from graf.cli.curves import _preempted_runs, _resume_preempted
+
+    prev, folder = tmp_path / "step_3000", tmp_path / "step_10000"
+    (folder / "checkpoints").mkdir(parents=True)
+    ckpt = folder / "checkpoints" / "last.ckpt"
+    torch.save({"global_step": 4500, "graf_attempt": {"start_step": 3000, "global_step": 4500, "fit_s": 2250.5}}, ckpt)
+    assert _resume_preempted(folder, prev) == ckpt
+    [record] = _preempted_runs(folder)
+    assert record["killed"] and record["global_step"] == 4500 and record["start_step"] == 3000 and record["fit_s"] == 2250.5
+    # killed again later, from a checkpoint written before AttemptClock existed: resumed, its seconds unknown (None)
+    torch.save({"global_step": 5000}, ckpt)
+    assert _resume_preempted(folder, prev) == ckpt
+    assert [r["fit_s"] for r in _preempted_runs(folder)] == [2250.5, None]
+    # a finished point is never resumed; an unreadable checkpoint starts the point again from the previous one
+    ckpt.write_bytes(b"truncated")
+    assert _resume_preempted(folder, prev) == prev / "checkpoints" / "last.ckpt"
+    (folder / "results.json").write_text("{}")
+    torch.save({"global_step": 5000}, ckpt)
+    assert _resume_preempted(folder, prev) == prev / "checkpoints" / "last.ckpt"
+    assert len(_preempted_runs(folder)) == 2
+
+
+def test_attempt_clock_writes_its_attempt_into_each_checkpoint():
+    from types import SimpleNamespace
+
+    from graf.callbacks import AttemptClock
+
+    clock, trainer = AttemptClock(), SimpleNamespace(global_step=3000)
+    ckpt: dict = {}
+    clock.on_save_checkpoint(trainer, None, ckpt)
+    assert "graf_attempt" not in ckpt  # not training (a checkpoint saved outside fit): no attempt to record
+    clock.on_train_start(trainer, None)
+    trainer.global_step = 3500
+    clock.on_save_checkpoint(trainer, None, ckpt)
+    a = ckpt["graf_attempt"]
+    assert a["start_step"] == 3000 and a["global_step"] == 3500 and a["fit_s"] >= 0.0

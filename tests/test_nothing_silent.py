@@ -302,8 +302,12 @@ def test_sigterm_stops_at_the_next_step_saves_a_checkpoint_and_resumes(tmp_path)
     assert proc.returncode == 143, err[-2000:]
     record = json.loads((out / "preempted.json").read_text())
     ckpt = Path(record["checkpoint"])
-    step = torch.load(ckpt, map_location="cpu", weights_only=False)["global_step"]
+    state = torch.load(ckpt, map_location="cpu", weights_only=False)
+    step = state["global_step"]
     assert 0 < step == record["global_step"] < 100000
+    # the checkpoint itself says how long its attempt trained (what graf-curves counts after a SIGKILL)
+    assert state["graf_attempt"]["start_step"] == 0 and state["graf_attempt"]["global_step"] == step
+    assert 0 < state["graf_attempt"]["fit_s"]
     assert record["fit_s"] > 0  # the training seconds before the signal (graf-curves counts them)
     assert "resume with the same command and ckpt_path=" in err and not (out / "results.json").exists()
     # resumed in its own folder, as a study resumes its base model: last.ckpt, which the pre-emption wrote and

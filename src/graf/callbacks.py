@@ -52,3 +52,26 @@ class Preemption(Callback):
             path = Path(self.dirpath) / "last.ckpt"
             trainer.save_checkpoint(str(path))
             self.saved = {"checkpoint": str(path), "global_step": int(trainer.global_step)}
+
+
+class AttemptClock(Callback):
+    """Writes into every checkpoint how long this attempt has trained and from which step it started
+    (``checkpoint["graf_attempt"] = {"start_step", "global_step", "fit_s"}``), so that a run killed outright
+    (SIGKILL, a lost machine: no ``preempted.json``) still tells graf-curves how many seconds the steps it
+    saved cost.  The steps after the newest checkpoint are lost and trained again; their seconds are not counted."""
+
+    def __init__(self):
+        self._t0: float | None = None
+        self._step0 = 0
+
+    def on_train_start(self, trainer, pl_module) -> None:
+        import time
+
+        self._t0, self._step0 = time.perf_counter(), int(trainer.global_step)
+
+    def on_save_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:
+        import time
+
+        if self._t0 is not None:
+            checkpoint["graf_attempt"] = {"start_step": self._step0, "global_step": int(trainer.global_step),
+                                          "fit_s": round(time.perf_counter() - self._t0, 3)}

@@ -13,7 +13,9 @@ where it stopped, and ``until`` runs the curve only so far; a failed run is reco
 ends that method's curve (later points need its checkpoint) while the others go on.  A SIGTERM stops the run
 in progress with its state saved (graf-train's ``preempted.json``) and the command with exit code 143; the
 next invocation resumes that point from its own checkpoint (the stopped attempt's training seconds still
-count in ``fit_s``).
+count in ``fit_s``).  Each run also saves its checkpoint every ``checkpoint_every`` steps, so a run killed
+outright (SIGKILL, a lost machine) resumes from its newest one, and the seconds its saved steps cost (written in
+the checkpoint by ``graf.callbacks.AttemptClock``) count too; the steps after it are trained again.
 
 After every run: ``curves.csv``, ``curves.md``, ``results.json`` (``rows``: regime, method, step, val_psnr,
 val_ssim, val_lpips, val_reliance_db, fit_s (cumulative wall seconds of training), s_per_step; and ``knn``:
@@ -91,11 +93,14 @@ def collect(out: Path, cfg: DictConfig) -> tuple[list[dict], dict]:
                     break
                 r = json.loads(f.read_text())
                 t = r.get("timing") or {}
-                fit_s += float(t.get("fit_s") or 0.0) + sum(float(p.get("fit_s") or 0.0) for p in _preempted_runs(f.parent))
+                # an attempt whose seconds are unknown (killed with a checkpoint older than AttemptClock) makes the
+                # cumulative seconds unknown from there on: n/a, not an undercount
+                parts = [t.get("fit_s"), *(p.get("fit_s") for p in _preempted_runs(f.parent))]
+                fit_s = None if fit_s is None or any(x is None for x in parts) else fit_s + sum(map(float, parts))
                 v = val_figures(r)
                 rows.append({"regime": rname, "method": mname, "step": int(r.get("global_step", step)),
                              "val_psnr": v["val/psnr"], "val_ssim": v["val/ssim"], "val_lpips": v["val/lpips"],
-                             "val_reliance_db": v["val/reliance_db"], "fit_s": round(fit_s, 1),
+                             "val_reliance_db": v["val/reliance_db"], "fit_s": None if fit_s is None else round(fit_s, 1),
                              "s_per_step": t.get("fit_s_per_step")})
     return rows, knn
 
@@ -120,7 +125,36 @@ def _resume_preempted(folder: Path, prev: Path | None) -> Path | None:
             return Path(ckpt)
         log.warning("%s: the pre-empted run left no checkpoint (%s); starting the point again", folder, ckpt)
         f.unlink()
+    killed = _killed_attempt(folder)
+    if killed is not None:
+        atomic_write_json(folder / PREEMPTED_RUNS, [*_preempted_runs(folder), killed])
+        log.info("%s: resuming a killed run from its periodic checkpoint at step %d (%.0f training seconds kept)",
+                 folder, killed["global_step"], killed["fit_s"] or 0.0)
+        return Path(killed["checkpoint"])
     return None if prev is None else prev / "checkpoints" / "last.ckpt"
+
+
+def _killed_attempt(folder: Path) -> dict | None:
+    """The record of an attempt killed outright (no ``preempted.json``, no ``results.json``) that left a periodic
+    ``checkpoints/last.ckpt``: its step and the seconds its saved steps cost (``graf.callbacks.AttemptClock``).
+    None if there is no such checkpoint, or it cannot be read (the point then starts again)."""
+    ckpt = folder / "checkpoints" / "last.ckpt"
+    if (folder / "results.json").exists() or not ckpt.exists():
+        return None
+    import torch
+
+    try:
+        state = torch.load(ckpt, map_location="cpu", weights_only=False)
+        step = int(state["global_step"])
+    except Exception as e:  # noqa: BLE001  (a truncated or foreign file: start the point again, say so)
+        log.warning("%s: its checkpoint cannot be read (%s: %s); starting the point again", ckpt, type(e).__name__, e)
+        return None
+    attempt = state.get("graf_attempt") or {}
+    fit_s = attempt.get("fit_s") if attempt.get("global_step") == step else None
+    if fit_s is None:
+        log.warning("%s: the checkpoint holds no training time of its attempt; those seconds are not counted", ckpt)
+    return {"killed": True, "global_step": step, "start_step": attempt.get("start_step"), "checkpoint": str(ckpt),
+            "fit_s": fit_s}
 
 
 def _fmt(v, spec):
@@ -203,7 +237,8 @@ def curves(cfg: DictConfig) -> dict:
                     prev = folder
                     continue
                 cmd = [*train, *base, *method.overrides, *extra, f"{method.schedule}={int(regime.max_steps)}",
-                       f"trainer.max_steps={step}", f"callbacks.model_checkpoint.every_n_train_steps={step}",
+                       f"trainer.max_steps={step}",
+                       f"callbacks.model_checkpoint.every_n_train_steps={min(step, int(cfg.checkpoint_every))}",
                        f"hydra.run.dir={folder}"]
                 start = _resume_preempted(folder, prev)
                 if start is not None:
