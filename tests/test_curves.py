@@ -125,6 +125,10 @@ def test_a_killed_point_resumes_from_its_periodic_checkpoint_and_its_saved_secon
     torch.save({"global_step": 5000}, ckpt)
     assert _resume_preempted(folder, prev) == ckpt
     assert [r["fit_s"] for r in _preempted_runs(folder)] == [2250.5, None]
+    # a checkpoint already on record (a pre-emption's, resumed and then killed before its next save): resumed
+    # from again, its seconds not counted twice
+    torch.save({"global_step": 5000, "graf_attempt": {"start_step": 4500, "global_step": 5000, "fit_s": 300.0}}, ckpt)
+    assert _resume_preempted(folder, prev) == ckpt and len(_preempted_runs(folder)) == 2
     # a finished point is never resumed; an unreadable checkpoint starts the point again from the previous one
     ckpt.write_bytes(b"truncated")
     assert _resume_preempted(folder, prev) == prev / "checkpoints" / "last.ckpt"

@@ -127,9 +127,14 @@ def _resume_preempted(folder: Path, prev: Path | None) -> Path | None:
         f.unlink()
     killed = _killed_attempt(folder)
     if killed is not None:
-        atomic_write_json(folder / PREEMPTED_RUNS, [*_preempted_runs(folder), killed])
-        log.info("%s: resuming a killed run from its periodic checkpoint at step %d (%.0f training seconds kept)",
-                 folder, killed["global_step"], killed["fit_s"] or 0.0)
+        # a checkpoint already on record (a pre-emption's, whose resumed run was then killed before its next
+        # save) is resumed from again, and its seconds are not counted twice
+        if not any(r.get("global_step") == killed["global_step"] for r in _preempted_runs(folder)):
+            if killed["fit_s"] is None:
+                log.warning("%s: the checkpoint holds no training time of its attempt; the curve's seconds become "
+                            "n/a from this point", killed["checkpoint"])
+            atomic_write_json(folder / PREEMPTED_RUNS, [*_preempted_runs(folder), killed])
+        log.info("%s: resuming a killed run from its checkpoint at step %d", folder, killed["global_step"])
         return Path(killed["checkpoint"])
     return None if prev is None else prev / "checkpoints" / "last.ckpt"
 
@@ -151,8 +156,6 @@ def _killed_attempt(folder: Path) -> dict | None:
         return None
     attempt = state.get("graf_attempt") or {}
     fit_s = attempt.get("fit_s") if attempt.get("global_step") == step else None
-    if fit_s is None:
-        log.warning("%s: the checkpoint holds no training time of its attempt; those seconds are not counted", ckpt)
     return {"killed": True, "global_step": step, "start_step": attempt.get("start_step"), "checkpoint": str(ckpt),
             "fit_s": fit_s}
 
