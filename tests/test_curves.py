@@ -152,3 +152,10 @@ def test_attempt_clock_writes_its_attempt_into_each_checkpoint():
     clock.on_save_checkpoint(trainer, None, ckpt)
     a = ckpt["graf_attempt"]
     assert a["start_step"] == 3000 and a["global_step"] == 3500 and a["fit_s"] >= 0.0
+
+
+def test_a_checkpoint_interval_under_one_step_stops_with_one_line(tmp_path):
+    p = subprocess.run([sys.executable, "-m", "graf.cli.curves", f"out={tmp_path}", "checkpoint_every=0",
+                        f"hydra.run.dir={tmp_path / 'h'}"], capture_output=True, text=True, timeout=120)
+    assert p.returncode != 0 and "checkpoint_every=0: must be a positive number of steps" in p.stderr
+    assert "Traceback" not in p.stderr

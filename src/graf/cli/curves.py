@@ -220,6 +220,8 @@ def curves(cfg: DictConfig) -> dict:
     if cfg.get("threads"):
         env["OMP_NUM_THREADS"] = str(int(cfg.threads))
     py, timeout = sys.executable, float(cfg.run_timeout_s)
+    if int(cfg.checkpoint_every) < 1:  # 0 would switch the periodic saves, and the curve's resume chain, off
+        raise ConfigError(f"checkpoint_every={cfg.checkpoint_every}: must be a positive number of steps")
     common = [f"data_root={cfg.data_root}"] + ([f"torch_threads={int(cfg.threads)}"] if cfg.get("threads") else [])
     failed_file = out / "failed.json"
     failed = json.loads(failed_file.read_text()) if failed_file.exists() else []
