@@ -6,7 +6,8 @@ import sys, time
 import torch
 from hydra import compose, initialize_config_dir
 import hydra
-from graf.cli.common import CONF_DIR, build_datamodule
+from graf.pipeline.build import build_datamodule
+from graf.pipeline.config import CONF_DIR
 
 torch.set_num_threads(2)
 scene = sys.argv[1] if len(sys.argv) > 1 else "rfid_s23"

@@ -12,9 +12,10 @@ from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from hydra.errors import HydraException
 
-import graf.cli.bench as bench_cli
-from graf.cli.bench import add_ratios, bench, ensure_simulated, scene_and_band
-from graf.cli.common import CONF_DIR, ConfigError
+import graf.pipeline.bench as bench_cli
+from graf.pipeline.bench import add_ratios, bench, ensure_simulated, scene_and_band
+from graf.errors import ConfigError
+from graf.pipeline.config import CONF_DIR
 
 REQUIRED = {"method", "preset", "scene", "samples_per_ray", "infer_s_per_spectrum", "train_s_per_step",
             "train_rays_per_s", "peak_mb_train", "peak_mb_infer", "peak_mb", "parameters", "checkpoint_mb",

@@ -15,10 +15,11 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from graf.cli.common import CONF_DIR, CONF_PATH, ConfigError, scene_band_config, scene_configs
-from graf.cli.evaluate import evaluate
-from graf.cli.table import make_table
-from graf.cli.train import train
+from graf.errors import ConfigError
+from graf.pipeline.config import CONF_DIR, CONF_PATH, scene_band_config, scene_configs
+from graf.pipeline.evaluate import evaluate
+from graf.pipeline.table import make_table
+from graf.pipeline.train import train
 from graf.data.spectrum_set import DataFormatError
 
 RESULT_KEYS = {"method", "scene", "band_hz", "n_train", "n_test", "metrics", "seconds", "config", "splits"}
@@ -190,7 +191,7 @@ def test_table_collects_runs(compose_cfg, tmp_path):
 
 
 def test_table_of_cross_scene_runs_has_a_row_per_test_scene_and_no_scene_config_columns():
-    from graf.cli.table import build_table
+    from graf.pipeline.table import build_table
 
     def run(trained, tested, psnrs, L):
         scenes = {n: {"name": n, "room": {"size": [i + 5.0, 4.0, 3.0]}} for i, n in enumerate(trained)}

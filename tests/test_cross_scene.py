@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from graf.cli.common import build_datamodule, eval_scene_indices
-from graf.cli.evaluate import evaluate
-from graf.cli.train import train
+from graf.pipeline.build import build_datamodule, eval_scene_indices
+from graf.pipeline.evaluate import evaluate
+from graf.pipeline.train import train
 
 FAST = ["model.rays_per_step=64", "model.max_samples=8", "data.batch_size=2", "baselines={}", "plot_count=0",
         "trainer.limit_test_batches=1", "trainer.enable_progress_bar=false", "model=graf_cpu",

@@ -55,7 +55,7 @@ def test_a_sigterm_is_passed_to_the_run_and_stops_the_command_with_code_143(tmp_
     import signal
     import threading
 
-    from graf.cli.pareto import _run
+    from graf.pipeline.pareto import _run
     from graf.errors import PREEMPTED_EXIT_CODE, Preempted
 
     child = tmp_path / "child.py"
@@ -91,7 +91,7 @@ def _wait_for(path: Path, text: str, timeout: float = 30.0) -> None:
 
 
 def test_a_preempted_point_resumes_from_its_own_checkpoint_and_its_seconds_count(tmp_path):
-    from graf.cli.curves import PREEMPTED_RUNS, _preempted_runs, _resume_preempted
+    from graf.pipeline.curves import PREEMPTED_RUNS, _preempted_runs, _resume_preempted
 
     prev, folder = tmp_path / "step_1000", tmp_path / "step_10000"
     (folder / "checkpoints").mkdir(parents=True)
@@ -112,7 +112,7 @@ def test_a_killed_point_resumes_from_its_periodic_checkpoint_and_its_saved_secon
     from the previous point, and the seconds its saved steps cost (AttemptClock's record) count in fit_s."""
     import torch
 
-    from graf.cli.curves import _preempted_runs, _resume_preempted
+    from graf.pipeline.curves import _preempted_runs, _resume_preempted
 
     prev, folder = tmp_path / "step_3000", tmp_path / "step_10000"
     (folder / "checkpoints").mkdir(parents=True)

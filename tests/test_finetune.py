@@ -5,14 +5,13 @@ the errors of a checkpoint that does not fit the run (band, scene-index setting)
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 
-from graf.cli.common import ConfigError, build_datamodule
-from graf.cli.train import train
+from graf.errors import ConfigError
+from graf.pipeline.build import build_datamodule
+from graf.pipeline.train import train
 from graf.data.spectrum_set import DataFormatError
 from graf.models.base import CheckpointError
 

@@ -12,7 +12,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from graf.bands import Band
-from graf.cli.common import CONF_DIR
+from graf.pipeline.config import CONF_DIR
 from graf.data.datamodule import SpectrumDataModule
 from graf.data.scenes import NeRF2Scene
 from graf.geometry.encoding import PositionalEncoding, normalize_positions

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from graf.cli.train import train
+from graf.pipeline.train import train
 from graf.models.base import CheckpointError
 
 FAST = ["model.rays_per_step=64", "model.max_samples=8", "data.batch_size=2", "baselines={}", "plot_count=1",
@@ -71,7 +71,7 @@ def test_finetune_starts_from_a_checkpoints_weights_and_rejects_another_architec
     ckpt = Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt"
     trained = torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"]
 
-    from graf.cli.train import load_weights
+    from graf.pipeline.train import load_weights
     from hydra.utils import instantiate
     fresh = instantiate(cfg.model)
     assert not all(torch.equal(fresh.state_dict()[k], v) for k, v in trained.items())
@@ -94,7 +94,7 @@ def test_finetune_starts_from_a_checkpoints_weights_and_rejects_another_architec
 
 
 def test_eval_of_a_checkpoint_applies_inference_settings_and_refuses_the_rest(compose_cfg, tmp_path):
-    from graf.cli.evaluate import evaluate
+    from graf.pipeline.evaluate import evaluate
 
     cfg = compose_cfg("train", ("experiment=graf_rfid_s23", "trainer.max_steps=1", "model=graf_cpu", "model.residual=true",
                                 *FAST))

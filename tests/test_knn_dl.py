@@ -9,8 +9,8 @@ import pytest
 import torch
 from torch import nn
 
-from graf.cli.common import build_datamodule
-from graf.cli.train import train
+from graf.pipeline.build import build_datamodule
+from graf.pipeline.train import train
 from graf.models.knn import KNNModule
 from graf.models.knn_dl import KNNDLModule, upsample_maps
 

@@ -14,7 +14,7 @@ from hydra.utils import instantiate
 
 import graf.models.nerf2 as nerf2_pkg
 from graf.bands import Band
-from graf.cli.train import train
+from graf.pipeline.train import train
 from graf.data.datamodule import SpectrumDataModule
 from graf.data.scenes import NeRF2Scene
 from graf.models.nerf2 import NeRF2Module, NeRF2Network, render_rays, sample_distances

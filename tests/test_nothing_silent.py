@@ -20,9 +20,9 @@ import pytest
 import torch
 from lightning.pytorch.callbacks import Callback
 
-from graf.cli.common import ConfigError
-from graf.cli.evaluate import evaluate
-from graf.cli.train import train
+from graf.errors import ConfigError
+from graf.pipeline.evaluate import evaluate
+from graf.pipeline.train import train
 from graf.data.nerf2_format import read_nerf2_folder, write_nerf2_folder
 from graf.models.base import CheckpointError
 
@@ -81,7 +81,7 @@ def test_a_stop_before_max_steps_that_is_not_the_users_is_warned_and_marked(comp
 
 
 def test_training_that_would_never_end_or_is_not_a_count_is_refused(compose_cfg):
-    from graf.cli.train import check_training_length
+    from graf.pipeline.train import check_training_length
 
     with pytest.raises(ConfigError, match="would never end"):
         check_training_length(compose_cfg("train", ("trainer.max_steps=-1", "trainer.max_epochs=-1")))
@@ -235,7 +235,7 @@ def test_baselines_braces_and_null_switch_the_baselines_off(tmp_path):
 
 
 def test_selected_baselines_outside_a_command_follow_the_config(compose_cfg):
-    from graf.cli.common import selected_baselines
+    from graf.pipeline.testing import selected_baselines
 
     assert list(selected_baselines(compose_cfg("train"))) == ["knn"]
     assert selected_baselines(compose_cfg("train", ("baselines=null",))) == {}
@@ -272,7 +272,7 @@ def test_resuming_with_other_settings_is_refused_and_a_longer_run_is_recorded(co
 
 
 def test_graf_eval_of_a_checkpoint_refuses_a_training_setting_with_its_own_message(knn_dl_ckpt, tmp_path):
-    from graf.cli.evaluate import checkpoint_model_choice
+    from graf.pipeline.evaluate import checkpoint_model_choice
 
     assert checkpoint_model_choice([f"ckpt_path={knn_dl_ckpt}", "model.lr=0.1"]) == "knn_dl"
     assert checkpoint_model_choice([f"ckpt_path={knn_dl_ckpt}"]) is None
@@ -324,7 +324,7 @@ def test_sigterm_stops_at_the_next_step_saves_a_checkpoint_and_resumes(tmp_path)
 
 
 def test_a_base_model_whose_last_checkpoint_is_stale_is_refused(tmp_path):
-    from graf.cli.train import check_base_checkpoint
+    from graf.pipeline.train import check_base_checkpoint
 
     folder = tmp_path / "base"
     (folder / "checkpoints").mkdir(parents=True)
@@ -344,7 +344,7 @@ def test_a_preempted_job_stops_a_studys_multirun_and_is_recorded(tmp_path):
     from hydra.types import RunMode
     from omegaconf import OmegaConf
 
-    from graf.cli.table import SweepTable
+    from graf.pipeline.table import SweepTable
     from graf.errors import Preempted
 
     def job(exc, num, **extra):

@@ -242,7 +242,7 @@ def test_samplers_follow_the_space_and_the_objectives():
 
 
 def test_objectives_refuse_test_metrics_and_average_over_test_scenes():
-    from graf.cli.common import ConfigError
+    from graf.errors import ConfigError
 
     for bad in ("test/psnr", "test/psnr@mean", "val/psnr@max", "cost/train_s"):
         with pytest.raises(ConfigError, match="test split"):
@@ -262,7 +262,8 @@ def test_best_json_means_are_the_means_over_the_evaluated_scenes():
 
 
 def test_heldout_scenes_are_the_other_layouts_of_the_training_families():
-    from graf.cli.common import ConfigError, heldout_scenes
+    from graf.errors import ConfigError
+    from graf.pipeline.config import heldout_scenes
 
     assert heldout_scenes(["conference_v1"], "auto") == ["conference_v2", "conference_v3"]
     assert heldout_scenes(["conference_v1", "office_v2"], "auto") == ["conference_v2", "conference_v3", "office_v1",

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from graf.analysis.oracle import fit_weights, run_oracle, select_targets
-from graf.cli.common import build_datamodule
+from graf.pipeline.build import build_datamodule
 
 
 @pytest.fixture

@@ -10,8 +10,8 @@ import sys
 import pytest
 from hydra import compose, initialize_config_dir
 
-from graf.cli.common import CONF_DIR
-from graf.cli.pareto import pareto_front
+from graf.pipeline.config import CONF_DIR
+from graf.pipeline.pareto import pareto_front
 
 
 def test_pareto_front_keeps_only_undominated_points():

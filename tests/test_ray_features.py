@@ -9,7 +9,7 @@ import json
 import pytest
 import torch
 
-from graf.cli.train import train
+from graf.pipeline.train import train
 from graf.models.graf import GRaFModule
 from graf.models.graf.ray_features import pad_wrap, pixel_window, sample_wrap, upsample_wrap
 from graf.models.knn import KNNModule

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 import torch
 
-from graf.cli.common import build, evaluate_model, format_metrics_table
-from graf.cli.evaluate import evaluate
+from graf.pipeline.build import build
+from graf.pipeline.testing import evaluate_model, format_metrics_table
+from graf.pipeline.evaluate import evaluate
 from graf.data.datamodule import derangement
 from graf.models.base import SpectrumModule
 
@@ -69,7 +70,7 @@ def test_a_model_that_ignores_its_neighbours_has_zero_reliance(compose_cfg):
 @pytest.mark.slow  # 70 s on this 2-core machine: the default run reached 14 min 16 s with it (limit 15 min)
 def test_knn_dl_and_the_baselines_report_reliance_and_nerf2_none(compose_cfg):
     cfg = compose_cfg("train", ("model=knn_dl", "trainer.max_steps=1"))
-    from graf.cli.train import train
+    from graf.pipeline.train import train
 
     train(cfg)
     res = json.loads((Path(cfg.paths.output_dir) / "results.json").read_text())

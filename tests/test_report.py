@@ -4,14 +4,13 @@ in them (handmade results of known values; tests/test_studies.py runs a real stu
 from __future__ import annotations
 
 import csv
-import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from graf.cli.common import ConfigError
-from graf.cli.report import make_report
+from graf.errors import ConfigError
+from graf.pipeline.report import make_report
 from graf.io import atomic_write_json
 
 GHZ24, MHZ915 = 2.412e9, 915e6

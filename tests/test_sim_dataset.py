@@ -4,7 +4,6 @@ back from NeRF2's format, and evaluated by graf-eval."""
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -19,8 +18,8 @@ from hydra.utils import instantiate
 
 import graf.sim  # noqa: F401  (configures Sionna RT's CPU backend)
 from graf.bands import Band
-from graf.cli.common import CONF_DIR
-from graf.cli.evaluate import evaluate
+from graf.pipeline.config import CONF_DIR
+from graf.pipeline.evaluate import evaluate
 from graf.data.nerf2_format import DataFormatError, read_nerf2_folder
 from graf.sim.dataset import generate, read_dataset
 

@@ -10,7 +10,7 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 
 from graf.bands import Band
-from graf.cli.common import CONF_DIR
+from graf.pipeline.config import CONF_DIR
 from graf.metrics import psnr_per_sample
 from graf.models.knn.weights import barycentric_weights
 from graf.sim.scene import SimulatedScene

@@ -77,7 +77,7 @@ def test_user_errors_end_with_their_message_alone(tmp_path):
 
 
 def test_study_jobs_outside_the_design_are_skipped_with_the_reason(compose_cfg):
-    from graf.cli.train import skip_reason
+    from graf.pipeline.train import skip_reason
 
     def reason(*overrides):
         return skip_reason(compose_cfg("train", overrides))

@@ -1,7 +1,7 @@
 """The errors that mean "what the user gave is wrong" (data, config values, checkpoints, files).
 
 Every command ends on one of these with its message alone on stderr and exit code 2
-(:func:`graf.cli.common.cli_errors`); anything else is a bug and keeps its traceback.  The classes that
+(:func:`graf.cli.entry.cli_errors`); anything else is a bug and keeps its traceback.  The classes that
 name a file (:class:`graf.data.spectrum_set.DataFormatError`), a checkpoint
 (:class:`graf.models.base.CheckpointError`) or a neighbour shortage (:class:`graf.neighbors.NoNeighborsError`)
 subclass :class:`UserError` beside :class:`ConfigError`.
@@ -31,3 +31,26 @@ class Preempted(Exception):
 def is_preempted(exc: BaseException | None) -> bool:
     """A job stopped on purpose by SIGTERM (:class:`Preempted`, or anything carrying its exit code)."""
     return getattr(exc, "exit_code", None) == PREEMPTED_EXIT_CODE
+
+
+def is_user_error(exc: BaseException) -> bool:
+    """Errors in what the user gave (data, config values, checkpoints), whose message says what is wrong:
+    :class:`graf.errors.UserError` (``ConfigError``, ``DataFormatError``, ``CheckpointError``,
+    ``NoNeighborsError``), a mandatory config value left unset, and a constructor refusing a config value
+    (Hydra's instantiation error)."""
+    from hydra.errors import InstantiationException
+    from omegaconf.errors import MissingMandatoryValue
+
+    return isinstance(exc, (UserError, MissingMandatoryValue, InstantiationException))
+
+
+def user_message(exc: BaseException) -> str:
+    """A user error's message on one line: a constructor's own refusal rather than Hydra's three-line wrapper
+    around it (``Error in call to target ...``), with the config node it came from."""
+    from hydra.errors import InstantiationException
+
+    cause = exc.__cause__ if isinstance(exc, InstantiationException) else None
+    if cause is not None and str(cause):
+        key = getattr(exc, "full_key", None)
+        return f"{cause}" + (f" (in {key})" if key and str(key) not in str(cause) else "")
+    return " ".join(str(exc).split("\n")) if "\n" in str(exc) else str(exc)

@@ -73,7 +73,7 @@ def adam_exponential_decay(module, lr: float, lr_decay: float, decay_steps: int)
 
 class SpectrumModule(L.LightningModule):
     # whether predictions are conditioned on the neighbours' spectra: such a method's test also measures its
-    # neighbour reliance (graf.cli.common.swapped_psnr); NeRF2 sets False
+    # neighbour reliance (graf.pipeline.testing.swapped_psnr); NeRF2 sets False
     uses_neighbours = True
     LAYOUT = 1
     LAYOUT_CHANGES: dict[int, str] = {}

@@ -41,7 +41,7 @@ class SimulatedScene:
                  description: str = "", num_tx: int | None = None, band: str | None = None,
                  fixed_band: bool = False):
         self.name = name
-        self.band, self.fixed_band = band, bool(fixed_band)  # the run's band choice (graf.cli.common.scene_band_config)
+        self.band, self.fixed_band = band, bool(fixed_band)  # the run's band choice (graf.pipeline.config.scene_band_config)
         self.num_tx = None if num_tx is None else int(num_tx)
         self.room, self.ground, self.objects = room, ground, objects or {}
         self.gateway, self.transmitters = dict(gateway), dict(transmitters)

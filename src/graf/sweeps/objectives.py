@@ -20,7 +20,8 @@ from pathlib import Path
 
 import torch
 
-from graf.cli.common import METRIC_NAMES, ConfigError
+from graf.errors import ConfigError
+from graf.metrics.names import METRIC_NAMES
 
 COST_BATCHES = 3
 COSTS = ("cost/infer_s_per_spectrum",)

@@ -45,6 +45,7 @@ from optuna.trial import FrozenTrial, TrialState
 
 from graf.errors import PREEMPTED_EXIT_CODE, is_preempted
 from graf.io import atomic_write_json
+from graf.sweeps.pruners import make_pruner
 from graf.sweeps.search_space import SearchSpace, SearchSpaceError, parse_search_space
 
 log = logging.getLogger("graf")
@@ -147,18 +148,6 @@ class _Grid(optuna.samplers.GridSampler):
 
     def after_trial(self, study, trial, state, values) -> None:
         return None
-
-
-def make_pruner(conf: dict) -> optuna.pruners.BasePruner:
-    name = str(conf.get("name") or "none").lower()
-    if name == "median":
-        return optuna.pruners.MedianPruner(n_startup_trials=int(conf.get("n_startup_trials", 3)),
-                                           n_warmup_steps=int(conf.get("n_warmup_steps", 0)))
-    if name == "hyperband":
-        return optuna.pruners.HyperbandPruner()
-    if name == "none":
-        return optuna.pruners.NopPruner()
-    raise SearchSpaceError(f"hydra.sweeper.pruner.name={name}: one of median, hyperband, none")
 
 
 def counted_failures(trials: list[FrozenTrial]) -> list[FrozenTrial]:

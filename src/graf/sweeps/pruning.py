@@ -7,7 +7,8 @@ when the study's pruner says so; never at the validation that ends training (``m
 pruning then would discard a finished trial and save nothing).  Lightning tears the fit down and re-raises it; Hydra's launcher returns
 it as the job's failure, and the sweeper stores the trial as PRUNED (with its reported values).
 
-The trial is reopened from the study's storage in the job (``optuna_trial: {storage, study_name,
+The ``callbacks`` group makes it (``callbacks.optuna_pruning: {_target_: graf.sweeps.pruning.pruning_callback,
+conf: ${optuna_trial}}``; nothing for a run that is no trial).  The trial is reopened from the study's storage in the job (``optuna_trial: {storage, study_name,
 trial_id, monitor, pruner}``, set by the sweeper, with the sweeper's pruner settings), so it works in-process and in a launcher's separate processes.
 Validation during training must be on (``trainer.limit_val_batches`` > 0, ``trainer.val_check_interval``):
 the searches in ``conf/hparams_search`` turn it on.
@@ -20,6 +21,8 @@ import math
 
 import optuna
 from lightning.pytorch.callbacks import Callback
+
+from graf.sweeps.pruners import make_pruner
 
 log = logging.getLogger("graf")
 
@@ -58,12 +61,11 @@ def is_last_validation(trainer) -> bool:
 
 
 def pruning_callback(conf) -> OptunaPruning | None:
-    """The callback of a trial (``conf``: ``optuna_trial`` of the run's config), or None for a
-    multi-objective study (Optuna does not prune those) or when pruning is off (``monitor: null``)."""
+    """The callback of a trial (``conf``: ``optuna_trial`` of the run's config), or None for a run that is no
+    trial (``conf`` null), a multi-objective study (Optuna does not prune those) or when pruning is off
+    (``monitor: null``).  The ``callbacks`` group composes it (``callbacks.optuna_pruning``)."""
     if not conf or not conf.get("monitor"):
         return None
-    from graf.sweeps.optuna_sweeper import make_pruner
-
     pruner = make_pruner(dict(conf.get("pruner") or {"name": "median"}))  # the sweeper's: the job decides with it
     study = optuna.load_study(study_name=str(conf.study_name), storage=str(conf.storage), pruner=pruner)
     if len(study.directions) > 1:

@@ -1,0 +1,132 @@
+"""The package's import graph: no circle between modules, no import running up a floor, thin commands.
+
+The graph is read from the source (every ``import`` and ``from ... import``, function-level ones included:
+a lazy import is still a dependency), so it needs no heavy import and sees modules no test imports.
+
+Floors, top to bottom (a module may import its own floor and those below, never one above):
+
+- ``graf.cli``: the commands, thin Hydra entry points;
+- ``graf.pipeline``: building, training, testing, reporting, benchmarking, sweeping over runs;
+- ``graf.sweeps``: the hyperparameter searches' machinery (the Optuna sweeper, objectives, pruning);
+- everything else (data, models, metrics, geometry, simulation, plotting, callbacks, errors, io).
+
+``hydra_plugins`` sits beside ``graf.cli`` (it only registers the sweeper with Hydra).
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+FLOORS = ("graf.cli", "graf.pipeline", "graf.sweeps")  # top first; anything else in graf is the ground floor
+CLI_MAX_LINES = 110
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(SRC).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def _modules() -> dict[str, Path]:
+    return {_module_name(p): p for p in SRC.rglob("*.py") if "conf" not in p.relative_to(SRC).parts}
+
+
+def _resolve(name: str, modules: dict[str, Path]) -> str | None:
+    """The module of ours that ``name`` (a module or a module's attribute) names, if any."""
+    while name:
+        if name in modules:
+            return name
+        name = name.rpartition(".")[0]
+    return None
+
+
+def import_graph() -> dict[str, set[str]]:
+    modules = _modules()
+    graph: dict[str, set[str]] = {m: set() for m in modules}
+    for mod, path in modules.items():
+        package = mod if path.name == "__init__.py" else mod.rpartition(".")[0]
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            targets = []
+            if isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    up = package.split(".")[: len(package.split(".")) - (node.level - 1)]
+                    base = ".".join(up + ([base] if base else []))
+                targets = [f"{base}.{a.name}" for a in node.names] + [base]
+            for t in targets:
+                dep = _resolve(t, modules)
+                if dep is not None and dep != mod and not mod.startswith(dep + "."):  # a package's own parents: no edge
+                    graph[mod].add(dep)
+    return graph
+
+
+def floor(mod: str) -> int:
+    """0 for the top floor (the commands); higher is lower."""
+    if mod.startswith("hydra_plugins"):
+        return 0
+    for i, f in enumerate(FLOORS):
+        if mod == f or mod.startswith(f + "."):
+            return i
+    return len(FLOORS)
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components with more than one module (Tarjan)."""
+    index, low, stack, on, out, counter = {}, {}, [], set(), [], [0]
+
+    def visit(v):
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in graph:
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_the_graph_reader_sees_lazy_and_relative_imports():
+    graph = import_graph()
+    assert "graf.metrics.functional" in graph["graf.metrics"]  # relative: from .functional import ...
+    assert "graf.pipeline.train" in graph["graf.cli.train"]
+    assert floor("graf.cli.train") < floor("graf.pipeline.build") < floor("graf.sweeps.objectives") < floor("graf.io")
+
+
+def test_no_import_circle():
+    assert cycles(import_graph()) == []
+
+
+def test_no_import_runs_up_a_floor():
+    graph = import_graph()
+    upward = sorted(f"{m} -> {d}" for m, deps in graph.items() for d in deps if floor(d) < floor(m))
+    assert upward == []
+
+
+@pytest.mark.parametrize("path", sorted((SRC / "graf" / "cli").glob("*.py")), ids=lambda p: p.name)
+def test_every_command_file_is_thin(path):
+    n = len(path.read_text().splitlines())
+    assert n <= CLI_MAX_LINES, f"{path.name}: {n} lines; its logic belongs in graf.pipeline"
