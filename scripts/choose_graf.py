@@ -47,8 +47,15 @@ def choose(rows: list[dict], modes: list[str]) -> tuple[str, list[dict]]:
         for m in modes:
             r = by[(reg, m)][step]
             psnr[m].append(float(r["val_psnr"]))
-            table.append({"regime": reg, "step": step, "mode": m, **{k: float(r[k]) for k, _ in METRICS},
-                          "reliance": float(r["val_reliance_db"])})
+            table.append(
+                {
+                    "regime": reg,
+                    "step": step,
+                    "mode": m,
+                    **{k: float(r[k]) for k, _ in METRICS},
+                    "reliance": float(r["val_reliance_db"]),
+                }
+            )
     score = {m: sum(ranks[m]) / len(ranks[m]) for m in modes}
     chosen = min(modes, key=lambda m: (score[m], -sum(psnr[m]) / len(psnr[m])))
     for t in table:
@@ -73,8 +80,10 @@ def main() -> None:
         print("| regime | step | mode | val PSNR | val SSIM | val LPIPS | val reliance dB | mean rank |")
         print("|---|---|---|---|---|---|---|---|")
         for t in table:
-            print(f"| {t['regime']} | {t['step']} | {t['mode']} | {t['val_psnr']:.2f} | {t['val_ssim']:.3f} | "
-                  f"{t['val_lpips']:.3f} | {t['reliance']:.2f} | {t['mean_rank']:.2f} |")
+            print(
+                f"| {t['regime']} | {t['step']} | {t['mode']} | {t['val_psnr']:.2f} | {t['val_ssim']:.3f} | "
+                f"{t['val_lpips']:.3f} | {t['reliance']:.2f} | {t['mean_rank']:.2f} |"
+            )
         print(f"\nchosen ({regime or 'all regimes together'}): {chosen}")
 
 

@@ -1,7 +1,8 @@
 """Profile one GRaF training step (forward + backward + Adam) on a scene: top operators by self CPU time.
 
-    python scripts/profile_graf_train.py [scene] [model] [extra overrides...]
+python scripts/profile_graf_train.py [scene] [model] [extra overrides...]
 """
+
 import sys
 import time
 
@@ -17,8 +18,17 @@ scene = sys.argv[1] if len(sys.argv) > 1 else "rfid_s23"
 model_name = sys.argv[2] if len(sys.argv) > 2 else "graf"
 extra = sys.argv[3:]
 with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
-    cfg = compose("train", overrides=[f"scene={scene}", f"model={model_name}", "data_root=data", "data.batch_size=4",
-                                      "model.rays_per_step=5120"] + extra)
+    cfg = compose(
+        "train",
+        overrides=[
+            f"scene={scene}",
+            f"model={model_name}",
+            "data_root=data",
+            "data.batch_size=4",
+            "model.rays_per_step=5120",
+        ]
+        + extra,
+    )
 band, sc, nb, dm = build_datamodule(cfg)
 dm.setup("fit")
 model = hydra.utils.instantiate(cfg.model).train()

@@ -12,10 +12,23 @@ import argparse
 import shutil
 from pathlib import Path
 
-KEEP = ("results.json", "skipped.json", "base_overrides.json", "multirun.yaml", "rows.csv", "rows.json",
-        "matrix.json", "failed.json",
-        # searches (hparams_search): the study's storage and its outputs
-        "optuna.db", "trials.csv", "best_params.json", "best_overrides.txt", "pareto.json", "best.json")
+KEEP = (
+    "results.json",
+    "skipped.json",
+    "base_overrides.json",
+    "multirun.yaml",
+    "rows.csv",
+    "rows.json",
+    "matrix.json",
+    "failed.json",
+    # searches (hparams_search): the study's storage and its outputs
+    "optuna.db",
+    "trials.csv",
+    "best_params.json",
+    "best_overrides.txt",
+    "pareto.json",
+    "best.json",
+)
 KEEP_SUFFIX = (".png", ".log")
 KEEP_PREFIX = ("report.", "table.")
 

@@ -14,8 +14,12 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
-METRICS = (("test/mse", "MSE", "{:.4f}"), ("test/lpips", "LPIPS", "{:.3f}"), ("test/psnr", "PSNR", "{:.2f}"),
-           ("test/ssim", "SSIM", "{:.3f}"))
+METRICS = (
+    ("test/mse", "MSE", "{:.4f}"),
+    ("test/lpips", "LPIPS", "{:.3f}"),
+    ("test/psnr", "PSNR", "{:.2f}"),
+    ("test/ssim", "SSIM", "{:.3f}"),
+)
 FRACTIONS = ("-", "none", "f05", "f10", "f20", "f50", "f100")
 
 
@@ -58,8 +62,7 @@ def vs_l(report: dict, rows: list[dict]) -> str:
     out = []
     for _, name, f in METRICS:
         body = [[m, *[fmt(pts.get(str(x), {}).get(name), f) for x in ls]] for m, pts in data.items()]
-        out.append(f"**{name}** vs L (mean over {pairs(rows)})\n\n"
-                   + md(["method", *[f"L = {x}" for x in ls]], body))
+        out.append(f"**{name}** vs L (mean over {pairs(rows)})\n\n" + md(["method", *[f"L = {x}" for x in ls]], body))
     return "\n\n".join(out)
 
 
@@ -69,19 +72,28 @@ def unseen(rows: list[dict]) -> str:
     for scene, band in keys:
         sub = [r for r in rows if r["eval_scene"] == scene and r["train_band"] in (band, "-")]
         for ft, title in (("none", "zero-shot"), ("f20", "fine-tuned on 20%")):
-            body = [[r["method"], r["n_test"], r["steps"], *[fmt(r.get(k), f) for k, _, f in METRICS]]
-                    for r in sorted(sub, key=lambda r: r["method"]) if r["finetune"] in ((ft, "zero-shot", "-") if ft == "none" else (ft, "-"))]
-            out.append(f"**{scene}**, models trained at {band}, {title} (test neighbours: "
-                       f"{'the whole training split' if ft == 'none' else 'the measured 20%'})\n\n"
-                       + md(["method", "test spectra", "steps", *[n for _, n, _ in METRICS]], body))
+            body = [
+                [r["method"], r["n_test"], r["steps"], *[fmt(r.get(k), f) for k, _, f in METRICS]]
+                for r in sorted(sub, key=lambda r: r["method"])
+                if r["finetune"] in ((ft, "zero-shot", "-") if ft == "none" else (ft, "-"))
+            ]
+            out.append(
+                f"**{scene}**, models trained at {band}, {title} (test neighbours: "
+                f"{'the whole training split' if ft == 'none' else 'the measured 20%'})\n\n"
+                + md(["method", "test spectra", "steps", *[n for _, n, _ in METRICS]], body)
+            )
         by = defaultdict(dict)
         for r in sub:
             if r["steps"] != "0":
                 by[r["method"]]["none" if r["finetune"] == "zero-shot" else r["finetune"]] = r.get("test/psnr")
         fr = [x for x in FRACTIONS[1:] if any(x in v for v in by.values())]
-        out.append(f"PSNR vs fine-tuned fraction, **{scene}** (models trained at {band})\n\n"
-                   + md(["method", *["zero-shot" if x == "none" else x for x in fr]],
-                        [[m, *[fmt(v.get(x), "{:.2f}") for x in fr]] for m, v in sorted(by.items())]))
+        out.append(
+            f"PSNR vs fine-tuned fraction, **{scene}** (models trained at {band})\n\n"
+            + md(
+                ["method", *["zero-shot" if x == "none" else x for x in fr]],
+                [[m, *[fmt(v.get(x), "{:.2f}") for x in fr]] for m, v in sorted(by.items())],
+            )
+        )
     return "\n\n".join(out)
 
 
@@ -89,7 +101,9 @@ def bands(report: dict) -> str:
     out = []
     for m, d in report["band_matrix"].items():
         body = [[r, *[fmt(v if v == v else None, "{:.2f}") for v in vals]] for r, vals in zip(d["rows"], d["psnr"])]
-        out.append(f"**{m}**: test PSNR (rows: train band; columns: test band)\n\n" + md(["train \\ test", *d["cols"]], body))
+        out.append(
+            f"**{m}**: test PSNR (rows: train band; columns: test band)\n\n" + md(["train \\ test", *d["cols"]], body)
+        )
     return "\n\n".join(out)
 
 

@@ -24,7 +24,9 @@ PRESETS = ("graf", "graf_cpu")
 
 
 def main() -> None:
-    print("| band | scene | box (m) | " + " | ".join(f"`{p}` max / mean S, voxels, capped rays" for p in PRESETS) + " |")
+    print(
+        "| band | scene | box (m) | " + " | ".join(f"`{p}` max / mean S, voxels, capped rays" for p in PRESETS) + " |"
+    )
     print("|---|---|---|" + "---|" * len(PRESETS))
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         models = {p: instantiate(compose(config_name="train", overrides=[f"model={p}"]).model) for p in PRESETS}
@@ -42,16 +44,21 @@ def main() -> None:
                     d = scene.load(None, band)
                     bounds, gw = d.bounds(), d.gateway_position
                     rot = Rotation.from_quat(d.gateway_orientation).as_matrix()
-                geo = {"gw_pos": torch.tensor(gw, dtype=torch.float32)[None],
-                       "gw_rot": torch.tensor(rot, dtype=torch.float32)[None],
-                       "bounds": torch.tensor(bounds, dtype=torch.float32)[None],
-                       "wavelength": torch.tensor([band.wavelength]), "ray_length": torch.tensor([0.0]),
-                       "scene_index": torch.tensor([0])}
+                geo = {
+                    "gw_pos": torch.tensor(gw, dtype=torch.float32)[None],
+                    "gw_rot": torch.tensor(rot, dtype=torch.float32)[None],
+                    "bounds": torch.tensor(bounds, dtype=torch.float32)[None],
+                    "wavelength": torch.tensor([band.wavelength]),
+                    "ray_length": torch.tensor([0.0]),
+                    "scene_index": torch.tensor([0]),
+                }
                 cells = []
-                for p, model in models.items():
+                for _p, model in models.items():
                     r = model.ray_sampling(geo)
-                    cells.append(f"{r['samples_per_ray']} / {r['mean_samples_per_ray']:.1f}, "
-                                 f"{r['voxels_per_spectrum']:,}, {r['capped_rays']:,}")
+                    cells.append(
+                        f"{r['samples_per_ray']} / {r['mean_samples_per_ray']:.1f}, "
+                        f"{r['voxels_per_spectrum']:,}, {r['capped_rays']:,}"
+                    )
                 size = " x ".join(f"{x:.1f}" for x in (bounds[1] - bounds[0]))
                 print(f"| {band_name} | {name} | {size} | " + " | ".join(cells) + " |")
 

@@ -8,8 +8,8 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 
-from graf.pipeline.config import CONF_DIR
 from graf.data.nerf2_format import write_nerf2_folder
+from graf.pipeline.config import CONF_DIR
 
 os.environ.setdefault("WANDB_MODE", "offline")
 os.environ.setdefault("WANDB_SILENT", "true")
@@ -25,7 +25,7 @@ def smooth_spectra(positions: np.ndarray, seed: int = 0) -> np.ndarray:
     az0 = (np.degrees(np.arctan2(p[:, 1], p[:, 0])) % 360)[:, None, None]
     el0 = (20 + 10 * p[:, 2])[:, None, None]
     daz = (az - az0 + 180) % 360 - 180
-    s = np.exp(-(daz / 25.0) ** 2 - ((el - el0) / 15.0) ** 2)
+    s = np.exp(-((daz / 25.0) ** 2) - ((el - el0) / 15.0) ** 2)
     s = (s - s.min(axis=(1, 2), keepdims=True)) / np.ptp(s, axis=(1, 2), keepdims=True)
     return s.astype(np.float32)
 
@@ -40,9 +40,15 @@ def make_scene(tmp_path):
         ids = np.arange(1, n + 1)
         n_train = int(n * 0.75)
         return write_nerf2_folder(
-            tmp_path / name, smooth_spectra(pos), pos, ids, np.array([0.0, 0.0, 0.5]),
+            tmp_path / name,
+            smooth_spectra(pos),
+            pos,
+            ids,
+            np.array([0.0, 0.0, 0.5]),
             np.array([0.0, 0.0, 0.0, 1.0]),
-            train_ids=ids[:n_train] if index else None, test_ids=ids[n_train:] if index else None)
+            train_ids=ids[:n_train] if index else None,
+            test_ids=ids[n_train:] if index else None,
+        )
 
     return _make
 
@@ -54,9 +60,17 @@ def compose_cfg(tmp_path):
     def _compose(config_name: str = "eval", overrides: tuple[str, ...] = ()):
         GlobalHydra.instance().clear()
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-            cfg = compose(config_name=config_name, overrides=[
-                f"paths.output_dir={tmp_path / 'out'}", "trainer.accelerator=cpu", "logger=none",
-                "trainer.enable_progress_bar=false", f"data_root={tmp_path / 'data'}", *overrides])
+            cfg = compose(
+                config_name=config_name,
+                overrides=[
+                    f"paths.output_dir={tmp_path / 'out'}",
+                    "trainer.accelerator=cpu",
+                    "logger=none",
+                    "trainer.enable_progress_bar=false",
+                    f"data_root={tmp_path / 'data'}",
+                    *overrides,
+                ],
+            )
         GlobalHydra.instance().clear()
         return cfg
 
@@ -72,8 +86,17 @@ def small_room_root(tmp_path_factory):
     root = tmp_path_factory.mktemp("data")
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose("simulate", ["scene=small_room", "band=2.4ghz", "sim.num_tx=24", f"data_root={root}",
-                                   f"paths.output_dir={root / 'sim_out'}", "sim.progress=false"])
+        cfg = compose(
+            "simulate",
+            [
+                "scene=small_room",
+                "band=2.4ghz",
+                "sim.num_tx=24",
+                f"data_root={root}",
+                f"paths.output_dir={root / 'sim_out'}",
+                "sim.progress=false",
+            ],
+        )
     GlobalHydra.instance().clear()
     simulate(cfg)
     return root

@@ -13,13 +13,26 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.errors import HydraException
 
 import graf.pipeline.bench as bench_cli
-from graf.pipeline.bench import add_ratios, bench, ensure_simulated, scene_and_band
 from graf.errors import ConfigError
+from graf.pipeline.bench import add_ratios, bench, ensure_simulated, scene_and_band
 from graf.pipeline.config import CONF_DIR
 
-REQUIRED = {"method", "preset", "scene", "samples_per_ray", "infer_s_per_spectrum", "train_s_per_step",
-            "train_rays_per_s", "peak_mb_train", "peak_mb_infer", "peak_mb", "parameters", "checkpoint_mb",
-            "infer_ratio_to_graf", "train_ratio_to_graf"}
+REQUIRED = {
+    "method",
+    "preset",
+    "scene",
+    "samples_per_ray",
+    "infer_s_per_spectrum",
+    "train_s_per_step",
+    "train_rays_per_s",
+    "peak_mb_train",
+    "peak_mb_infer",
+    "peak_mb",
+    "parameters",
+    "checkpoint_mb",
+    "infer_ratio_to_graf",
+    "train_ratio_to_graf",
+}
 TINY_GRAF = ("models.graf_cpu.max_samples=4", "models.graf_cpu.encoder_widths=[4,8,8,8]")
 
 
@@ -35,9 +48,16 @@ def bench_cfg(tmp_path):
     def _compose(*overrides: str):
         GlobalHydra.instance().clear()
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-            cfg = compose(config_name="bench", overrides=[
-                f"paths.output_dir={tmp_path / 'out'}", f"data_root={tmp_path / 'data'}", "quick=true", "threads=1",
-                *overrides])
+            cfg = compose(
+                config_name="bench",
+                overrides=[
+                    f"paths.output_dir={tmp_path / 'out'}",
+                    f"data_root={tmp_path / 'data'}",
+                    "quick=true",
+                    "threads=1",
+                    *overrides,
+                ],
+            )
         GlobalHydra.instance().clear()
         return cfg
 
@@ -81,27 +101,40 @@ def test_quick_run_on_the_embedded_scene_writes_rows_table_and_ratios(bench_cfg)
     assert dl["train_ratio_to_graf"] == pytest.approx(dl["train_s_per_step"] / g["train_s_per_step"], rel=1e-3)
     assert knn["train_s_per_step"] is None and knn["train_rays_per_s"] is None and knn["train_ratio_to_graf"] is None
     assert knn["parameters"] == 0 and knn["samples_per_ray"] is None
-    assert knn["infer_ratio_to_graf"] == pytest.approx(knn["infer_s_per_spectrum"] / g["infer_s_per_spectrum"],
-                                                       rel=1e-3, abs=1e-4)
+    assert knn["infer_ratio_to_graf"] == pytest.approx(
+        knn["infer_s_per_spectrum"] / g["infer_s_per_spectrum"], rel=1e-3, abs=1e-4
+    )
     md = (Path(cfg.paths.output_dir) / "bench.md").read_text()
     assert "| rfid_s23 | graf_cpu | graf |" in md and "cpu, 1 threads" in md
 
 
 def test_the_ratio_base_is_the_paper_size_graf_row_of_the_same_scene():
     def row(preset, method, scene, t, s=None, error=None):
-        return {"preset": preset, "method": method, "scene": scene, "infer_s_per_spectrum": t,
-                "train_s_per_step": s, "error": error}
+        return {
+            "preset": preset,
+            "method": method,
+            "scene": scene,
+            "infer_s_per_spectrum": t,
+            "train_s_per_step": s,
+            "error": error,
+        }
 
-    rows = [row("graf_cpu", "graf", "a", 2.0, 1.0), row("graf", "graf", "a", 4.0, 2.0), row("knn", "knn", "a", 1.0),
-            row("graf", "graf", "b", 1.0, error="boom"), row("graf_cpu", "graf", "b", 0.5, 0.25),
-            row("knn", "knn", "c", 1.0)]
+    rows = [
+        row("graf_cpu", "graf", "a", 2.0, 1.0),
+        row("graf", "graf", "a", 4.0, 2.0),
+        row("knn", "knn", "a", 1.0),
+        row("graf", "graf", "b", 1.0, error="boom"),
+        row("graf_cpu", "graf", "b", 0.5, 0.25),
+        row("knn", "knn", "c", 1.0),
+    ]
     assert add_ratios(rows) == {"a": "graf", "b": "graf_cpu", "c": None}
     assert [r["infer_ratio_to_graf"] for r in rows] == [0.5, 1.0, 0.25, None, 1.0, None]
     assert [r["train_ratio_to_graf"] for r in rows] == [0.5, 1.0, None, None, 1.0, None]
 
 
 def test_a_missing_simulated_dataset_is_simulated_first_and_a_failed_row_does_not_stop_the_others(
-        bench_cfg, monkeypatch):
+    bench_cfg, monkeypatch
+):
     calls = []
     monkeypatch.setattr(bench_cli, "simulate", lambda cfg: calls.append(cfg))  # records, makes nothing
     cfg = bench_cfg("bench.models=[knn,bad]", "+model@models.bad=graf_cpu", "models.bad.d_model=0")

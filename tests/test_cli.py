@@ -15,17 +15,20 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
+from graf.data.spectrum_set import DataFormatError
 from graf.errors import ConfigError
 from graf.pipeline.config import CONF_DIR, CONF_PATH, scene_band_config, scene_configs
 from graf.pipeline.evaluate import evaluate
 from graf.pipeline.table import make_table
 from graf.pipeline.train import train
-from graf.data.spectrum_set import DataFormatError
 
 RESULT_KEYS = {"method", "scene", "band_hz", "n_train", "n_test", "metrics", "seconds", "config", "splits"}
 TEST_KEYS = {"test/mse", "test/psnr", "test/ssim", "test/lpips"}
-METRIC_KEYS = TEST_KEYS | {k.replace("test/", "val/") for k in TEST_KEYS} | {"test/psnr_swapped", "test/reliance_db",
-                                                                       "val/psnr_swapped", "val/reliance_db"}
+METRIC_KEYS = (
+    TEST_KEYS
+    | {k.replace("test/", "val/") for k in TEST_KEYS}
+    | {"test/psnr_swapped", "test/reliance_db", "val/psnr_swapped", "val/reliance_db"}
+)
 
 
 def _results(cfg) -> dict:
@@ -38,8 +41,18 @@ def test_commands_read_the_configs_shipped_in_the_package():
     assert (Path(__file__).resolve().parents[1] / "conf").resolve() == CONF_DIR.resolve()
     GlobalHydra.instance().clear()
     with initialize_config_module(config_module="graf.conf", version_base="1.3"):
-        for name in ("train", "eval", "simulate", "table", "oracle", "synthesize", "show_scenes",
-                     "bench_sim", "bench", "pareto"):
+        for name in (
+            "train",
+            "eval",
+            "simulate",
+            "table",
+            "oracle",
+            "synthesize",
+            "show_scenes",
+            "bench_sim",
+            "bench",
+            "pareto",
+        ):
             assert compose(config_name=name) is not None
         assert compose(config_name="eval").scene.rfid_s23._target_
     GlobalHydra.instance().clear()
@@ -57,7 +70,11 @@ def test_every_config_group_option_composes():
                     continue  # experiments named sim_* are graf-simulate's
                 GlobalHydra.instance().clear()
                 with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-                    overrides = [f"{group}={f.stem}"] + ([f"{group}.nerf2.path=x", "band=2.4ghz"] if f.stem == "nerf2" and group in ("scene", "eval_scene") else [])
+                    overrides = [f"{group}={f.stem}"] + (
+                        [f"{group}.nerf2.path=x", "band=2.4ghz"]
+                        if f.stem == "nerf2" and group in ("scene", "eval_scene")
+                        else []
+                    )
                     cfg = compose(config_name=config_name, overrides=overrides)
                 (scene,) = scene_configs(cfg.scene)
                 assert scene._target_ and instantiate(scene_band_config(scene, cfg.get("band"))).frequency_hz > 0
@@ -75,8 +92,11 @@ def test_every_config_group_option_composes():
 def test_a_nerf2_folder_needs_its_band(compose_cfg, make_scene):
     folder = make_scene(n=12)
     cfg = compose_cfg("eval", ("scene=nerf2", f"scene.nerf2.path={folder}"))
-    with pytest.raises(ConfigError, match=r"does not say its carrier frequency: add band=<one of 1.8ghz, 2.4ghz, "
-                                          r"3ghz, 915mhz>"):
+    with pytest.raises(
+        ConfigError,
+        match=r"does not say its carrier frequency: add band=<one of 1.8ghz, 2.4ghz, "
+        r"3ghz, 915mhz>",
+    ):
         evaluate(cfg)
 
     def band_of(*overrides):
@@ -95,14 +115,18 @@ def test_rfid_scene_is_915mhz_whatever_the_run_band(compose_cfg):
 
 
 def test_eval_knn_rfid_s23_writes_results_and_predictions(compose_cfg):
-    cfg = compose_cfg("eval", ("model=knn", "scene=rfid_s23", "save_predictions=true", "neighbors=fixed", "neighbors.L=4"))
+    cfg = compose_cfg(
+        "eval", ("model=knn", "scene=rfid_s23", "save_predictions=true", "neighbors=fixed", "neighbors.L=4")
+    )
     metrics, _ = evaluate(cfg)
     out = Path(cfg.paths.output_dir)
     r = _results(cfg)
     assert RESULT_KEYS <= set(r) and set(r["metrics"]) == METRIC_KEYS
     assert (r["method"], r["scene"], r["band_hz"], r["n_train"], r["n_test"]) == ("knn", "rfid_s23", 915e6, 160, 40)
     s = r["splits"]
-    assert (s["n_fit"], s["n_val"], s["val_fraction"]) == (144, 16, 0.1) and all(np.isfinite(list(r["metrics"].values())))
+    assert (s["n_fit"], s["n_val"], s["val_fraction"]) == (144, 16, 0.1) and all(
+        np.isfinite(list(r["metrics"].values()))
+    )
     test_ids = set(int(v) for v in (CONF_DIR.parent / "embedded/rfid_s23_200/test_index.txt").read_text().split())
     assert len(s["val_ids"]) == 16 and not set(s["val_ids"]) & test_ids
     assert (out / "spectra.png").stat().st_size > 10_000
@@ -112,8 +136,12 @@ def test_eval_knn_rfid_s23_writes_results_and_predictions(compose_cfg):
     assert 0.0 <= z["pred"].min() and z["pred"].max() <= 1.0
     # The reported PSNR and SSIM equal an independent scikit-image computation from predictions.npz.
     psnr = np.mean([peak_signal_noise_ratio(t, p, data_range=1) for p, t in zip(z["pred"], z["target"])])
-    ssim = np.mean([structural_similarity(p, t, data_range=1, gaussian_weights=True, sigma=1.5,
-                                          use_sample_covariance=False) for p, t in zip(z["pred"], z["target"])])
+    ssim = np.mean(
+        [
+            structural_similarity(p, t, data_range=1, gaussian_weights=True, sigma=1.5, use_sample_covariance=False)
+            for p, t in zip(z["pred"], z["target"])
+        ]
+    )
     assert abs(r["metrics"]["test/psnr"] - psnr) < 0.01
     assert abs(r["metrics"]["test/ssim"] - ssim) < 0.002
     # and the targets are the test split's spectra in the reader's order
@@ -123,9 +151,21 @@ def test_eval_knn_rfid_s23_writes_results_and_predictions(compose_cfg):
 
 
 def test_barycentric_and_sparse_neighbours_change_the_result(compose_cfg):
-    dense = evaluate(compose_cfg("eval", ("model.weighting=barycentric", "neighbors=fixed", "neighbors.L=6", "plot_count=0")))[0]
-    sparse = evaluate(compose_cfg("eval", ("model.weighting=barycentric", "neighbors=fixed", "neighbors.L=6",
-                                           "neighbors.exclude_within=0.25", "plot_count=0")))[0]
+    dense = evaluate(
+        compose_cfg("eval", ("model.weighting=barycentric", "neighbors=fixed", "neighbors.L=6", "plot_count=0"))
+    )[0]
+    sparse = evaluate(
+        compose_cfg(
+            "eval",
+            (
+                "model.weighting=barycentric",
+                "neighbors=fixed",
+                "neighbors.L=6",
+                "neighbors.exclude_within=0.25",
+                "plot_count=0",
+            ),
+        )
+    )[0]
     assert sparse["test/psnr"] < dense["test/psnr"] - 3  # s23 is dense; removing near neighbours hurts
 
 
@@ -138,7 +178,9 @@ def test_train_with_knn_skips_fit_and_tests(compose_cfg):
 
 def test_user_scene_folder_without_code(compose_cfg, make_scene):
     folder = make_scene(n=16, index=False)
-    cfg = compose_cfg("eval", ("scene=nerf2", f"scene.nerf2.path={folder}", "band=2.4ghz", "neighbors=fixed", "neighbors.L=2"))
+    cfg = compose_cfg(
+        "eval", ("scene=nerf2", f"scene.nerf2.path={folder}", "band=2.4ghz", "neighbors=fixed", "neighbors.L=2")
+    )
     evaluate(cfg)
     r = _results(cfg)
     assert (r["n_train"], r["n_test"]) == (13, 3) and r["band_hz"] == 2.412e9
@@ -147,7 +189,9 @@ def test_user_scene_folder_without_code(compose_cfg, make_scene):
 
 def test_relative_scene_path_is_found_under_data_root(compose_cfg, make_scene, tmp_path):
     folder = make_scene(n=12, name="data/mine")
-    cfg = compose_cfg("eval", ("scene=nerf2", "band=2.4ghz", "scene.nerf2.path=mine", f"data_root={folder.parent}", "plot_count=0"))
+    cfg = compose_cfg(
+        "eval", ("scene=nerf2", "band=2.4ghz", "scene.nerf2.path=mine", f"data_root={folder.parent}", "plot_count=0")
+    )
     evaluate(cfg)
     assert _results(cfg)["n_test"] == 3
 
@@ -176,13 +220,17 @@ def test_csv_logger_records_test_metrics(compose_cfg):
 def test_table_collects_runs(compose_cfg, tmp_path):
     outs = []
     for L in (2, 4):
-        cfg = compose_cfg("eval", ("neighbors=fixed", f"neighbors.L={L}", "plot_count=0", f"paths.output_dir={tmp_path / f'runs/{L}'}"))
+        cfg = compose_cfg(
+            "eval",
+            ("neighbors=fixed", f"neighbors.L={L}", "plot_count=0", f"paths.output_dir={tmp_path / f'runs/{L}'}"),
+        )
         evaluate(cfg)
         outs.append(_results(cfg))
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        tcfg = compose(config_name="table", overrides=[f"runs={tmp_path / 'runs'}",
-                                                       f"paths.output_dir={tmp_path / 'table'}"])
+        tcfg = compose(
+            config_name="table", overrides=[f"runs={tmp_path / 'runs'}", f"paths.output_dir={tmp_path / 'table'}"]
+        )
     GlobalHydra.instance().clear()
     payload = make_table(tcfg)
     assert [row["neighbors.L"] for row in payload["rows"]] == [2, 4]
@@ -195,21 +243,43 @@ def test_table_of_cross_scene_runs_has_a_row_per_test_scene_and_no_scene_config_
 
     def run(trained, tested, psnrs, L):
         scenes = {n: {"name": n, "room": {"size": [i + 5.0, 4.0, 3.0]}} for i, n in enumerate(trained)}
-        evals = [{"eval_scene": t, "n_test": 30, "metrics": {"test/psnr": p},
-                  "baselines": {"knn": {"metrics": {"test/psnr": p - 1}, "trainable_parameters": 0}}}
-                 for t, p in zip(tested, psnrs)]
-        return {"method": "graf", "scene": tested[0], "train_scenes": trained, "global_step": 300, "n_test": 30,
-                "trainable_parameters": 7, "metrics": evals[0]["metrics"], "evaluations": evals,
-                "config": {"scene": scenes, "eval_scene": {t: {"name": t} for t in tested}, "neighbors": {"L": L}}}
+        evals = [
+            {
+                "eval_scene": t,
+                "n_test": 30,
+                "metrics": {"test/psnr": p},
+                "baselines": {"knn": {"metrics": {"test/psnr": p - 1}, "trainable_parameters": 0}},
+            }
+            for t, p in zip(tested, psnrs)
+        ]
+        return {
+            "method": "graf",
+            "scene": tested[0],
+            "train_scenes": trained,
+            "global_step": 300,
+            "n_test": 30,
+            "trainable_parameters": 7,
+            "metrics": evals[0]["metrics"],
+            "evaluations": evals,
+            "config": {"scene": scenes, "eval_scene": {t: {"name": t} for t in tested}, "neighbors": {"L": L}},
+        }
 
-    header, body = build_table([run(["room_a"], ["room_a", "room_b"], [15.0, 14.0], 4),
-                                run(["room_b", "room_c"], ["room_a", "room_b"], [13.0, 16.0], 8)])
+    header, body = build_table(
+        [
+            run(["room_a"], ["room_a", "room_b"], [15.0, 14.0], 4),
+            run(["room_b", "room_c"], ["room_a", "room_b"], [13.0, 16.0], 8),
+        ]
+    )
     assert header[:4] == ["method", "trained on", "tested on", "neighbors.L"]
     assert not any(h.startswith(("scene.", "eval_scene.")) for h in header)
     rows = [dict(zip(header, r)) for r in body]
     graf = [(r["trained on"], r["tested on"], r["neighbors.L"], r["PSNR"]) for r in rows if r["method"] == "graf"]
-    assert graf == [("room_a", "room_a", 4, 15.0), ("room_a", "room_b", 4, 14.0),
-                    ("room_b+room_c", "room_a", 8, 13.0), ("room_b+room_c", "room_b", 8, 16.0)]
+    assert graf == [
+        ("room_a", "room_a", 4, 15.0),
+        ("room_a", "room_b", 4, 14.0),
+        ("room_b+room_c", "room_a", 8, 13.0),
+        ("room_b+room_c", "room_b", 8, 16.0),
+    ]
     knn = [(r["trained on"], r["tested on"], r["PSNR"]) for r in rows if r["method"] == "knn"]
     assert knn == [("-", "room_a", 14.0), ("-", "room_b", 13.0), ("-", "room_a", 12.0), ("-", "room_b", 15.0)]
 
@@ -220,9 +290,22 @@ def test_console_scripts_run_end_to_end(tmp_path, make_scene):
     env = dict(os.environ, WANDB_MODE="offline")
     for cmd in ("graf-eval", "graf-train"):
         out = tmp_path / cmd
-        proc = subprocess.run([str(bindir / cmd), "scene=nerf2", f"scene.nerf2.path={folder}", "band=2.4ghz",
-                               "neighbors=fixed", "neighbors.L=2", "trainer.accelerator=cpu", f"hydra.run.dir={out}"],
-                              capture_output=True, text=True, env=env, timeout=300)
+        proc = subprocess.run(
+            [
+                str(bindir / cmd),
+                "scene=nerf2",
+                f"scene.nerf2.path={folder}",
+                "band=2.4ghz",
+                "neighbors=fixed",
+                "neighbors.L=2",
+                "trainer.accelerator=cpu",
+                f"hydra.run.dir={out}",
+            ],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=300,
+        )
         assert proc.returncode == 0, proc.stderr[-2000:]
         assert "PSNR" in proc.stdout and (out / "results.json").is_file()
     proc = subprocess.run([str(bindir / "graf-eval"), "scene=nope"], capture_output=True, text=True, env=env)
@@ -232,9 +315,22 @@ def test_console_scripts_run_end_to_end(tmp_path, make_scene):
 def test_a_sweep_with_a_failing_job_keeps_the_table_of_the_others(tmp_path):
     exe = str(Path(sys.executable).parent / "graf-eval")
     sweep = tmp_path / "sweep"
-    p = subprocess.run([exe, "-m", "model=knn", "model.weighting=idw,no_such_weighting,barycentric", "plot_count=0",
-                        "logger=none", "trainer.limit_test_batches=1", "trainer.enable_progress_bar=false",
-                        f"hydra.sweep.dir={sweep}"], capture_output=True, text=True, timeout=600)
+    p = subprocess.run(
+        [
+            exe,
+            "-m",
+            "model=knn",
+            "model.weighting=idw,no_such_weighting,barycentric",
+            "plot_count=0",
+            "logger=none",
+            "trainer.limit_test_batches=1",
+            "trainer.enable_progress_bar=false",
+            f"hydra.sweep.dir={sweep}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert p.returncode != 0  # the sweep reports the failure ...
     table = json.loads((sweep / "table.json").read_text())  # ... after running every job and tabulating them
     assert [r["method"] for r in table["rows"]] == ["knn", "knn-barycentric"]

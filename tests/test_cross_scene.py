@@ -12,9 +12,18 @@ from graf.pipeline.build import build_datamodule, eval_scene_indices
 from graf.pipeline.evaluate import evaluate
 from graf.pipeline.train import train
 
-FAST = ["model.rays_per_step=64", "model.max_samples=8", "data.batch_size=2", "baselines={}", "plot_count=0",
-        "trainer.limit_test_batches=1", "trainer.enable_progress_bar=false", "model=graf_cpu",
-        "model.encoder_widths=[4,8,8,8]", "callbacks.model_checkpoint.every_n_train_steps=2"]
+FAST = [
+    "model.rays_per_step=64",
+    "model.max_samples=8",
+    "data.batch_size=2",
+    "baselines={}",
+    "plot_count=0",
+    "trainer.limit_test_batches=1",
+    "trainer.enable_progress_bar=false",
+    "model=graf_cpu",
+    "model.encoder_widths=[4,8,8,8]",
+    "callbacks.model_checkpoint.every_n_train_steps=2",
+]
 
 
 @pytest.fixture
@@ -28,8 +37,19 @@ def _results(cfg) -> dict:
 
 
 def test_two_scenes_of_different_bands_and_samples_per_ray_train_two_steps(compose_cfg, data_root):
-    cfg = compose_cfg("train", ("scene=[rfid_s23,small_room]", "scene.small_room.num_tx=24", f"data_root={data_root}",
-                                "band=2.4ghz", "model.use_scene_index=true", "trainer.max_steps=2", *FAST, "model.max_samples=32"))
+    cfg = compose_cfg(
+        "train",
+        (
+            "scene=[rfid_s23,small_room]",
+            "scene.small_room.num_tx=24",
+            f"data_root={data_root}",
+            "band=2.4ghz",
+            "model.use_scene_index=true",
+            "trainer.max_steps=2",
+            *FAST,
+            "model.max_samples=32",
+        ),
+    )
     train(cfg)
     r = _results(cfg)
     assert r["train_scenes"] == ["rfid_s23", "small_room"] and r["eval_scene"] == "rfid_s23+small_room"
@@ -40,8 +60,16 @@ def test_two_scenes_of_different_bands_and_samples_per_ray_train_two_steps(compo
 
 
 def test_neighbours_never_cross_scenes_and_never_are_the_target(compose_cfg, data_root):
-    cfg = compose_cfg("train", ("scene=[rfid_s23,small_room]", "scene.small_room.num_tx=24", f"data_root={data_root}",
-                                "model=knn", "data.batch_size=6"))
+    cfg = compose_cfg(
+        "train",
+        (
+            "scene=[rfid_s23,small_room]",
+            "scene.small_room.num_tx=24",
+            f"data_root={data_root}",
+            "model=knn",
+            "data.batch_size=6",
+        ),
+    )
     _, _, _, dm = build_datamodule(cfg)
     dm.setup("fit")
     for k in range(200):  # training draws: L varies, the pool is the fit split of the target's scene
@@ -63,9 +91,19 @@ def test_a_checkpoint_is_tested_zero_shot_on_a_scene_it_was_not_trained_on(compo
     train(cfg)
     ckpt = Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt"
     # a 915 MHz model on a 2.4 GHz room: a cross-band transfer, run because it is asked for
-    ecfg = compose_cfg("eval", (f"ckpt_path={ckpt}", "eval_scene=small_room", "cross_band=true",
-                                "eval_scene.small_room.num_tx=24", f"data_root={data_root}", "plot_count=0",
-                                "trainer.limit_test_batches=1", f"paths.output_dir={tmp_path / 'e'}"))
+    ecfg = compose_cfg(
+        "eval",
+        (
+            f"ckpt_path={ckpt}",
+            "eval_scene=small_room",
+            "cross_band=true",
+            "eval_scene.small_room.num_tx=24",
+            f"data_root={data_root}",
+            "plot_count=0",
+            "trainer.limit_test_batches=1",
+            f"paths.output_dir={tmp_path / 'e'}",
+        ),
+    )
     evaluate(ecfg, overrides=[])
     r = json.loads((tmp_path / "e" / "results.json").read_text())
     assert r["train_scenes"] == ["rfid_s23"] and r["eval_scene"] == "small_room" and r["within_scene"] is False

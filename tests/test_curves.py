@@ -15,18 +15,38 @@ def test_curves_run_resume_and_validate_only(tmp_path, make_scene):
     folder = make_scene(n=24)
     out = tmp_path / "curves"
     q = lambda *o: "[" + ",".join(f"'{x}'" for x in o) + "]"  # noqa: E731  (a Hydra list of overrides)
-    regime = q("scene=nerf2", f"scene.nerf2.path={folder}", "band=2.4ghz", "data.batch_size=2", "data.val_fraction=0.2",
-               "trainer.limit_test_batches=1")
+    regime = q(
+        "scene=nerf2",
+        f"scene.nerf2.path={folder}",
+        "band=2.4ghz",
+        "data.batch_size=2",
+        "data.val_fraction=0.2",
+        "trainer.limit_test_batches=1",
+    )
     small = ("model.rays_per_step=32", "model.max_samples=4", "model.encoder_widths=[4,8,8,8]")
-    args = [sys.executable, "-m", "graf.cli.curves", f"out={out}", "threads=1", "steps=[1,2]",
-            f"+regimes={{tiny: {{max_steps: 3, overrides: {regime}}}}}", "only_regimes=[tiny]",
-            f"methods.pooled.overrides={q('model=graf_cpu', *small)}",
-            f"methods.ray_knn.overrides={q('model=graf_cpu', 'model.neighbour_features=ray_knn', *small)}",
-            "only_methods=[pooled,ray_knn]", f"hydra.run.dir={tmp_path / 'h'}"]
+    args = [
+        sys.executable,
+        "-m",
+        "graf.cli.curves",
+        f"out={out}",
+        "threads=1",
+        "steps=[1,2]",
+        f"+regimes={{tiny: {{max_steps: 3, overrides: {regime}}}}}",
+        "only_regimes=[tiny]",
+        f"methods.pooled.overrides={q('model=graf_cpu', *small)}",
+        f"methods.ray_knn.overrides={q('model=graf_cpu', 'model.neighbour_features=ray_knn', *small)}",
+        "only_methods=[pooled,ray_knn]",
+        f"hydra.run.dir={tmp_path / 'h'}",
+    ]
     p = subprocess.run([*args, "until=2"], capture_output=True, text=True, timeout=600)
     assert p.returncode == 0, p.stderr[-3000:]
     res = json.loads((out / "results.json").read_text())
-    assert [(r["method"], r["step"]) for r in res["rows"]] == [("pooled", 1), ("pooled", 2), ("ray_knn", 1), ("ray_knn", 2)]
+    assert [(r["method"], r["step"]) for r in res["rows"]] == [
+        ("pooled", 1),
+        ("pooled", 2),
+        ("ray_knn", 1),
+        ("ray_knn", 2),
+    ]
     assert all(r["val_psnr"] is not None and r["val_reliance_db"] is not None for r in res["rows"])
     assert res["knn"]["tiny"]["val/psnr"] is not None and not res["failed"]
     step2 = json.loads((out / "tiny" / "ray_knn" / "step_2" / "results.json").read_text())
@@ -55,17 +75,19 @@ def test_a_sigterm_is_passed_to_the_run_and_stops_the_command_with_code_143(tmp_
     import signal
     import threading
 
-    from graf.pipeline.pareto import _run
     from graf.errors import PREEMPTED_EXIT_CODE, Preempted
+    from graf.pipeline.pareto import _run
 
     child = tmp_path / "child.py"
-    child.write_text("import signal, sys, time, pathlib\n"
-                     "def stop(*a):\n"
-                     f"    pathlib.Path({str(tmp_path / 'got_sigterm')!r}).write_text('saved')\n"
-                     "    sys.exit(143)\n"
-                     "signal.signal(signal.SIGTERM, stop)\n"
-                     "print('started', flush=True)\n"
-                     "time.sleep(60)\n")
+    child.write_text(
+        "import signal, sys, time, pathlib\n"
+        "def stop(*a):\n"
+        f"    pathlib.Path({str(tmp_path / 'got_sigterm')!r}).write_text('saved')\n"
+        "    sys.exit(143)\n"
+        "signal.signal(signal.SIGTERM, stop)\n"
+        "print('started', flush=True)\n"
+        "time.sleep(60)\n"
+    )
     started = tmp_path / "job" / "run.log"
     before = signal.getsignal(signal.SIGTERM)
     t = threading.Thread(target=lambda: (_wait_for(started, "started"), os.kill(os.getpid(), signal.SIGTERM)))
@@ -120,7 +142,12 @@ def test_a_killed_point_resumes_from_its_periodic_checkpoint_and_its_saved_secon
     torch.save({"global_step": 4500, "graf_attempt": {"start_step": 3000, "global_step": 4500, "fit_s": 2250.5}}, ckpt)
     assert _resume_preempted(folder, prev) == ckpt
     [record] = _preempted_runs(folder)
-    assert record["killed"] and record["global_step"] == 4500 and record["start_step"] == 3000 and record["fit_s"] == 2250.5
+    assert (
+        record["killed"]
+        and record["global_step"] == 4500
+        and record["start_step"] == 3000
+        and record["fit_s"] == 2250.5
+    )
     # killed again later, from a checkpoint written before AttemptClock existed: resumed, its seconds unknown (None)
     torch.save({"global_step": 5000}, ckpt)
     assert _resume_preempted(folder, prev) == ckpt
@@ -155,7 +182,18 @@ def test_attempt_clock_writes_its_attempt_into_each_checkpoint():
 
 
 def test_a_checkpoint_interval_under_one_step_stops_with_one_line(tmp_path):
-    p = subprocess.run([sys.executable, "-m", "graf.cli.curves", f"out={tmp_path}", "checkpoint_every=0",
-                        f"hydra.run.dir={tmp_path / 'h'}"], capture_output=True, text=True, timeout=120)
+    p = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "graf.cli.curves",
+            f"out={tmp_path}",
+            "checkpoint_every=0",
+            f"hydra.run.dir={tmp_path / 'h'}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert p.returncode != 0 and "checkpoint_every=0: must be a positive number of steps" in p.stderr
     assert "Traceback" not in p.stderr

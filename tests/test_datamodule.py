@@ -99,8 +99,12 @@ def test_workers_build_the_same_stream_without_repeating_draws():
 
 def test_batches_carry_each_items_scene_geometry(make_scene):
     tiny = NeRF2Scene("tiny", str(make_scene(n=24, name="tiny")))
-    dm = _dm(scene=[S23, tiny], band=[BAND, Band("2.4ghz", 2.412e9)], batch_size=6,
-             neighbors=NeighborSelector(L=3, L_train=(2, 4), radius=None))
+    dm = _dm(
+        scene=[S23, tiny],
+        band=[BAND, Band("2.4ghz", 2.412e9)],
+        batch_size=6,
+        neighbors=NeighborSelector(L=3, L_train=(2, 4), radius=None),
+    )
     n_s23 = len(dm.sets[0].ids)
     assert dm.scene_name == "rfid_s23+tiny"
     seen = set()
@@ -109,8 +113,9 @@ def test_batches_carry_each_items_scene_geometry(make_scene):
         s = b["scene_index"]
         seen |= set(s.tolist())
         assert torch.equal(s, (b["tgt_index"] >= n_s23).long())
-        assert torch.allclose(b["wavelength"], torch.where(s == 0, torch.tensor(BAND.wavelength),
-                                                           torch.tensor(299_792_458.0 / 2.412e9)))
+        assert torch.allclose(
+            b["wavelength"], torch.where(s == 0, torch.tensor(BAND.wavelength), torch.tensor(299_792_458.0 / 2.412e9))
+        )
         assert torch.equal(b["gw_pos"], dm.gw_pos[s]) and torch.equal(b["ray_length"], dm.ray_length[s])
         # neighbours never cross scenes
         src_scene = dm.row_scene[b["src_index"]]
@@ -119,4 +124,4 @@ def test_batches_carry_each_items_scene_geometry(make_scene):
     rows, idx, mask = dm.split_neighbors("test")
     assert (dm.row_scene[idx] == dm.row_scene[rows][:, None])[mask].all()
     with pytest.raises(AttributeError, match="2 scenes"):
-        dm.data
+        _ = dm.data

@@ -9,11 +9,11 @@ import json
 import pytest
 import torch
 
+from graf.data.spectrum_set import DataFormatError
 from graf.errors import ConfigError
+from graf.models.base import CheckpointError
 from graf.pipeline.build import build_datamodule
 from graf.pipeline.train import train
-from graf.data.spectrum_set import DataFormatError
-from graf.models.base import CheckpointError
 
 QUIET = ["plot_count=0", "trainer.enable_progress_bar=false", "baselines={}"]
 
@@ -73,8 +73,18 @@ def test_finetune_and_zero_shot_from_a_checkpoint_record_what_they_did(compose_c
     assert list(scenes) == ["rfid_s23"] and (scenes["rfid_s23"]["index"], scenes["rfid_s23"]["band_hz"]) == (0, 915e6)
     assert scenes["rfid_s23"]["fingerprint"]["n"] == 200  # the scene's content (graf.data.fingerprint)
 
-    ft = compose_cfg("train", ("model=knn_dl", "finetune=f20", f"finetune.init_from={ckpt}", "finetune.max_steps=2",
-                               "finetune.lr=1e-4", *QUIET, f"paths.output_dir={tmp_path / 'f'}"))
+    ft = compose_cfg(
+        "train",
+        (
+            "model=knn_dl",
+            "finetune=f20",
+            f"finetune.init_from={ckpt}",
+            "finetune.max_steps=2",
+            "finetune.lr=1e-4",
+            *QUIET,
+            f"paths.output_dir={tmp_path / 'f'}",
+        ),
+    )
     train(ft)
     r = json.loads((tmp_path / "f" / "results.json").read_text())
     assert r["global_step"] == 2 and r["config"]["model"]["lr"] == 1e-4
@@ -84,8 +94,9 @@ def test_finetune_and_zero_shot_from_a_checkpoint_record_what_they_did(compose_c
     assert f["base_steps"] == 3 and f["base_scenes"] == saved["graf"]["scenes"]
     assert r["splits"]["n_fit"] + r["splits"]["n_val"] == 32
 
-    zs = compose_cfg("train", ("model=knn_dl", f"finetune.init_from={ckpt}", *QUIET,
-                               f"paths.output_dir={tmp_path / 'z'}"))
+    zs = compose_cfg(
+        "train", ("model=knn_dl", f"finetune.init_from={ckpt}", *QUIET, f"paths.output_dir={tmp_path / 'z'}")
+    )
     train(zs)
     z = json.loads((tmp_path / "z" / "results.json").read_text())
     assert z["finetune"]["mode"] == "zero-shot" and z["finetune"]["steps"] == 0 and z["global_step"] == 0
@@ -95,29 +106,63 @@ def test_finetune_and_zero_shot_from_a_checkpoint_record_what_they_did(compose_c
     assert z["metrics"]["test/psnr"] == pytest.approx(b["metrics"]["test/psnr"], abs=1e-4)
 
 
-GRAF_TINY = ["model=graf_cpu", "model.rays_per_step=64", "model.max_samples=8", "data.batch_size=2",
-             "model.encoder_widths=[4,8,8,8]", "trainer.limit_test_batches=1",
-             "callbacks.model_checkpoint.every_n_train_steps=1"]
+GRAF_TINY = [
+    "model=graf_cpu",
+    "model.rays_per_step=64",
+    "model.max_samples=8",
+    "data.batch_size=2",
+    "model.encoder_widths=[4,8,8,8]",
+    "trainer.limit_test_batches=1",
+    "callbacks.model_checkpoint.every_n_train_steps=1",
+]
 
 
 def test_a_checkpoint_of_another_band_or_scene_index_setting_is_refused(compose_cfg, small_room_root, tmp_path):
     tiny = [*GRAF_TINY, *QUIET, f"data_root={small_room_root}", "sim_num_tx=24"]
-    base = compose_cfg("train", (*tiny, "model.use_scene_index=true", "trainer.max_steps=1",
-                                 f"paths.output_dir={tmp_path / 'g'}"))
+    base = compose_cfg(
+        "train", (*tiny, "model.use_scene_index=true", "trainer.max_steps=1", f"paths.output_dir={tmp_path / 'g'}")
+    )
     train(base)
     ckpt = tmp_path / "g" / "checkpoints" / "last.ckpt"
-    wrong = compose_cfg("train", (*tiny, "model.use_scene_index=false", "finetune=f50", f"finetune.init_from={ckpt}",
-                                  "finetune.max_steps=1", f"paths.output_dir={tmp_path / 'w'}"))
+    wrong = compose_cfg(
+        "train",
+        (
+            *tiny,
+            "model.use_scene_index=false",
+            "finetune=f50",
+            f"finetune.init_from={ckpt}",
+            "finetune.max_steps=1",
+            f"paths.output_dir={tmp_path / 'w'}",
+        ),
+    )
     with pytest.raises(CheckpointError, match="use_scene_index=True .*set model.use_scene_index=True"):
         train(wrong)
 
     # a 915 MHz model tested on a 2.4 GHz scene: a transfer only when asked for
-    ev = compose_cfg("train", (*tiny, "model.use_scene_index=true", f"finetune.init_from={ckpt}",
-                               "eval_band=2.4ghz", "eval_scene=[small_room]", f"paths.output_dir={tmp_path / 'x'}"))
+    ev = compose_cfg(
+        "train",
+        (
+            *tiny,
+            "model.use_scene_index=true",
+            f"finetune.init_from={ckpt}",
+            "eval_band=2.4ghz",
+            "eval_scene=[small_room]",
+            f"paths.output_dir={tmp_path / 'x'}",
+        ),
+    )
     with pytest.raises(ConfigError, match=r"trained at 915 MHz .*small_room is at 2.41 GHz.*cross_band=true"):
         train(ev)
-    ok = compose_cfg("train", (*tiny, "model.use_scene_index=true", f"finetune.init_from={ckpt}", "cross_band=true",
-                               "eval_scene=[small_room]", f"paths.output_dir={tmp_path / 'y'}"))
+    ok = compose_cfg(
+        "train",
+        (
+            *tiny,
+            "model.use_scene_index=true",
+            f"finetune.init_from={ckpt}",
+            "cross_band=true",
+            "eval_scene=[small_room]",
+            f"paths.output_dir={tmp_path / 'y'}",
+        ),
+    )
     train(ok)
     r = json.loads((tmp_path / "y" / "results.json").read_text())
     ev = r["evaluations"][0]

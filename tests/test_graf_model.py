@@ -12,22 +12,26 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from graf.bands import Band
-from graf.pipeline.config import CONF_DIR
 from graf.data.datamodule import SpectrumDataModule
 from graf.data.scenes import NeRF2Scene
 from graf.geometry.encoding import PositionalEncoding, normalize_positions
+from graf.geometry.grid import grid_directions
 from graf.geometry.rays import num_samples, random_pixels, sample_voxels
 from graf.models.graf import CrossAttentionBlock, GRaFModule, ResNetEncoder, SelfAttentionBlock
 from graf.models.knn import KNNModule
 from graf.neighbors import NeighborSelector
-from graf.geometry.grid import grid_directions
+from graf.pipeline.config import CONF_DIR
 
 UHF = Band(name="915mhz", frequency_hz=915e6)
 
 
 def _datamodule(path, L=3, L_train=(1, 3), batch_size=2, band=UHF) -> SpectrumDataModule:
-    dm = SpectrumDataModule(NeRF2Scene(name="tiny", path=str(path)), band,
-                            NeighborSelector(L=L, L_train=L_train, radius=10.0), batch_size=batch_size)
+    dm = SpectrumDataModule(
+        NeRF2Scene(name="tiny", path=str(path)),
+        band,
+        NeighborSelector(L=L, L_train=L_train, radius=10.0),
+        batch_size=batch_size,
+    )
     dm.setup()
     return dm
 
@@ -85,8 +89,8 @@ def test_positional_encoding_and_normalisation():
     y = pe(x)
     assert torch.equal(y[:, :3], x)
     k = 3  # sin(2^k pi x) of the second coordinate sits after the 3 inputs at (coord * F + k)
-    assert torch.allclose(y[0, 3 + 1 * 10 + k], torch.sin(torch.tensor(2.0 ** k * math.pi * -0.5)), atol=1e-6)
-    assert torch.allclose(y[0, 33 + 1 * 10 + k], torch.cos(torch.tensor(2.0 ** k * math.pi * -0.5)), atol=1e-6)
+    assert torch.allclose(y[0, 3 + 1 * 10 + k], torch.sin(torch.tensor(2.0**k * math.pi * -0.5)), atol=1e-6)
+    assert torch.allclose(y[0, 33 + 1 * 10 + k], torch.cos(torch.tensor(2.0**k * math.pi * -0.5)), atol=1e-6)
     bounds = torch.tensor([[[-1.0, 0.0, 0.0], [3.0, 1.0, 2.0]]])
     corners = torch.tensor([[[-1.0, 0.0, 0.0], [3.0, 1.0, 2.0], [1.0, 0.5, 1.0]]])
     n = normalize_positions(corners, bounds)
@@ -149,7 +153,7 @@ def test_items_with_different_voxel_counts_share_a_batch(tiny):
         assert s1 > s0 and model.mean_samples_per_ray(b)[1] > model.mean_samples_per_ray(b)[0]
         both = model.render(ctx, pix)
         for i in range(2):
-            one = model.render(model.prepare({k: v[i:i + 1] for k, v in b.items()}), pix[i:i + 1])
+            one = model.render(model.prepare({k: v[i : i + 1] for k, v in b.items()}), pix[i : i + 1])
             assert torch.allclose(both[i], one[0], atol=1e-5)
 
 
@@ -171,8 +175,12 @@ def test_prediction_contract_and_invariances(tiny):
         assert torch.allclose(model.predict_spectra(g), pred, atol=1e-5)
 
         # L = 1, a co-located neighbour, all-zero and all-one spectra
-        one = {**b, "src_pos": b["src_pos"][:, :1], "src_spectra": b["src_spectra"][:, :1],
-               "src_mask": b["src_mask"][:, :1]}
+        one = {
+            **b,
+            "src_pos": b["src_pos"][:, :1],
+            "src_spectra": b["src_spectra"][:, :1],
+            "src_mask": b["src_mask"][:, :1],
+        }
         p1 = model.predict_spectra(one)
         assert p1.shape == (2, 90, 360) and torch.isfinite(p1).all() and not torch.allclose(p1, pred)
         co = {**b, "src_pos": b["src_pos"].clone()}
@@ -232,7 +240,9 @@ def test_chunking_and_encoder_calls(rfid):
     model.train()
     pix = random_pixels(2, model.rays_per_step, model.global_step, "cpu")
     assert pix.shape == (2, 512) and all(len(set(r.tolist())) == 512 for r in pix)
-    assert torch.equal(pix, random_pixels(2, model.rays_per_step, model.global_step, "cpu"))  # seeded from the global step
+    assert torch.equal(
+        pix, random_pixels(2, model.rays_per_step, model.global_step, "cpu")
+    )  # seeded from the global step
     seen.clear()
     model.render(model.prepare(b), pix).sum().backward()
     assert seen == [17]
@@ -266,17 +276,27 @@ def test_learning_rate_schedule():
     assert abs(opt.param_groups[0]["lr"] - 1e-4) < 1e-9
 
 
-@pytest.mark.parametrize("preset,overrides", [
-    ("graf", {"rays_per_step": 128}),  # the paper's sizes, few rays per step to stay fast
-    ("graf_cpu", {}),
-    ("graf_cpu", {"residual": True, "weighting": "idw"}),
-])
+@pytest.mark.parametrize(
+    "preset,overrides",
+    [
+        ("graf", {"rays_per_step": 128}),  # the paper's sizes, few rays per step to stay fast
+        ("graf_cpu", {}),
+        ("graf_cpu", {"residual": True, "weighting": "idw"}),
+    ],
+)
 def test_two_training_steps_and_checkpoint(tiny, tmp_path, preset, overrides):
     model = _preset(preset, **overrides)
     before = {k: v.detach().clone() for k, v in model.named_parameters()}
-    trainer = L.Trainer(max_steps=2, accelerator="cpu", logger=False, enable_checkpointing=False,
-                        limit_val_batches=0, num_sanity_val_steps=0, enable_progress_bar=False,
-                        enable_model_summary=False)
+    trainer = L.Trainer(
+        max_steps=2,
+        accelerator="cpu",
+        logger=False,
+        enable_checkpointing=False,
+        limit_val_batches=0,
+        num_sanity_val_steps=0,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+    )
     trainer.fit(model, datamodule=tiny)
     assert trainer.global_step == 2
     assert math.isfinite(float(trainer.callback_metrics["train/loss"]))
@@ -298,8 +318,14 @@ def _rigid(b: dict, R: torch.Tensor, t: torch.Tensor) -> dict:
     """The batch with the whole scene (gateway, transmitters, box) moved by x -> R x + t."""
     move = lambda p: p @ R.T + t  # noqa: E731
     lo, hi = move(b["bounds"][:, 0]), move(b["bounds"][:, 1])
-    return {**b, "tgt_pos": move(b["tgt_pos"]), "src_pos": move(b["src_pos"]), "gw_pos": move(b["gw_pos"]),
-            "gw_rot": R @ b["gw_rot"], "bounds": torch.stack([torch.minimum(lo, hi), torch.maximum(lo, hi)], 1)}
+    return {
+        **b,
+        "tgt_pos": move(b["tgt_pos"]),
+        "src_pos": move(b["src_pos"]),
+        "gw_pos": move(b["gw_pos"]),
+        "gw_rot": R @ b["gw_rot"],
+        "bounds": torch.stack([torch.minimum(lo, hi), torch.maximum(lo, hi)], 1),
+    }
 
 
 def test_geometry_is_the_gateway_frame_in_metres(tiny):
@@ -339,9 +365,16 @@ def test_voxels_are_encoded_by_distance_so_weights_do_not_depend_on_the_cap(tiny
         p = torch.tensor([5, 4000])
         S = int(t["samples"][p[0]])
         p = p[t["samples"][p] == S]
-        _, code = a._voxel_inputs(p, t["t_in"][p], t["step"][p], batch["wavelength"][:1].expand(len(p)),
-                                  batch["scene_index"][:1].expand(len(p)), S)
+        _, code = a._voxel_inputs(
+            p,
+            t["t_in"][p],
+            t["step"][p],
+            batch["wavelength"][:1].expand(len(p)),
+            batch["scene_index"][:1].expand(len(p)),
+            S,
+        )
     from graf.geometry.encoding import sinusoidal_encoding
+
     dist = t["t_in"][p][:, None] + (torch.arange(S) + 0.5) * t["step"][p][:, None]
     expect = a.voxel_distance(sinusoidal_encoding(dist / batch["wavelength"][0], a.d_model))
     assert torch.allclose(code, expect)

@@ -13,7 +13,6 @@ import torch.nn.functional as F
 from graf.geometry.grid import local_directions
 from graf.geometry.rays import box_segments, segment_samples
 from graf.models.graf.attention import math_attention
-
 from tests.test_graf_model import _datamodule, _eval_batch, _small
 
 
@@ -60,7 +59,9 @@ def test_cached_and_grouped_inference_equals_the_plain_forward(tiny):
         model.chunk_rays = 40_000
         whole = model.predict_spectra(b)
     plain = model.render(model.prepare(b), torch.arange(32400).expand(2, -1)).detach().view(2, 90, 360)
-    assert torch.allclose(fast, plain, atol=1e-5) and torch.equal(fast, again) and torch.allclose(whole, plain, atol=1e-5)
+    assert (
+        torch.allclose(fast, plain, atol=1e-5) and torch.equal(fast, again) and torch.allclose(whole, plain, atol=1e-5)
+    )
 
 
 @pytest.mark.parametrize("shape", [(7, 10, 13, 8), (3, 1, 50, 16)])
@@ -74,8 +75,9 @@ def test_math_attention_kernel_equals_sdpa(shape, monkeypatch):
     assert torch.allclose(math_attention(q, k, v), F.scaled_dot_product_attention(q, k, v), atol=1e-5)
     mask = torch.rand(B, 1, 1, N, generator=g) > 0.3
     mask[..., 0] = True
-    assert torch.allclose(math_attention(q, k, v, mask), F.scaled_dot_product_attention(q, k, v, attn_mask=mask),
-                          atol=1e-5)
+    assert torch.allclose(
+        math_attention(q, k, v, mask), F.scaled_dot_product_attention(q, k, v, attn_mask=mask), atol=1e-5
+    )
 
 
 def test_kernels_give_the_same_model(tiny):

@@ -13,17 +13,27 @@ import numpy as np
 import pytest
 import torch
 
-from graf.pipeline.train import train
 from graf.models.base import CheckpointError
+from graf.pipeline.train import train
 
-FAST = ["model.rays_per_step=64", "model.max_samples=8", "data.batch_size=2", "baselines={}", "plot_count=1",
-        "trainer.limit_test_batches=1", "trainer.enable_progress_bar=false"]
+FAST = [
+    "model.rays_per_step=64",
+    "model.max_samples=8",
+    "data.batch_size=2",
+    "baselines={}",
+    "plot_count=1",
+    "trainer.limit_test_batches=1",
+    "trainer.enable_progress_bar=false",
+]
 
 
 def test_graf_train_two_steps_through_the_real_configs(compose_cfg):
     # the main job's GRaF (graf_cpu_ray: ray_weights), the seed-literal pooled one, and its residual variant
-    for extra, method in (((), "graf-ray-weights"), (("model=graf_cpu",), "graf"),
-                          (("model=graf_cpu", "model.residual=true"), "graf-residual")):
+    for extra, method in (
+        ((), "graf-ray-weights"),
+        (("model=graf_cpu",), "graf"),
+        (("model=graf_cpu", "model.residual=true"), "graf-residual"),
+    ):
         cfg = compose_cfg("train", ("experiment=graf_rfid_s23", "trainer.max_steps=2", *extra, *FAST))
         metrics, objects = train(cfg)
         r = json.loads((Path(cfg.paths.output_dir) / "results.json").read_text())
@@ -35,11 +45,18 @@ def test_graf_train_two_steps_through_the_real_configs(compose_cfg):
 
 def test_killed_training_resumes_from_its_last_checkpoint(tmp_path):
     exe = str(Path(sys.executable).parent / "graf-train")
-    args = ["experiment=graf_rfid_s23", "trainer.max_steps=16", "callbacks.model_checkpoint.every_n_train_steps=2",
-            "trainer.accelerator=cpu", "logger=none", *FAST]
+    args = [
+        "experiment=graf_rfid_s23",
+        "trainer.max_steps=16",
+        "callbacks.model_checkpoint.every_n_train_steps=2",
+        "trainer.accelerator=cpu",
+        "logger=none",
+        *FAST,
+    ]
     first = tmp_path / "first"
-    p = subprocess.Popen([exe, *args, f"hydra.run.dir={first}"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                         text=True)
+    p = subprocess.Popen(
+        [exe, *args, f"hydra.run.dir={first}"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
+    )
     ckpt = first / "checkpoints" / "last.ckpt"
     deadline = time.time() + 300
     while time.time() < deadline and not ckpt.exists() and p.poll() is None:
@@ -50,8 +67,9 @@ def test_killed_training_resumes_from_its_last_checkpoint(tmp_path):
     step_at_kill = torch.load(ckpt, map_location="cpu", weights_only=False)["global_step"]
     assert 2 <= step_at_kill < 16 and not (first / "results.json").exists()
     second = tmp_path / "second"
-    p = subprocess.run([exe, *args, f"ckpt_path={ckpt}", f"hydra.run.dir={second}"], capture_output=True, text=True,
-                       timeout=600)
+    p = subprocess.run(
+        [exe, *args, f"ckpt_path={ckpt}", f"hydra.run.dir={second}"], capture_output=True, text=True, timeout=600
+    )
     assert p.returncode == 0, p.stderr[-3000:]
     r = json.loads((second / "results.json").read_text())
     assert r["global_step"] == 16  # continued from the checkpoint to the planned length, not restarted
@@ -71,24 +89,44 @@ def test_finetune_starts_from_a_checkpoints_weights_and_rejects_another_architec
     ckpt = Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt"
     trained = torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"]
 
-    from graf.pipeline.train import load_weights
     from hydra.utils import instantiate
+
+    from graf.pipeline.train import load_weights
+
     fresh = instantiate(cfg.model)
     assert not all(torch.equal(fresh.state_dict()[k], v) for k, v in trained.items())
     load_weights(fresh, ckpt)
     assert all(torch.equal(v, trained[k]) for k, v in fresh.state_dict().items())
 
-    cfg2 = compose_cfg("train", ("experiment=graf_rfid_s23", "finetune=f100", "finetune.max_steps=1",
-                                 f"finetune.init_from={ckpt}", f"paths.output_dir={tmp_path / 'ft'}", *FAST))
+    cfg2 = compose_cfg(
+        "train",
+        (
+            "experiment=graf_rfid_s23",
+            "finetune=f100",
+            "finetune.max_steps=1",
+            f"finetune.init_from={ckpt}",
+            f"paths.output_dir={tmp_path / 'ft'}",
+            *FAST,
+        ),
+    )
     train(cfg2)
     r = json.loads((tmp_path / "ft" / "results.json").read_text())
     assert r["global_step"] == 1  # a fresh schedule, not a resumed one
-    other = compose_cfg("train", ("experiment=graf_rfid_s23", "model.d_model=8", "finetune=f100",
-                                  f"finetune.init_from={ckpt}", *FAST))
+    other = compose_cfg(
+        "train", ("experiment=graf_rfid_s23", "model.d_model=8", "finetune=f100", f"finetune.init_from={ckpt}", *FAST)
+    )
     with pytest.raises(ValueError, match="another architecture"):
         train(other)
-    missing = compose_cfg("train", ("experiment=graf_rfid_s23", "finetune=f100", "finetune.max_steps=1",
-                                    f"finetune.init_from={tmp_path / 'nope.ckpt'}", *FAST))
+    missing = compose_cfg(
+        "train",
+        (
+            "experiment=graf_rfid_s23",
+            "finetune=f100",
+            "finetune.max_steps=1",
+            f"finetune.init_from={tmp_path / 'nope.ckpt'}",
+            *FAST,
+        ),
+    )
     with pytest.raises(CheckpointError, match="nope.ckpt: checkpoint file does not exist"):
         train(missing)
 
@@ -96,8 +134,9 @@ def test_finetune_starts_from_a_checkpoints_weights_and_rejects_another_architec
 def test_eval_of_a_checkpoint_applies_inference_settings_and_refuses_the_rest(compose_cfg, tmp_path):
     from graf.pipeline.evaluate import evaluate
 
-    cfg = compose_cfg("train", ("experiment=graf_rfid_s23", "trainer.max_steps=1", "model=graf_cpu", "model.residual=true",
-                                *FAST))
+    cfg = compose_cfg(
+        "train", ("experiment=graf_rfid_s23", "trainer.max_steps=1", "model=graf_cpu", "model.residual=true", *FAST)
+    )
     train(cfg)
     ckpt = Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt"
     common = ("trainer.limit_test_batches=1", "plot_count=0")
@@ -117,23 +156,36 @@ def test_eval_of_a_checkpoint_applies_inference_settings_and_refuses_the_rest(co
     # without model=... the class comes from the checkpoint (the default model=knn is not used)
     assert run(out="plain")["method"] == "graf-residual"
     # a training setting would describe a model that did not run: refused
-    with pytest.raises(CheckpointError, match=r"model.lr=0.1 cannot change the trained checkpoint .*last.ckpt "
-                                              r"\(it was trained with lr=0.0005\); only inference settings may be "
-                                              r"overridden at evaluation: model.chunk_rays"):
+    with pytest.raises(
+        CheckpointError,
+        match=r"model.lr=0.1 cannot change the trained checkpoint .*last.ckpt "
+        r"\(it was trained with lr=0.0005\); only inference settings may be "
+        r"overridden at evaluation: model.chunk_rays",
+    ):
         run("model=graf_cpu", "model.lr=0.1")
-    with pytest.raises(CheckpointError, match=r"holds a graf.models.graf.module.GRaFModule checkpoint, but "
-                                              r"model=knn_dl is graf.models.knn_dl.KNNDLModule"):
+    with pytest.raises(
+        CheckpointError,
+        match=r"holds a graf.models.graf.module.GRaFModule checkpoint, but "
+        r"model=knn_dl is graf.models.knn_dl.KNNDLModule",
+    ):
         run("model=knn_dl")
     # a checkpoint of the old GRaF layout is refused with the reason, for evaluation, resuming and fine-tuning
     old = torch.load(ckpt, map_location="cpu", weights_only=False)
     old.pop("graf")
     torch.save(old, tmp_path / "old.ckpt")
-    why = (r"old.ckpt: was written by GRaFModule layout 1; this version reads layout 3 only.*"
-           r"layout 2: .*voxel-index table.*; layout 3: each ray's voxels now run from its own entry")
+    why = (
+        r"old.ckpt: was written by GRaFModule layout 1; this version reads layout 3 only.*"
+        r"layout 2: .*voxel-index table.*; layout 3: each ray's voxels now run from its own entry"
+    )
     with pytest.raises(CheckpointError, match=why):
         run("model=graf_cpu", path=tmp_path / "old.ckpt")
-    for extra in ((f"ckpt_path={tmp_path / 'old.ckpt'}",),
-                  ("finetune=f100", "finetune.max_steps=1", f"finetune.init_from={tmp_path / 'old.ckpt'}")):
+    for extra in (
+        (f"ckpt_path={tmp_path / 'old.ckpt'}",),
+        ("finetune=f100", "finetune.max_steps=1", f"finetune.init_from={tmp_path / 'old.ckpt'}"),
+    ):
         with pytest.raises(CheckpointError, match=why):
-            train(compose_cfg("train", ("experiment=graf_rfid_s23", "model=graf_cpu", "trainer.max_steps=2", *extra,
-                                        *FAST)))
+            train(
+                compose_cfg(
+                    "train", ("experiment=graf_rfid_s23", "model=graf_cpu", "trainer.max_steps=2", *extra, *FAST)
+                )
+            )

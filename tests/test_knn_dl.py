@@ -9,10 +9,10 @@ import pytest
 import torch
 from torch import nn
 
-from graf.pipeline.build import build_datamodule
-from graf.pipeline.train import train
 from graf.models.knn import KNNModule
 from graf.models.knn_dl import KNNDLModule, upsample_maps
+from graf.pipeline.build import build_datamodule
+from graf.pipeline.train import train
 
 
 @pytest.fixture
@@ -115,8 +115,18 @@ def test_twenty_steps_on_one_batch_lower_the_loss(batches):
 
 
 def test_two_training_steps_through_the_real_configs(compose_cfg):
-    cfg = compose_cfg("train", ("scene=rfid_s23", "model=knn_dl", "trainer.max_steps=2", "data.batch_size=2",
-                                "baselines={}", "plot_count=1", "trainer.limit_test_batches=1"))
+    cfg = compose_cfg(
+        "train",
+        (
+            "scene=rfid_s23",
+            "model=knn_dl",
+            "trainer.max_steps=2",
+            "data.batch_size=2",
+            "baselines={}",
+            "plot_count=1",
+            "trainer.limit_test_batches=1",
+        ),
+    )
     metrics, _ = train(cfg)
     r = json.loads((Path(cfg.paths.output_dir) / "results.json").read_text())
     assert r["method"] == "knn-dl" and r["global_step"] == 2

@@ -16,8 +16,9 @@ def _simplex_ok(w, mask):
 
 def test_idw_basic_and_colocated():
     tgt = torch.zeros(2, 3, dtype=torch.float64)
-    nbr = torch.tensor([[[1.0, 0, 0], [2.0, 0, 0], [9.0, 0, 0]], [[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]]],
-                       dtype=torch.float64)
+    nbr = torch.tensor(
+        [[[1.0, 0, 0], [2.0, 0, 0], [9.0, 0, 0]], [[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]]], dtype=torch.float64
+    )
     mask = torch.tensor([[True, True, False], [True, True, True]])
     w = idw_weights(tgt, nbr, mask)
     _simplex_ok(w, mask)
@@ -39,8 +40,9 @@ def test_barycentric_reproduces_target_inside_hull():
 
 def test_barycentric_edge_cases():
     tgt = torch.zeros(3, 3, dtype=torch.float64)
-    nbr = torch.tensor([[[1.0, 0, 0], [2, 0, 0]], [[0.0, 0, 0], [1, 0, 0]], [[0.0, 0, 0], [0, 0, 0]]],
-                       dtype=torch.float64)
+    nbr = torch.tensor(
+        [[[1.0, 0, 0], [2, 0, 0]], [[0.0, 0, 0], [1, 0, 0]], [[0.0, 0, 0], [0, 0, 0]]], dtype=torch.float64
+    )
     mask = torch.tensor([[True, False], [True, True], [True, True]])
     w = barycentric_weights(tgt, nbr, mask)
     _simplex_ok(w, mask)
@@ -64,6 +66,7 @@ def test_affine_field_is_exact_for_barycentric_not_idw():
 
 def test_barycentric_error_is_quadratic_in_neighbour_distance():
     """Seed A.1: error <= K max_i |P_t - P_i|^2; on a smooth field the fitted log-log slope is ~2."""
+
     def field(p):
         return torch.stack([torch.sin(3 * p[..., 0]) * torch.cos(2 * p[..., 1]), torch.exp(p[..., 2])], -1)
 

@@ -69,8 +69,9 @@ def test_write_read_roundtrip(tmp_path):
     pos = rng.normal(size=(6, 3))
     spectra = smooth_spectra(pos)
     ids = np.array([3, 1, 2, 6, 5, 4])
-    root = write_nerf2_folder(tmp_path / "rt", spectra, pos, ids, np.zeros(3), np.array([0, 0, 0, 1.0]),
-                              train_ids=ids[:4], test_ids=ids[4:])
+    root = write_nerf2_folder(
+        tmp_path / "rt", spectra, pos, ids, np.zeros(3), np.array([0, 0, 0, 1.0]), train_ids=ids[:4], test_ids=ids[4:]
+    )
     d = read_nerf2_folder(root)
     np.testing.assert_array_equal(d.ids, ids)
     np.testing.assert_allclose(d.positions, pos, atol=1e-6)
@@ -195,7 +196,7 @@ def _small_folder(tmp_path, n=5, header=True, spectra=None, index=True):
     ids = np.arange(1, n + 1)
     if spectra is None:
         spectra = smooth_spectra(pos)
-    kw = {"train_ids": ids[: n - 1], "test_ids": ids[n - 1:]} if index else {}
+    kw = {"train_ids": ids[: n - 1], "test_ids": ids[n - 1 :]} if index else {}
     root = write_nerf2_folder(tmp_path / "small", spectra, pos, ids, np.zeros(3), np.array([0, 0, 0, 1.0]), **kw)
     if not header:
         csv_path = root / "tx_pos.csv"
@@ -219,8 +220,7 @@ def test_error_headerless_positions_with_garbage_first_row_is_not_shifted(tmp_pa
     lines = (root / "tx_pos.csv").read_text().splitlines()
     lines[0] = "abc,def,ghi"
     (root / "tx_pos.csv").write_text("\n".join(lines) + "\n")
-    err = _expect(root, r"line 1 'abc,def,ghi' looks like a header \(no numeric cell\) but is not one",
-                  "tx_pos.csv")
+    err = _expect(root, r"line 1 'abc,def,ghi' looks like a header \(no numeric cell\) but is not one", "tx_pos.csv")
     assert "unknown names 'abc', 'def', 'ghi'" in err.problem
 
 
@@ -280,8 +280,11 @@ def test_warns_all_zero_spectra(tmp_path):
 
 def test_error_one_spectrum_without_index_files(tmp_path):
     root, _ = _small_folder(tmp_path, n=1, index=False)
-    _expect(root, r"1 spectrum and no index files: a seeded split needs at least 2 \(one to train on, one to test\)",
-            "small")
+    _expect(
+        root,
+        r"1 spectrum and no index files: a seeded split needs at least 2 \(one to train on, one to test\)",
+        "small",
+    )
 
 
 # ---------------------------------------------------------------- positions never shift against spectrum ids
@@ -355,8 +358,9 @@ def test_error_fewer_rows_than_largest_png_id(tmp_path, rule):
     (root / "test_index.txt").write_text("4\n")
     _write_csv_lines(root, _csv_lines(root)[:-1])
     kw = {} if rule == "exact" else {"position_rows": rule}  # exact is the default
-    err = _expect(root, r"has 4 position rows but the largest spectrum id in spectrum/ is 5 \(00005\.png\)",
-                  "tx_pos.csv", **kw)
+    err = _expect(
+        root, r"has 4 position rows but the largest spectrum id in spectrum/ is 5 \(00005\.png\)", "tx_pos.csv", **kw
+    )
     assert "shift every later id's position" in err.problem
 
 
@@ -378,11 +382,14 @@ def test_header_names_any_case_spaces_and_order(tmp_path, header, order):
     np.testing.assert_array_equal(d.positions, pos[d.ids - 1])
 
 
-@pytest.mark.parametrize("header, problem", [
-    ("x,y,w", "unknown name 'w'"),
-    ("x,x,y", "repeated 'x'"),
-    ("a,b,c", "unknown names 'a', 'b', 'c'"),
-])
+@pytest.mark.parametrize(
+    "header, problem",
+    [
+        ("x,y,w", "unknown name 'w'"),
+        ("x,x,y", "repeated 'x'"),
+        ("a,b,c", "unknown names 'a', 'b', 'c'"),
+    ],
+)
 def test_error_header_with_other_names(tmp_path, header, problem):
     root, _ = _small_folder(tmp_path)
     _write_csv_lines(root, [header] + _csv_lines(root)[1:])

@@ -14,20 +14,21 @@ from hydra.utils import instantiate
 
 import graf.models.nerf2 as nerf2_pkg
 from graf.bands import Band
-from graf.pipeline.train import train
 from graf.data.datamodule import SpectrumDataModule
 from graf.data.scenes import NeRF2Scene
-from graf.models.nerf2 import NeRF2Module, NeRF2Network, render_rays, sample_distances
 from graf.geometry.rays import random_pixels
+from graf.models.nerf2 import NeRF2Module, NeRF2Network, render_rays, sample_distances
 from graf.neighbors import NeighborSelector
+from graf.pipeline.train import train
 
 UHF = Band(name="915mhz", frequency_hz=915e6)
 SMALL = {"depth": 4, "width": 32, "skips": [1]}  # the real code paths at a fraction of the FLOPs
 
 
 def _batch(path, n=2) -> dict:
-    dm = SpectrumDataModule(NeRF2Scene(name="tiny", path=str(path)), UHF,
-                            NeighborSelector(L=2, L_train=(1, 2), radius=10.0), batch_size=n)
+    dm = SpectrumDataModule(
+        NeRF2Scene(name="tiny", path=str(path)), UHF, NeighborSelector(L=2, L_train=(1, 2), radius=10.0), batch_size=n
+    )
     dm.setup()
     return dm._collate_eval(list(range(n)))
 
@@ -104,15 +105,16 @@ def test_network_is_nerf2s_concatenating_layout():
         x = F.relu(layer(x))
         if i == 2:
             x = torch.cat([pe_pts, x], -1)
-    sig = torch.cat([net.feature(x), net.pe(view)[:, :, None].expand(-1, -1, 7, -1),
-                     net.pe(tx)[:, :, None].expand(2, 5, 7, -1)], -1)
+    sig = torch.cat(
+        [net.feature(x), net.pe(view)[:, :, None].expand(-1, -1, 7, -1), net.pe(tx)[:, :, None].expand(2, 5, 7, -1)], -1
+    )
     for layer in net.signal:
         sig = F.relu(layer(sig))
     expected = torch.cat([net.attenuation_out(x), net.signal_out(sig)], -1)
     assert torch.allclose(net(pts, view, tx), expected, atol=1e-5)
     # NeRF2's embedder: [x, sin(2^k x), cos(2^k x)] (no pi), here with its columns grouped differently
     p = torch.randn(4, 3)
-    ref = torch.cat([p] + [f(p * 2.0 ** k) for k in range(4) for f in (torch.sin, torch.cos)], -1)
+    ref = torch.cat([p] + [f(p * 2.0**k) for k in range(4) for f in (torch.sin, torch.cos)], -1)
     assert net.pe(p).shape == (4, 27) and torch.allclose(net.pe(p).sort(-1).values, ref.sort(-1).values)
 
 
@@ -131,8 +133,13 @@ def test_renderer_is_nerf2s_raw2outputs():
 
 
 def test_samples_follow_the_scene_and_band(tiny):
-    rfid = {"ray_length": torch.tensor([5.56]), "wavelength": torch.tensor([UHF.wavelength]),
-            "gw_pos": torch.tensor([[5.0, 0.26, 0.0]]), "gw_rot": torch.eye(3)[None], "tgt_pos": torch.zeros(1, 3)}
+    rfid = {
+        "ray_length": torch.tensor([5.56]),
+        "wavelength": torch.tensor([UHF.wavelength]),
+        "gw_pos": torch.tensor([[5.0, 0.26, 0.0]]),
+        "gw_rot": torch.eye(3)[None],
+        "tgt_pos": torch.zeros(1, 3),
+    }
     assert NeRF2Module(**SMALL).prepare(rfid)["samples"] == [64]  # NeRF2's 64 on its own scene
     assert NeRF2Module(**SMALL, max_samples=32).prepare(rfid)["samples"] == [32]
     ctx = NeRF2Module(**SMALL, near=0.5).prepare(tiny)
@@ -198,9 +205,20 @@ def test_optimisation_lowers_the_loss_on_a_fixed_batch(tiny):
 
 def test_two_training_steps_through_the_real_configs_and_checkpoint(compose_cfg):
     # the real architecture; 2 samples per ray keep the test's two full spectra cheap
-    cfg = compose_cfg("train", ("scene=rfid_s23", "model=nerf2_cpu", "trainer.max_steps=2", "model.rays_per_step=64",
-                                "model.max_samples=2", "data.batch_size=2", "baselines={}", "plot_count=1",
-                                "trainer.limit_test_batches=1"))
+    cfg = compose_cfg(
+        "train",
+        (
+            "scene=rfid_s23",
+            "model=nerf2_cpu",
+            "trainer.max_steps=2",
+            "model.rays_per_step=64",
+            "model.max_samples=2",
+            "data.batch_size=2",
+            "baselines={}",
+            "plot_count=1",
+            "trainer.limit_test_batches=1",
+        ),
+    )
     metrics, objects = train(cfg)
     out = Path(cfg.paths.output_dir)
     r = json.loads((out / "results.json").read_text())

@@ -27,8 +27,12 @@ from PIL import Image
 
 from graf.data.nerf2_format import DataFormatError, read_nerf2_folder
 
-SETTINGS = dict(derandomize=True, database=None, deadline=None,
-                suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+SETTINGS = dict(
+    derandomize=True,
+    database=None,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
 
 # one random spectrum; id k's spectrum is it with pixel (0, 0) set to k, so each id's PNG is distinct
 _BASE = np.random.default_rng(0).integers(0, 256, size=(90, 360), dtype=np.uint8)
@@ -46,10 +50,10 @@ def _spectrum(k: int) -> np.ndarray:
 class Folder:
     """A NeRF2 folder as generated: the truth (``positions[k - 1]`` is id k's) and how its files are written."""
 
-    positions: np.ndarray            # [n, 3] x, y, z
-    pad: int                         # PNG name width (0: unpadded)
-    header: tuple[str, ...] | None   # header cells as written (None: headerless)
-    order: str                       # the file's column order ("xyz" when headerless)
+    positions: np.ndarray  # [n, 3] x, y, z
+    pad: int  # PNG name width (0: unpadded)
+    header: tuple[str, ...] | None  # header cells as written (None: headerless)
+    order: str  # the file's column order ("xyz" when headerless)
     rows: tuple[tuple[str, ...], ...]  # data row cells as written, in the file's column order
     bom: bool
     newline: str
@@ -76,8 +80,7 @@ class Folder:
     def write(self, root: Path) -> Path:
         (root / "spectrum").mkdir(parents=True)
         for k in range(1, self.n + 1):
-            Image.fromarray(_spectrum(k), mode="L").save(root / "spectrum" / f"{k:0{self.pad}d}.png",
-                                                          compress_level=1)
+            Image.fromarray(_spectrum(k), mode="L").save(root / "spectrum" / f"{k:0{self.pad}d}.png", compress_level=1)
         (root / "tx_pos.csv").write_bytes(self.csv_bytes())
         (root / "gateway_info.yml").write_text(_GATEWAY)
         if self.index is not None:
@@ -115,9 +118,19 @@ def folders(draw, min_n: int = 2, max_n: int = 12) -> Folder:
         index = (tuple(ids[:cut]), tuple(ids[cut:used]))
     else:
         index = None
-    return Folder(positions=positions, pad=pad, header=header, order=order, rows=rows, bom=draw(st.booleans()),
-                  newline=draw(st.sampled_from(["\n", "\r\n", "\r"])), blanks=blanks,
-                  final_newline=draw(st.booleans()), index=index, index_pad=draw(st.sampled_from([0, 5])))
+    return Folder(
+        positions=positions,
+        pad=pad,
+        header=header,
+        order=order,
+        rows=rows,
+        bom=draw(st.booleans()),
+        newline=draw(st.sampled_from(["\n", "\r\n", "\r"])),
+        blanks=blanks,
+        final_newline=draw(st.booleans()),
+        index=index,
+        index_pad=draw(st.sampled_from([0, 5])),
+    )
 
 
 def _read(folder: Folder, **kw):
@@ -163,7 +176,7 @@ def dup_row(f, draw):
 
 def delete_row(f, draw):
     i = draw(st.integers(0, f.n - 1))
-    return replace(f, rows=f.rows[:i] + f.rows[i + 1:]), "refuse"
+    return replace(f, rows=f.rows[:i] + f.rows[i + 1 :]), "refuse"
 
 
 def extra_row_at_end(f, draw):
@@ -224,7 +237,7 @@ def bad_cell(f, draw):
     if f.header is not None and li == 0:
         return replace(f, header=tuple(cells)), "refuse"
     i = li - (f.header is not None)
-    g = replace(f, rows=f.rows[:i] + (tuple(cells),) + f.rows[i + 1:])
+    g = replace(f, rows=f.rows[:i] + (tuple(cells),) + f.rows[i + 1 :])
     if not numeric or (i + 1) in f.listed:
         return g, "refuse"  # not a number, or a listed id's position is not finite
     return g, "same"  # a non-finite position of an id no index file lists is never read
@@ -241,7 +254,7 @@ def column_count(f, draw):
     if f.header is not None and li == 0:
         return replace(f, header=tuple(cells)), "refuse"
     i = li - (f.header is not None)
-    return replace(f, rows=f.rows[:i] + (tuple(cells),) + f.rows[i + 1:]), "refuse"
+    return replace(f, rows=f.rows[:i] + (tuple(cells),) + f.rows[i + 1 :]), "refuse"
 
 
 def drop_header(f, draw):
@@ -257,7 +270,7 @@ def row_of_empty_cells(f, draw):
     i = draw(st.integers(0, f.n - 1))
     empty = ("", "", "")
     if draw(st.booleans()):
-        return replace(f, rows=f.rows[:i] + (empty,) + f.rows[i + 1:]), "refuse"  # a row emptied
+        return replace(f, rows=f.rows[:i] + (empty,) + f.rows[i + 1 :]), "refuse"  # a row emptied
     return replace(f, rows=f.rows[:i] + (empty,) + f.rows[i:]), "refuse"  # an empty row inserted
 
 
@@ -268,9 +281,20 @@ def header_repeated_inside(f, draw):
     return replace(f, rows=f.rows[:i] + (head,) + f.rows[i:]), "refuse"
 
 
-CORRUPTIONS = [dup_row, delete_row, extra_row_at_end, extra_row_in_middle, swap_header_names_with_columns,
-               swap_header_names_only, header_to_words, bad_cell, column_count, drop_header, row_of_empty_cells,
-               header_repeated_inside]
+CORRUPTIONS = [
+    dup_row,
+    delete_row,
+    extra_row_at_end,
+    extra_row_in_middle,
+    swap_header_names_with_columns,
+    swap_header_names_only,
+    header_to_words,
+    bad_cell,
+    column_count,
+    drop_header,
+    row_of_empty_cells,
+    header_repeated_inside,
+]
 
 
 @pytest.mark.parametrize("corrupt", CORRUPTIONS, ids=lambda c: c.__name__)
@@ -282,8 +306,9 @@ def test_corrupted_positions_are_refused_or_unchanged(corrupt, folder, data):
         d = _read(bad)
     except DataFormatError as exc:
         assert "tx_pos.csv" in str(exc), str(exc)
-        assert isinstance(expect, str) and expect in ("refuse", "refuse_or_same"), \
+        assert isinstance(expect, str) and expect in ("refuse", "refuse_or_same"), (
             f"{corrupt.__name__}: a valid file was refused: {exc}"
+        )
         return
     got = d.positions
     if isinstance(expect, np.ndarray):  # a valid edit that changes what the file says: read as it says

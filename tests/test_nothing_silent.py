@@ -20,11 +20,11 @@ import pytest
 import torch
 from lightning.pytorch.callbacks import Callback
 
+from graf.data.nerf2_format import read_nerf2_folder, write_nerf2_folder
 from graf.errors import ConfigError
+from graf.models.base import CheckpointError
 from graf.pipeline.evaluate import evaluate
 from graf.pipeline.train import train
-from graf.data.nerf2_format import read_nerf2_folder, write_nerf2_folder
-from graf.models.base import CheckpointError
 
 from .conftest import smooth_spectra
 
@@ -39,6 +39,7 @@ def _cli(cmd: str, *args: str, cwd: Path, timeout: int = 240) -> subprocess.Comp
 
 # ---------------------------------------------------------------------------------------------- 1. training length
 
+
 def test_max_steps_governs_training_whatever_the_epoch_length(compose_cfg):
     """trainer.max_steps=40 on rfid_s23 (36 batches of 4 per epoch) trains 40 steps; it stopped at 36 when the
     default trainer set max_epochs=1."""
@@ -48,13 +49,22 @@ def test_max_steps_governs_training_whatever_the_epoch_length(compose_cfg):
     res = json.loads((Path(cfg.paths.output_dir) / "results.json").read_text())
     assert objects["datamodule"].batches_per_epoch == 36
     assert res["global_step"] == 40
-    assert res["training"] == {"max_steps": 40, "max_epochs": -1, "start_step": 0, "global_step": 40,
-                               "steps_trained": 40, "epochs_trained": 2, "stopped_early": False}
+    assert res["training"] == {
+        "max_steps": 40,
+        "max_epochs": -1,
+        "start_step": 0,
+        "global_step": 40,
+        "steps_trained": 40,
+        "epochs_trained": 2,
+        "stopped_early": False,
+    }
 
 
 def test_a_users_max_epochs_is_their_own_limit_and_is_recorded(compose_cfg):
-    cfg = compose_cfg("train", ("model=knn_dl", "scene=rfid_s23", "trainer.max_steps=50", "trainer.max_epochs=1",
-                                "baselines=null", *QUIET))
+    cfg = compose_cfg(
+        "train",
+        ("model=knn_dl", "scene=rfid_s23", "trainer.max_steps=50", "trainer.max_epochs=1", "baselines=null", *QUIET),
+    )
     train(cfg)
     t = json.loads((Path(cfg.paths.output_dir) / "results.json").read_text())["training"]
     assert (t["global_step"], t["stopped_early"], t["own_limit"]) == (36, True, True)
@@ -71,9 +81,18 @@ class _StopAt(Callback):
 
 
 def test_a_stop_before_max_steps_that_is_not_the_users_is_warned_and_marked(compose_cfg, capsys):
-    cfg = compose_cfg("train", ("model=knn_dl", "scene=rfid_s23", "trainer.max_steps=30", "baselines=null",
-                                "+callbacks.stop._target_=tests.test_nothing_silent._StopAt", "+callbacks.stop.step=5",
-                                *QUIET))
+    cfg = compose_cfg(
+        "train",
+        (
+            "model=knn_dl",
+            "scene=rfid_s23",
+            "trainer.max_steps=30",
+            "baselines=null",
+            "+callbacks.stop._target_=tests.test_nothing_silent._StopAt",
+            "+callbacks.stop.step=5",
+            *QUIET,
+        ),
+    )
     train(cfg)
     t = json.loads((Path(cfg.paths.output_dir) / "results.json").read_text())["training"]
     assert (t["global_step"], t["stopped_early"], t["own_limit"]) == (5, True, False)
@@ -91,12 +110,21 @@ def test_training_that_would_never_end_or_is_not_a_count_is_refused(compose_cfg)
 
 # ---------------------------------------------------------------------------------------------- 3. scene identity
 
+
 def _folder(root: Path, seed: int, n: int = 16) -> Path:
     rng = np.random.default_rng(seed)
     pos = rng.uniform([-1.0, 0.5, 0.0], [1.0, 1.5, 1.0], size=(n, 3))
     ids = np.arange(1, n + 1)
-    return write_nerf2_folder(root, smooth_spectra(pos), pos, ids, np.array([0.0, 0.0, 0.5]),
-                              np.array([0.0, 0.0, 0.0, 1.0]), train_ids=ids[:12], test_ids=ids[12:])
+    return write_nerf2_folder(
+        root,
+        smooth_spectra(pos),
+        pos,
+        ids,
+        np.array([0.0, 0.0, 0.5]),
+        np.array([0.0, 0.0, 0.0, 1.0]),
+        train_ids=ids[:12],
+        test_ids=ids[12:],
+    )
 
 
 def test_fingerprint_follows_content_not_name(tmp_path):
@@ -119,16 +147,27 @@ def test_fingerprint_follows_content_not_name(tmp_path):
 def test_a_checkpoint_tested_on_another_folder_of_the_same_name_is_zero_shot(compose_cfg, tmp_path):
     a, b = _folder(tmp_path / "scene_a", 0), _folder(tmp_path / "scene_b", 1)
     common = ("scene=nerf2", "band=2.4ghz", *QUIET)
-    cfg = compose_cfg("train", (f"scene.nerf2.path={a}", "model=knn_dl", "trainer.max_steps=2", "baselines=null",
-                                "data.batch_size=2", f"paths.output_dir={tmp_path / 'run'}", *common))
+    cfg = compose_cfg(
+        "train",
+        (
+            f"scene.nerf2.path={a}",
+            "model=knn_dl",
+            "trainer.max_steps=2",
+            "baselines=null",
+            "data.batch_size=2",
+            f"paths.output_dir={tmp_path / 'run'}",
+            *common,
+        ),
+    )
     train(cfg)
     ckpt = tmp_path / "run" / "checkpoints" / "last.ckpt"
     saved = torch.load(ckpt, map_location="cpu", weights_only=False)["graf"]["scenes"]
     assert saved["nerf2"]["fingerprint"]["band_hz"] == 2.412e9 and len(saved["nerf2"]["fingerprint"]["digest"]) == 64
 
     def tested(folder, out):
-        cfg = compose_cfg("eval", (f"scene.nerf2.path={folder}", f"ckpt_path={ckpt}", f"paths.output_dir={out}",
-                                   *common))
+        cfg = compose_cfg(
+            "eval", (f"scene.nerf2.path={folder}", f"ckpt_path={ckpt}", f"paths.output_dir={out}", *common)
+        )
         evaluate(cfg, overrides=[])
         return json.loads((out / "results.json").read_text())
 
@@ -137,17 +176,30 @@ def test_a_checkpoint_tested_on_another_folder_of_the_same_name_is_zero_shot(com
     assert other["within_scene"] is False  # it was reported within-scene when both were just "nerf2"
 
     # fine-tuning on the other folder: a new scene index (1), the trained one keeps 0; both recorded
-    ft = compose_cfg("train", (f"scene.nerf2.path={b}", "model=knn_dl", "finetune=f100", "finetune.max_steps=1",
-                               f"finetune.init_from={ckpt}", "data.batch_size=2", "baselines=null",
-                               f"paths.output_dir={tmp_path / 'ft'}", *common))
+    ft = compose_cfg(
+        "train",
+        (
+            f"scene.nerf2.path={b}",
+            "model=knn_dl",
+            "finetune=f100",
+            "finetune.max_steps=1",
+            f"finetune.init_from={ckpt}",
+            "data.batch_size=2",
+            "baselines=null",
+            f"paths.output_dir={tmp_path / 'ft'}",
+            *common,
+        ),
+    )
     _, objects = train(ft)
     assert objects["datamodule"].scene_index.tolist() == [1]
-    table = torch.load(tmp_path / "ft" / "checkpoints" / "last.ckpt", map_location="cpu",
-                       weights_only=False)["graf"]["scenes"]
+    table = torch.load(tmp_path / "ft" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)["graf"][
+        "scenes"
+    ]
     assert sorted(v["index"] for v in table.values()) == [0, 1]
 
 
 # ---------------------------------------------------------------------------------------------- 4. one-line errors
+
 
 @pytest.fixture(scope="module")
 def cli_dir(tmp_path_factory):
@@ -165,8 +217,16 @@ def cli_dir(tmp_path_factory):
 
 
 def _knn_ckpt(tmp: Path, *extra: str) -> Path:
-    p = _cli("graf-train", "model=knn_dl", "trainer.max_steps=2", "baselines=null", *QUIET, *extra,
-             f"hydra.run.dir={tmp}", cwd=tmp.parent)
+    p = _cli(
+        "graf-train",
+        "model=knn_dl",
+        "trainer.max_steps=2",
+        "baselines=null",
+        *QUIET,
+        *extra,
+        f"hydra.run.dir={tmp}",
+        cwd=tmp.parent,
+    )
     assert p.returncode == 0, p.stderr[-2000:]
     return tmp / "checkpoints" / "last.ckpt"
 
@@ -181,19 +241,28 @@ CASES = {  # name: (command, arguments, what the one line says); {d}: the module
     "val_fraction_0": ("graf-eval", ["data.val_fraction=0"], "data.val_fraction must be in (0, 1)"),
     "eval_split_bogus": ("graf-eval", ["data.eval_split=bogus"], "data.eval_split must be one of"),
     "seed_abc": ("graf-eval", ["seed=abc"], "seed must be an integer"),
-    "train_fraction_1.5": ("graf-eval", ["scene=nerf2", "scene.nerf2.path={d}/noidx", "band=2.4ghz",
-                                         "scene.nerf2.train_fraction=1.5"], "scene.nerf2.train_fraction must be in"),
+    "train_fraction_1.5": (
+        "graf-eval",
+        ["scene=nerf2", "scene.nerf2.path={d}/noidx", "band=2.4ghz", "scene.nerf2.train_fraction=1.5"],
+        "scene.nerf2.train_fraction must be in",
+    ),
     "batch_size_0": ("graf-eval", ["data.batch_size=0"], "data.batch_size must be an integer >= 1"),
-    "resume_other_preset": ("graf-train", ["model=knn_dl", "model.hidden=32", "trainer.max_steps=4",
-                                           "ckpt_path={ckpt}"], "model.hidden: checkpoint 64, this run 32"),
+    "resume_other_preset": (
+        "graf-train",
+        ["model=knn_dl", "model.hidden=32", "trainer.max_steps=4", "ckpt_path={ckpt}"],
+        "model.hidden: checkpoint 64, this run 32",
+    ),
     "table_missing": ("graf-table", ["runs={d}/nope"], "does not exist"),
     "table_list": ("graf-table", ["runs={d}/list_run"], "this one holds a list"),
     "report_list": ("graf-report", ["runs={d}/list_run"], "this one holds a list"),
     "synthesize_header_only": ("graf-synthesize", ["positions={d}/header_only.csv"], "holds no positions"),
     "synthesize_nan": ("graf-synthesize", ["positions={d}/nan.csv"], "data row 2: position"),
     "synthesize_no_ckpt": ("graf-synthesize", ["model=knn_dl", "positions={d}/good.csv"], "give its checkpoint"),
-    "simulate_unwritable": ("graf-simulate", ["scene=small_room", "sim.num_tx=2", "data_root=/proc/graf"],
-                            "data_root=/proc/graf: cannot write there"),
+    "simulate_unwritable": (
+        "graf-simulate",
+        ["scene=small_room", "sim.num_tx=2", "data_root=/proc/graf"],
+        "data_root=/proc/graf: cannot write there",
+    ),
 }
 
 
@@ -221,16 +290,28 @@ def test_graf_report_reads_one_runs_own_folder(tmp_path):
 
 # ---------------------------------------------------------------------------------------------- 5. settings
 
+
 def test_baselines_braces_and_null_switch_the_baselines_off(tmp_path):
     for i, value in enumerate(("{}", "null")):
         out = tmp_path / f"run{i}"
-        p = _cli("graf-train", "model=knn", "model.weighting=barycentric", f"baselines={value}", *QUIET,
-                 f"hydra.run.dir={out}", cwd=tmp_path)
+        p = _cli(
+            "graf-train",
+            "model=knn",
+            "model.weighting=barycentric",
+            f"baselines={value}",
+            *QUIET,
+            f"hydra.run.dir={out}",
+            cwd=tmp_path,
+        )
         assert p.returncode == 0, p.stderr[-2000:]
         assert "baselines" not in json.loads((out / "results.json").read_text())
     out = tmp_path / "default"
-    assert _cli("graf-train", "model=knn", "model.weighting=barycentric", *QUIET, f"hydra.run.dir={out}",
-                cwd=tmp_path).returncode == 0
+    assert (
+        _cli(
+            "graf-train", "model=knn", "model.weighting=barycentric", *QUIET, f"hydra.run.dir={out}", cwd=tmp_path
+        ).returncode
+        == 0
+    )
     assert list(json.loads((out / "results.json").read_text())["baselines"]) == ["knn"]
 
 
@@ -256,15 +337,20 @@ def test_resuming_with_other_settings_is_refused_and_a_longer_run_is_recorded(co
     first = compose_cfg("train", (*base, "trainer.max_steps=3", f"paths.output_dir={tmp_path / 'a'}"))
     train(first)
     ckpt = tmp_path / "a" / "checkpoints" / "last.ckpt"
-    for changed, says in (("data.batch_size=8", "data.batch_size: checkpoint 4, this run 8"),
-                          ("neighbors.L=4", "neighbors.L: checkpoint 10, this run 4"),
-                          ("seed=3", "seed: checkpoint 0, this run 3"),
-                          ("model.lr=0.01", "model.lr: checkpoint 0.001, this run 0.01")):
-        cfg = compose_cfg("train", (*base, "trainer.max_steps=5", changed, f"ckpt_path={ckpt}",
-                                    f"paths.output_dir={tmp_path / 'b'}"))
+    for changed, says in (
+        ("data.batch_size=8", "data.batch_size: checkpoint 4, this run 8"),
+        ("neighbors.L=4", "neighbors.L: checkpoint 10, this run 4"),
+        ("seed=3", "seed: checkpoint 0, this run 3"),
+        ("model.lr=0.01", "model.lr: checkpoint 0.001, this run 0.01"),
+    ):
+        cfg = compose_cfg(
+            "train", (*base, "trainer.max_steps=5", changed, f"ckpt_path={ckpt}", f"paths.output_dir={tmp_path / 'b'}")
+        )
         with pytest.raises(CheckpointError, match=says.replace(".", r"\.")):
             train(cfg)
-    cfg = compose_cfg("train", (*base, "trainer.max_steps=5", f"ckpt_path={ckpt}", f"paths.output_dir={tmp_path / 'c'}"))
+    cfg = compose_cfg(
+        "train", (*base, "trainer.max_steps=5", f"ckpt_path={ckpt}", f"paths.output_dir={tmp_path / 'c'}")
+    )
     train(cfg)
     res = json.loads((tmp_path / "c" / "results.json").read_text())
     assert res["resumed"]["changed"] == {"trainer.max_steps": {"checkpoint": 3, "run": 5}}
@@ -276,8 +362,9 @@ def test_graf_eval_of_a_checkpoint_refuses_a_training_setting_with_its_own_messa
 
     assert checkpoint_model_choice([f"ckpt_path={knn_dl_ckpt}", "model.lr=0.1"]) == "knn_dl"
     assert checkpoint_model_choice([f"ckpt_path={knn_dl_ckpt}"]) is None
-    p = _cli("graf-eval", f"ckpt_path={knn_dl_ckpt}", "model.lr=0.1", *QUIET, f"hydra.run.dir={tmp_path / 'o'}",
-             cwd=tmp_path)
+    p = _cli(
+        "graf-eval", f"ckpt_path={knn_dl_ckpt}", "model.lr=0.1", *QUIET, f"hydra.run.dir={tmp_path / 'o'}", cwd=tmp_path
+    )
     assert p.returncode == 2
     assert "model.lr=0.1 cannot change the trained checkpoint" in p.stderr and "not in struct" not in p.stderr
 
@@ -286,10 +373,23 @@ def test_sigterm_stops_at_the_next_step_saves_a_checkpoint_and_resumes(tmp_path)
     out = tmp_path / "run"
     env = {**os.environ, "OMP_NUM_THREADS": "1", "WANDB_MODE": "offline"}
     # the CSV logger writes its file after its first 100 steps: training is then under way
-    proc = subprocess.Popen([str(BIN / "graf-train"), "model=knn_dl", "trainer.max_steps=100000", "baselines=null",
-                             "callbacks.model_checkpoint.every_n_train_steps=100000", "plot_count=0", "logger=csv",
-                             f"hydra.run.dir={out}"],
-                            cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [
+            str(BIN / "graf-train"),
+            "model=knn_dl",
+            "trainer.max_steps=100000",
+            "baselines=null",
+            "callbacks.model_checkpoint.every_n_train_steps=100000",
+            "plot_count=0",
+            "logger=csv",
+            f"hydra.run.dir={out}",
+        ],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         deadline = time.time() + 180
         while not list(out.rglob("metrics.csv")):
@@ -312,13 +412,23 @@ def test_sigterm_stops_at_the_next_step_saves_a_checkpoint_and_resumes(tmp_path)
     assert "resume with the same command and ckpt_path=" in err and not (out / "results.json").exists()
     # resumed in its own folder, as a study resumes its base model: last.ckpt, which the pre-emption wrote and
     # every reader opens, must end up holding the final step (not a versioned last-v1.ckpt beside a stale one)
-    p = _cli("graf-train", "model=knn_dl", f"trainer.max_steps={step + 3}", "baselines=null",
-             "callbacks.model_checkpoint.every_n_train_steps=100000", *QUIET, f"ckpt_path={ckpt}",
-             f"hydra.run.dir={out}", cwd=tmp_path)
+    p = _cli(
+        "graf-train",
+        "model=knn_dl",
+        f"trainer.max_steps={step + 3}",
+        "baselines=null",
+        "callbacks.model_checkpoint.every_n_train_steps=100000",
+        *QUIET,
+        f"ckpt_path={ckpt}",
+        f"hydra.run.dir={out}",
+        cwd=tmp_path,
+    )
     assert p.returncode == 0, p.stderr[-2000:]
     res = json.loads((out / "results.json").read_text())
     assert res["training"]["start_step"] == step and res["global_step"] == step + 3
-    assert torch.load(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)["global_step"] == step + 3
+    assert (
+        torch.load(out / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)["global_step"] == step + 3
+    )
     assert not list((out / "checkpoints").glob("last-v*.ckpt"))
     assert not (out / "preempted.json").exists()
 
@@ -344,12 +454,21 @@ def test_a_preempted_job_stops_a_studys_multirun_and_is_recorded(tmp_path):
     from hydra.types import RunMode
     from omegaconf import OmegaConf
 
-    from graf.pipeline.table import SweepTable
     from graf.errors import Preempted
+    from graf.pipeline.table import SweepTable
 
     def job(exc, num, **extra):
-        cfg = OmegaConf.create({"hydra": {"mode": None, "sweep": {"dir": str(tmp_path)}, "job": {"num": num},
-                                          "overrides": {"task": [f"x={num}"]}}, **extra})
+        cfg = OmegaConf.create(
+            {
+                "hydra": {
+                    "mode": None,
+                    "sweep": {"dir": str(tmp_path)},
+                    "job": {"num": num},
+                    "overrides": {"task": [f"x={num}"]},
+                },
+                **extra,
+            }
+        )
         cfg.hydra.mode = RunMode.MULTIRUN
         ret = JobReturn()
         ret.status, ret.return_value = JobStatus.FAILED, exc

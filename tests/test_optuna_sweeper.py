@@ -28,8 +28,13 @@ def run_app(tmp: Path, *overrides: str, wait: bool = True, timeout: float = 300,
     cmd = [sys.executable, str(APP), f"marks={tmp / 'marks'}", f"hydra.sweep.dir={tmp / 'sweep'}", *overrides]
     env = dict(os.environ, PYTHONUNBUFFERED="1", **(env or {}))
     if not wait:
-        return subprocess.Popen(cmd, stdout=open(tmp / f"app_{time.time_ns()}.log", "w"), stderr=subprocess.STDOUT,
-                                env=env, start_new_session=True)
+        return subprocess.Popen(
+            cmd,
+            stdout=open(tmp / f"app_{time.time_ns()}.log", "w"),
+            stderr=subprocess.STDOUT,
+            env=env,
+            start_new_session=True,
+        )
     r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout)
     return r
 
@@ -40,8 +45,7 @@ def load(tmp: Path) -> optuna.Study:
 
 def trained(tmp: Path) -> dict[int, int]:
     """x -> how many times a trial with that x ran to its end."""
-    return {int(p.name[len("finished_x"):]): len(p.read_text().split())
-            for p in (tmp / "marks").glob("finished_x*")}
+    return {int(p.name[len("finished_x") :]): len(p.read_text().split()) for p in (tmp / "marks").glob("finished_x*")}
 
 
 def states(study) -> dict[str, int]:
@@ -52,8 +56,7 @@ def states(study) -> dict[str, int]:
 
 
 def test_failed_and_nan_trials_are_stored_as_failed_and_the_study_goes_on(tmp_path):
-    r = run_app(tmp_path, "raise_at=2", "nan_at=3", "hydra.sweeper.sampler=grid",
-                "x=choice(1,2,3,4,5,6)")
+    r = run_app(tmp_path, "raise_at=2", "nan_at=3", "hydra.sweeper.sampler=grid", "x=choice(1,2,3,4,5,6)")
     assert r.returncode == 0, r.stderr[-3000:]
     study = load(tmp_path)
     complete = [t for t in study.trials if t.state == TrialState.COMPLETE]
@@ -67,8 +70,7 @@ def test_failed_and_nan_trials_are_stored_as_failed_and_the_study_goes_on(tmp_pa
 
 
 def test_too_many_failures_stop_the_sweep_with_an_error(tmp_path):
-    r = run_app(tmp_path, "raise_at=2", "x=choice(2)", "hydra.sweeper.max_failures=2",
-                "hydra.sweeper.sampler=tpe")
+    r = run_app(tmp_path, "raise_at=2", "x=choice(2)", "hydra.sweeper.max_failures=2", "hydra.sweeper.sampler=tpe")
     assert r.returncode != 0
     assert "max_failures=2" in r.stderr
     assert states(load(tmp_path)) == {"FAIL": 2}
@@ -160,8 +162,14 @@ def test_n_jobs_starts_workers_that_share_the_study(tmp_path):
 
 
 def test_a_pruned_trial_is_stored_as_pruned(tmp_path):
-    r = run_app(tmp_path, "lightning=true", "hydra.sweeper.n_trials=2", "hydra.sweeper.pruner.name=median",
-                "hydra.sweeper.pruner.n_startup_trials=1", "hydra.sweeper.pruner.n_warmup_steps=0")
+    r = run_app(
+        tmp_path,
+        "lightning=true",
+        "hydra.sweeper.n_trials=2",
+        "hydra.sweeper.pruner.name=median",
+        "hydra.sweeper.pruner.n_startup_trials=1",
+        "hydra.sweeper.pruner.n_warmup_steps=0",
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     study = load(tmp_path)
     by_state = {t.state: t for t in study.trials}
@@ -179,16 +187,18 @@ def test_the_validation_that_ends_training_never_prunes():
 
     from graf.sweeps.pruning import OptunaPruning
 
-    study = optuna.create_study(direction="maximize",
-                                pruner=optuna.pruners.MedianPruner(n_startup_trials=1, n_warmup_steps=0))
+    study = optuna.create_study(
+        direction="maximize", pruner=optuna.pruners.MedianPruner(n_startup_trials=1, n_warmup_steps=0)
+    )
     done = study.ask()
     done.report(10.0, 2)
     done.report(10.0, 4)
     study.tell(done, 10.0)
 
     def trainer(step):
-        return SimpleNamespace(sanity_checking=False, global_step=step, max_steps=4,
-                               callback_metrics={"val/psnr": torch.tensor(-10.0)})
+        return SimpleNamespace(
+            sanity_checking=False, global_step=step, max_steps=4, callback_metrics={"val/psnr": torch.tensor(-10.0)}
+        )
 
     last = OptunaPruning(study.ask(), "val/psnr")
     last.on_validation_end(trainer(4), None)  # far under the median, but training is over: reported, not pruned
@@ -206,9 +216,17 @@ def test_search_space_grammar():
 
     parser = OverridesParser.create()
     space = parse_search_space(
-        {"a": "interval(0, 1)", "b": "tag(log, interval(1e-4, 1e-2))", "c": "range(2, 5)",
-         "d": "choice([1,2],[3,10])", "e": "tag(int, interval(1, 9))", "f": "choice(1,2)"},
-        ["g=3", "f=choice(4,5,6)"], parser)
+        {
+            "a": "interval(0, 1)",
+            "b": "tag(log, interval(1e-4, 1e-2))",
+            "c": "range(2, 5)",
+            "d": "choice([1,2],[3,10])",
+            "e": "tag(int, interval(1, 9))",
+            "f": "choice(1,2)",
+        },
+        ["g=3", "f=choice(4,5,6)"],
+        parser,
+    )
     d = space.distributions
     assert d["a"] == FloatDistribution(0.0, 1.0)
     assert d["b"] == FloatDistribution(1e-4, 1e-2, log=True)
@@ -255,8 +273,10 @@ def test_objectives_refuse_test_metrics_and_average_over_test_scenes():
 def test_best_json_means_are_the_means_over_the_evaluated_scenes():
     from graf.sweeps.objectives import metrics_mean
 
-    evals = [{"eval_scene": "a", "metrics": {"val/psnr": 15.0, "test/psnr": 14.0, "val/ssim": 0.5}},
-             {"eval_scene": "b", "metrics": {"val/psnr": 13.0, "test/psnr": 16.0}}]
+    evals = [
+        {"eval_scene": "a", "metrics": {"val/psnr": 15.0, "test/psnr": 14.0, "val/ssim": 0.5}},
+        {"eval_scene": "b", "metrics": {"val/psnr": 13.0, "test/psnr": 16.0}},
+    ]
     assert metrics_mean(evals) == {"val/psnr": 14.0, "test/psnr": 15.0}  # only metrics every scene has
     assert metrics_mean(evals[:1]) is None and metrics_mean([]) is None
 
@@ -266,8 +286,12 @@ def test_heldout_scenes_are_the_other_layouts_of_the_training_families():
     from graf.pipeline.config import heldout_scenes
 
     assert heldout_scenes(["conference_v1"], "auto") == ["conference_v2", "conference_v3"]
-    assert heldout_scenes(["conference_v1", "office_v2"], "auto") == ["conference_v2", "conference_v3", "office_v1",
-                                                                       "office_v3"]
+    assert heldout_scenes(["conference_v1", "office_v2"], "auto") == [
+        "conference_v2",
+        "conference_v3",
+        "office_v1",
+        "office_v3",
+    ]
     assert heldout_scenes(["conference_v1"], ["conference_v3", "office_v3"]) == ["conference_v3"]
     assert heldout_scenes(["rfid_s23"], "auto") == []
     with pytest.raises(ConfigError, match="unknown scene"):
@@ -279,9 +303,17 @@ def test_search_smoke_with_knn_on_the_embedded_scene_never_sees_the_test_split(t
     """The documented smoke test of each search; its trials are validated only (no test figure, no test
     spectrum predicted), the objective is their validation PSNR, and the chosen one is tested once."""
     env = dict(os.environ, OMP_NUM_THREADS="2", WANDB_MODE="offline")
-    cmd = [str(Path(sys.executable).parent / "graf-train"), "-m", f"hparams_search={search}", "model=knn",
-           "scene=rfid_s23", "hydra.sweeper.n_trials=3", f"hydra.sweep.dir={tmp_path / 'sweep'}",
-           f"data_root={tmp_path / 'data'}", "logger=none"]
+    cmd = [
+        str(Path(sys.executable).parent / "graf-train"),
+        "-m",
+        f"hparams_search={search}",
+        "model=knn",
+        "scene=rfid_s23",
+        "hydra.sweeper.n_trials=3",
+        f"hydra.sweep.dir={tmp_path / 'sweep'}",
+        f"data_root={tmp_path / 'data'}",
+        "logger=none",
+    ]
     r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
     assert r.returncode == 0, r.stderr[-4000:]
     sweep = tmp_path / "sweep"

@@ -18,7 +18,9 @@ from graf.pipeline.build import build_datamodule
 @pytest.fixture
 def tiny(compose_cfg, make_scene):
     folder = make_scene(n=16)
-    cfg = compose_cfg("eval", ("scene=nerf2", f"scene.nerf2.path={folder}", "band=2.4ghz", "neighbors=fixed", "neighbors.L=6"))
+    cfg = compose_cfg(
+        "eval", ("scene=nerf2", f"scene.nerf2.path={folder}", "band=2.4ghz", "neighbors=fixed", "neighbors.L=6")
+    )
     _, _, _, dm = build_datamodule(cfg)
     dm.setup()
     return dm
@@ -27,8 +29,10 @@ def tiny(compose_cfg, make_scene):
 def test_oracle_beats_idw_on_every_target_and_improves_with_iterations(tiny):
     rows, idx, mask = select_targets(tiny, "test")
     assert len(rows) == 4 and idx.shape == (4, 6) and mask.all()
-    fits = {it: run_oracle(tiny.data.spectra, tiny.positions, rows, idx, mask, [1e-3], it)["runs"][0]["psnr"]
-            for it in (10, 50)}
+    fits = {
+        it: run_oracle(tiny.data.spectra, tiny.positions, rows, idx, mask, [1e-3], it)["runs"][0]["psnr"]
+        for it in (10, 50)
+    }
     final = run_oracle(tiny.data.spectra, tiny.positions, rows, idx, mask, [1e-3], 200)
     assert (final["runs"][0]["psnr"] >= final["idw_psnr"]).all(), (final["runs"][0]["psnr"], final["idw_psnr"])
     means = [float(fits[10].mean()), float(fits[50].mean()), float(final["runs"][0]["psnr"].mean())]
@@ -56,8 +60,9 @@ def test_padded_neighbours_keep_zero_weight():
 
 def test_console_script_on_rfid_s23(tmp_path):
     exe = str(Path(sys.executable).parent / "graf-oracle")
-    p = subprocess.run([exe, "oracle.iterations=5", f"hydra.run.dir={tmp_path}"], capture_output=True, text=True,
-                       timeout=300)
+    p = subprocess.run(
+        [exe, "oracle.iterations=5", f"hydra.run.dir={tmp_path}"], capture_output=True, text=True, timeout=300
+    )
     assert p.returncode == 0, p.stderr[-3000:]
     r = json.loads((tmp_path / "results.json").read_text())
     assert (r["n"], r["L"], r["iterations"], r["lr"]) == (40, 6, 5, 1e-3) and len(r["psnr"]["per_target"]) == 40

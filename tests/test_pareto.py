@@ -15,8 +15,14 @@ from graf.pipeline.pareto import pareto_front
 
 
 def test_pareto_front_keeps_only_undominated_points():
-    rows = [{"t": 1.0, "val_psnr": 10.0}, {"t": 2.0, "val_psnr": 12.0}, {"t": 3.0, "val_psnr": 11.0},
-            {"t": 2.0, "val_psnr": 12.0}, {"t": None, "val_psnr": 30.0}, {"t": 0.5, "val_psnr": 9.0}]
+    rows = [
+        {"t": 1.0, "val_psnr": 10.0},
+        {"t": 2.0, "val_psnr": 12.0},
+        {"t": 3.0, "val_psnr": 11.0},
+        {"t": 2.0, "val_psnr": 12.0},
+        {"t": None, "val_psnr": 30.0},
+        {"t": 0.5, "val_psnr": 9.0},
+    ]
     assert pareto_front(rows, "t") == {0, 1, 3, 5}  # 2 is slower and worse than 1; 4 has no time
 
 
@@ -30,13 +36,31 @@ def test_config_has_five_knobs_on_two_scenes():
 @pytest.mark.slow  # 91 s on the 2-core CI machine: the default run must stay under 15 min
 def test_tiny_sweep_runs_records_failures_and_resumes(tmp_path):
     out = tmp_path / "sweep"
-    tiny = ["trainer.max_steps=2", "model.decay_steps=2", "logger=none", "plot_count=0", "model.max_samples=4",
-            "model.rays_per_step=64", "data.batch_size=2", "trainer.limit_test_batches=2", "baselines={}",
-            "callbacks.model_checkpoint.every_n_train_steps=2"]
+    tiny = [
+        "trainer.max_steps=2",
+        "model.decay_steps=2",
+        "logger=none",
+        "plot_count=0",
+        "model.max_samples=4",
+        "model.rays_per_step=64",
+        "data.batch_size=2",
+        "trainer.limit_test_batches=2",
+        "baselines={}",
+        "callbacks.model_checkpoint.every_n_train_steps=2",
+    ]
     q = lambda items: "[" + ",".join(f"'{i}'" for i in items) + "]"  # noqa: E731 (quoted: values hold '=')
-    args = [sys.executable, "-m", "graf.cli.pareto", f"out={out}", f"hydra.run.dir={tmp_path / 'h'}", "threads=1",
-            "only_scenes=[rfid_s23_sparse]", "only_points=[base,voxel_2,broken,L_test_3]", "base=" + q(tiny),
-            "+points.broken={knob: broken, value: x, overrides: " + q(["model.voxel_wavelengths=-1"]) + "}"]
+    args = [
+        sys.executable,
+        "-m",
+        "graf.cli.pareto",
+        f"out={out}",
+        f"hydra.run.dir={tmp_path / 'h'}",
+        "threads=1",
+        "only_scenes=[rfid_s23_sparse]",
+        "only_points=[base,voxel_2,broken,L_test_3]",
+        "base=" + q(tiny),
+        "+points.broken={knob: broken, value: x, overrides: " + q(["model.voxel_wavelengths=-1"]) + "}",
+    ]
     p = subprocess.run(args, capture_output=True, text=True, timeout=600)
     assert p.returncode == 0, p.stderr[-3000:]
     r = json.loads((out / "results.json").read_text())

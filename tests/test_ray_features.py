@@ -9,13 +9,24 @@ import json
 import pytest
 import torch
 
-from graf.pipeline.train import train
 from graf.models.graf import GRaFModule
 from graf.models.graf.ray_features import pad_wrap, pixel_window, sample_wrap, upsample_wrap
 from graf.models.knn import KNNModule
+from graf.pipeline.train import train
 
-TINY = dict(encoder_widths=[4, 8, 8, 8], encoder_downsample=2, max_samples=4, rays_per_step=64, chunk_rays=4096,
-            d_model=8, ray_heads=2, ray_head_dim=4, ffn_dim=16, mlp_dim=16, pe_freqs=4)
+TINY = dict(
+    encoder_widths=[4, 8, 8, 8],
+    encoder_downsample=2,
+    max_samples=4,
+    rays_per_step=64,
+    chunk_rays=4096,
+    d_model=8,
+    ray_heads=2,
+    ray_head_dim=4,
+    ffn_dim=16,
+    mlp_dim=16,
+    pe_freqs=4,
+)
 
 
 def test_upsampling_a_full_resolution_map_is_the_identity():
@@ -66,11 +77,20 @@ def _batch(B=2, L=3, seed=0, colocated=False):
         src[:, 0] = tgt
     mask = torch.ones(B, L, dtype=torch.bool)
     mask[1, -1] = False  # a padded neighbour
-    return {"tgt_pos": tgt, "src_pos": src, "src_mask": mask,
-            "src_spectra": torch.rand(B, L, 90, 360, generator=g), "tgt_spectrum": torch.rand(B, 90, 360, generator=g),
-            "gw_pos": torch.zeros(B, 3), "gw_rot": torch.eye(3).expand(B, 3, 3).clone(), "wavelength": torch.full((B,), 0.33),
-            "ray_length": torch.full((B,), 3.0), "bounds": torch.tensor([[-2.0, -2.0, -1.0], [2.0, 2.0, 2.0]]).expand(B, 2, 3),
-            "scene_index": torch.zeros(B, dtype=torch.long), "tgt_id": torch.arange(B)}
+    return {
+        "tgt_pos": tgt,
+        "src_pos": src,
+        "src_mask": mask,
+        "src_spectra": torch.rand(B, L, 90, 360, generator=g),
+        "tgt_spectrum": torch.rand(B, 90, 360, generator=g),
+        "gw_pos": torch.zeros(B, 3),
+        "gw_rot": torch.eye(3).expand(B, 3, 3).clone(),
+        "wavelength": torch.full((B,), 0.33),
+        "ray_length": torch.full((B,), 3.0),
+        "bounds": torch.tensor([[-2.0, -2.0, -1.0], [2.0, 2.0, 2.0]]).expand(B, 2, 3),
+        "scene_index": torch.zeros(B, dtype=torch.long),
+        "tgt_id": torch.arange(B),
+    }
 
 
 @pytest.mark.parametrize("features", ["ray_knn", "ray_weights"])
@@ -112,10 +132,22 @@ def test_ray_mode_reads_each_neighbour_at_the_rays_own_pixel():
 
 @pytest.mark.parametrize("features", ["ray", "ray_knn", "ray_weights"])
 def test_ray_options_compose_train_and_round_trip_a_checkpoint(compose_cfg, features, tmp_path):
-    cfg = compose_cfg("train", ("experiment=graf_rfid_s23", f"model.neighbour_features={features}",
-                                "trainer.max_steps=2", "model.rays_per_step=64", "model.max_samples=4",
-                                "data.batch_size=2", "trainer.limit_test_batches=1", "validate=false",
-                                "baselines=null", "reliance=false", f"paths.output_dir={tmp_path / 'run'}"))
+    cfg = compose_cfg(
+        "train",
+        (
+            "experiment=graf_rfid_s23",
+            f"model.neighbour_features={features}",
+            "trainer.max_steps=2",
+            "model.rays_per_step=64",
+            "model.max_samples=4",
+            "data.batch_size=2",
+            "trainer.limit_test_batches=1",
+            "validate=false",
+            "baselines=null",
+            "reliance=false",
+            f"paths.output_dir={tmp_path / 'run'}",
+        ),
+    )
     _, objects = train(cfg)
     res = json.loads((tmp_path / "run" / "results.json").read_text())
     assert res["method"] == "graf-" + features.replace("_", "-") and res["global_step"] == 2

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 import torch
 
-from graf.pipeline.build import build
-from graf.pipeline.testing import evaluate_model, format_metrics_table
-from graf.pipeline.evaluate import evaluate
 from graf.data.datamodule import derangement
 from graf.models.base import SpectrumModule
+from graf.pipeline.build import build
+from graf.pipeline.evaluate import evaluate
+from graf.pipeline.testing import evaluate_model, format_metrics_table
 
 
 @pytest.mark.parametrize("n", [2, 3, 7, 40])
@@ -46,7 +46,8 @@ def test_knn_reads_its_neighbours_on_the_dense_real_scene(compose_cfg):
     assert metrics["test/reliance_db"] > 3.0, metrics  # a wrong neighbour set costs KNN several dB
     assert metrics["val/reliance_db"] > 3.0, metrics  # measured on validation too (what curves choose on)
     assert res["metrics"]["test/reliance_db"] == pytest.approx(
-        res["metrics"]["test/psnr"] - res["metrics"]["test/psnr_swapped"])
+        res["metrics"]["test/psnr"] - res["metrics"]["test/psnr_swapped"]
+    )
     assert "reliance dB" in format_metrics_table([res])
 
 
@@ -57,7 +58,9 @@ class _IgnoresNeighbours(SpectrumModule):
         p = batch["tgt_pos"].float()
         el = torch.linspace(0, 1, 90)[None, :, None]
         az = torch.linspace(0, 1, 360)[None, None, :]
-        return (0.5 + 0.4 * torch.sin(6 * el + p[:, 0, None, None]) * torch.cos(4 * az + p[:, 1, None, None])).clamp(0, 1)
+        return (0.5 + 0.4 * torch.sin(6 * el + p[:, 0, None, None]) * torch.cos(4 * az + p[:, 1, None, None])).clamp(
+            0, 1
+        )
 
 
 def test_a_model_that_ignores_its_neighbours_has_zero_reliance(compose_cfg):
@@ -75,8 +78,9 @@ def test_knn_dl_and_the_baselines_report_reliance_and_nerf2_none(compose_cfg):
     train(cfg)
     res = json.loads((Path(cfg.paths.output_dir) / "results.json").read_text())
     assert res["metrics"]["test/reliance_db"] > 0 and res["baselines"]["knn"]["metrics"]["test/reliance_db"] > 0
-    nerf = compose_cfg("eval", ("model=nerf2_cpu", "model.chunk_rays=32400", "trainer.limit_test_batches=1",
-                                "validate=false"))
+    nerf = compose_cfg(
+        "eval", ("model=nerf2_cpu", "model.chunk_rays=32400", "trainer.limit_test_batches=1", "validate=false")
+    )
     m, _ = evaluate_model(nerf, build(nerf, trains=False)["model"], build(nerf, trains=False)["datamodule"])
     assert m["test/reliance_db"] is None and m["test/psnr_swapped"] is None
 

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from graf.errors import ConfigError
-from graf.pipeline.report import make_report
 from graf.io import atomic_write_json
+from graf.pipeline.report import make_report
 
 GHZ24, MHZ915 = 2.412e9, 915e6
 
@@ -20,14 +20,37 @@ def _metrics(psnr: float) -> dict:
     return {"test/psnr": psnr, "test/ssim": psnr / 100, "test/lpips": 1 - psnr / 100, "test/mse": 10 ** (-psnr / 10)}
 
 
-def _result(folder: Path, method: str, trained: list[str], evals: list[tuple], L: int = 10, finetune=None,
-            knn: dict | None = None, train_hz: float = GHZ24, steps: int = 300) -> None:
+def _result(
+    folder: Path,
+    method: str,
+    trained: list[str],
+    evals: list[tuple],
+    L: int = 10,
+    finetune=None,
+    knn: dict | None = None,
+    train_hz: float = GHZ24,
+    steps: int = 300,
+) -> None:
     """A results.json as graf-train writes it (the keys graf-report reads); ``evals``: (scene, psnr, band_hz)."""
-    r = {"method": method, "train_scenes": trained, "train_bands_hz": [train_hz], "global_step": steps,
-         "config": {"neighbors": {"L": L}}, "finetune": finetune,
-         "evaluations": [{"eval_scene": s, "within_scene": s in trained, "metrics": _metrics(p), "n_test": 30,
-                          "band_hz": hz, "baselines": {"knn": {"metrics": _metrics(knn[s])}} if knn else {}}
-                         for s, p, hz in evals]}
+    r = {
+        "method": method,
+        "train_scenes": trained,
+        "train_bands_hz": [train_hz],
+        "global_step": steps,
+        "config": {"neighbors": {"L": L}},
+        "finetune": finetune,
+        "evaluations": [
+            {
+                "eval_scene": s,
+                "within_scene": s in trained,
+                "metrics": _metrics(p),
+                "n_test": 30,
+                "band_hz": hz,
+                "baselines": {"knn": {"metrics": _metrics(knn[s])}} if knn else {},
+            }
+            for s, p, hz in evals
+        ],
+    }
     folder.mkdir(parents=True)
     atomic_write_json(folder / "results.json", r)
 
@@ -64,14 +87,21 @@ def test_cross_scene_matrix_tables_heatmaps_and_spectra(tmp_path):
     md = (tmp_path / "out" / "report.md").read_text()
     assert "| b_v1 | a_v2 | graf | 30 | 300 | 0.0891 | 0.895 | 10.50 | 0.105 |" in md
     tex = (tmp_path / "out" / "report.tex").read_text()
-    assert r"b\_v1 & a\_v2 & graf & 30 & 300 & 0.0891 & 0.895 & 10.50 & 0.105 &  \\" in tex  # reliance: not in these rows
+    assert (
+        r"b\_v1 & a\_v2 & graf & 30 & 300 & 0.0891 & 0.895 & 10.50 & 0.105 &  \\" in tex
+    )  # reliance: not in these rows
 
 
 def test_neighbour_count_curve_averages_the_same_family_pairs(tmp_path):
     for L, (c2, c3, o2) in {2: (10.0, 12.0, 5.0), 10: (20.0, 22.0, 6.0)}.items():
         # trained on a conference layout: tested on its family (averaged) and on another (left out of the curve)
-        _result(tmp_path / f"L{L}", "graf", ["conference_v1"], [("conference_v2", c2, GHZ24),
-                                                                ("conference_v3", c3, GHZ24), ("office_v2", o2, GHZ24)], L=L)
+        _result(
+            tmp_path / f"L{L}",
+            "graf",
+            ["conference_v1"],
+            [("conference_v2", c2, GHZ24), ("conference_v3", c3, GHZ24), ("office_v2", o2, GHZ24)],
+            L=L,
+        )
     s = make_report(tmp_path, tmp_path)
     assert s["axes"] == ["L", "eval_scene"]
     assert s["vs_L"]["graf"][2]["PSNR"] == pytest.approx(11.0)
@@ -83,8 +113,14 @@ def test_neighbour_count_curve_averages_the_same_family_pairs(tmp_path):
 def test_finetune_fraction_curves_and_band_matrix(tmp_path):
     base = {"conference_v1": {"index": 0, "band_hz": GHZ24}}
     for label, frac, psnr in (("zero-shot", None, 5.0), ("f20", 0.2, 12.0), ("f100", 1.0, 16.0)):
-        ft = {"mode": "zero-shot" if frac is None else "fine-tune", "fraction": frac, "base_scenes": base,
-              "base_steps": 300, "steps": 0 if frac is None else 100, "test_pool": "measured"}
+        ft = {
+            "mode": "zero-shot" if frac is None else "fine-tune",
+            "fraction": frac,
+            "base_scenes": base,
+            "base_steps": 300,
+            "steps": 0 if frac is None else 100,
+            "test_pool": "measured",
+        }
         _result(tmp_path / "ft" / label, "graf", ["bedroom"], [("bedroom", psnr, GHZ24)], finetune=ft)
     s = make_report(tmp_path / "ft", tmp_path / "ft")
     curve = s["vs_fraction"]["bedroom | trained at 2.412 GHz"]["graf"]
@@ -93,8 +129,13 @@ def test_finetune_fraction_curves_and_band_matrix(tmp_path):
 
     bands = tmp_path / "bands"
     for i, (th, name) in enumerate(((MHZ915, "915"), (GHZ24, "24"))):
-        _result(bands / f"t{name}", "graf", ["conference_v1"], [("conference_v1", 20.0 - 5 * i, MHZ915),
-                                                                ("conference_v1", 10.0 + 5 * i, GHZ24)], train_hz=th)
+        _result(
+            bands / f"t{name}",
+            "graf",
+            ["conference_v1"],
+            [("conference_v1", 20.0 - 5 * i, MHZ915), ("conference_v1", 10.0 + 5 * i, GHZ24)],
+            train_hz=th,
+        )
     s = make_report(bands, bands)
     bm = s["band_matrix"]["graf"]
     assert bm["rows"] == ["915 MHz", "2.412 GHz"] and bm["cols"] == ["915 MHz", "2.412 GHz"]

@@ -25,8 +25,11 @@ class Recorder(SpectrumModule):
         self.seen: dict[int, tuple] = {}
 
     def training_step(self, batch, batch_idx):
-        self.seen[int(self.global_step)] = (batch["tgt_index"].clone(), batch["src_index"].clone(),
-                                            batch["src_mask"].clone())
+        self.seen[int(self.global_step)] = (
+            batch["tgt_index"].clone(),
+            batch["src_index"].clone(),
+            batch["src_mask"].clone(),
+        )
         x = batch["src_pos"][batch["src_mask"]].mean(0) + batch["src_mask"].float().mean()
         return ((self.w - x) ** 2).sum()
 
@@ -38,15 +41,27 @@ class Recorder(SpectrumModule):
 
 
 def _dm(num_workers=0):
-    return SpectrumDataModule(NeRF2Scene("rfid_s23", "embedded:rfid_s23_200"), Band("915mhz", 915e6),
-                              NeighborSelector(L_train=(3, 10)), batch_size=8, num_workers=num_workers)
+    return SpectrumDataModule(
+        NeRF2Scene("rfid_s23", "embedded:rfid_s23_200"),
+        Band("915mhz", 915e6),
+        NeighborSelector(L_train=(3, 10)),
+        batch_size=8,
+        num_workers=num_workers,
+    )
 
 
 def _fit(max_steps, root, ckpt_path=None, num_workers=0):
     model = Recorder()
-    trainer = L.Trainer(max_steps=max_steps, max_epochs=-1, accelerator="cpu", logger=False,
-                        enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
-                        callbacks=[ModelCheckpoint(dirpath=root, save_last=True, every_n_train_steps=5)])
+    trainer = L.Trainer(
+        max_steps=max_steps,
+        max_epochs=-1,
+        accelerator="cpu",
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        limit_val_batches=0,
+        callbacks=[ModelCheckpoint(dirpath=root, save_last=True, every_n_train_steps=5)],
+    )
     trainer.fit(model, datamodule=_dm(num_workers), ckpt_path=ckpt_path)
     return model
 

@@ -18,9 +18,9 @@ from hydra.utils import instantiate
 
 import graf.sim  # noqa: F401  (configures Sionna RT's CPU backend)
 from graf.bands import Band
+from graf.data.nerf2_format import DataFormatError, read_nerf2_folder
 from graf.pipeline.config import CONF_DIR
 from graf.pipeline.evaluate import evaluate
-from graf.data.nerf2_format import DataFormatError, read_nerf2_folder
 from graf.sim.dataset import generate, read_dataset
 
 pytest.importorskip("sionna.rt")
@@ -30,8 +30,13 @@ ARGS = ["scene=small_room", "band=2.4ghz", "sim.num_tx=96", "sim.chunk_size=8", 
 
 
 def _run(data_root: Path, out: Path, extra=(), **kw):
-    return subprocess.Popen([str(BIN / "graf-simulate"), *ARGS, f"data_root={data_root}", f"hydra.run.dir={out}", *extra],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **kw)
+    return subprocess.Popen(
+        [str(BIN / "graf-simulate"), *ARGS, f"data_root={data_root}", f"hydra.run.dir={out}", *extra],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        **kw,
+    )
 
 
 def _h5(root: Path) -> Path:
@@ -78,17 +83,29 @@ def test_dataset_contents_and_nerf2_export_round_trip(reference):
     order = np.concatenate([d.train_idx, d.test_idx])  # the reader lists the training split first
     np.testing.assert_array_equal(back.ids, d.ids[order])
     assert bool((back.spectra == d.spectra[order]).all())  # identical values
-    np.testing.assert_allclose(back.positions, np.concatenate([d.positions[d.train_idx], d.positions[d.test_idx]]),
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        back.positions, np.concatenate([d.positions[d.train_idx], d.positions[d.test_idx]]), atol=1e-6
+    )
     np.testing.assert_allclose(back.gateway_orientation, d.gateway_orientation, atol=1e-12)
 
 
 def test_graf_eval_reads_the_simulated_scene(reference, tmp_path):
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(config_name="eval", overrides=[
-            "model=knn", "scene=small_room", "scene.small_room.num_tx=96", "band=2.4ghz", f"data_root={reference}", "logger=none",
-            f"paths.output_dir={tmp_path}", "trainer.accelerator=cpu", "plot_count=1"])
+        cfg = compose(
+            config_name="eval",
+            overrides=[
+                "model=knn",
+                "scene=small_room",
+                "scene.small_room.num_tx=96",
+                "band=2.4ghz",
+                f"data_root={reference}",
+                "logger=none",
+                f"paths.output_dir={tmp_path}",
+                "trainer.accelerator=cpu",
+                "plot_count=1",
+            ],
+        )
     GlobalHydra.instance().clear()
     metrics, _ = evaluate(cfg)
     r = json.loads((tmp_path / "results.json").read_text())
@@ -112,13 +129,34 @@ def test_changed_configuration_is_refused_and_missing_dataset_is_explained(tmp_p
 
 
 def test_show_scenes_and_bench_sim_commands(reference, tmp_path):
-    p = subprocess.run([str(BIN / "graf-show-scenes"), f"data_root={reference}", "scenes=[small_room]", "count=2", "num_tx=96",
-                        f"hydra.run.dir={tmp_path / 'show'}"], capture_output=True, text=True, timeout=300)
+    p = subprocess.run(
+        [
+            str(BIN / "graf-show-scenes"),
+            f"data_root={reference}",
+            "scenes=[small_room]",
+            "count=2",
+            "num_tx=96",
+            f"hydra.run.dir={tmp_path / 'show'}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert p.returncode == 0, p.stderr[-2000:]
     r = json.loads((tmp_path / "show" / "results.json").read_text())
     assert r["scenes"]["small_room"]["spectra"] == 96 and (tmp_path / "show" / "scenes.png").stat().st_size > 5000
-    p = subprocess.run([str(BIN / "graf-bench-sim"), "scene=small_room", "bench.num_tx=16", "bench.convergence_tx=8",
-                        f"hydra.run.dir={tmp_path / 'bench'}"], capture_output=True, text=True, timeout=600)
+    p = subprocess.run(
+        [
+            str(BIN / "graf-bench-sim"),
+            "scene=small_room",
+            "bench.num_tx=16",
+            "bench.convergence_tx=8",
+            f"hydra.run.dir={tmp_path / 'bench'}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert p.returncode == 0, p.stderr[-2000:]
     b = json.loads((tmp_path / "bench" / "results.json").read_text())
     assert b["positions"] == 16 and b["spectra_per_second"] > 0 and "spectra/s" in p.stdout
@@ -128,7 +166,9 @@ def test_show_scenes_and_bench_sim_commands(reference, tmp_path):
 def test_a_limited_dataset_is_read_only_when_asked_for(reference, compose_cfg):
     band = Band("2.4ghz", 2.412e9)
     scene = instantiate(compose_cfg("eval", ("scene=small_room",)).scene.small_room)
-    with pytest.raises(DataFormatError, match=r"no dataset for scene small_room .* scene.small_room.num_tx=N \(N in \[96\]\)"):
+    with pytest.raises(
+        DataFormatError, match=r"no dataset for scene small_room .* scene.small_room.num_tx=N \(N in \[96\]\)"
+    ):
         scene.load(reference, band)  # only 2.4ghz-n96.h5 is there: never used silently
     asked = instantiate(compose_cfg("eval", ("scene=small_room", "scene.small_room.num_tx=96")).scene.small_room)
     assert len(asked.load(reference, band).ids) == 96

@@ -10,25 +10,38 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 
 from graf.bands import Band
-from graf.pipeline.config import CONF_DIR
 from graf.metrics import psnr_per_sample
 from graf.models.knn.weights import barycentric_weights
+from graf.pipeline.config import CONF_DIR
 from graf.sim.scene import SimulatedScene
 
 pytest.importorskip("sionna.rt")  # graf.sim (imported above) has configured the LLVM backend
 
 BAND = Band("2.4ghz", 2.412e9)
 GATEWAY = {"position": [0.0, 0.0, 1.5], "normal": [1, 0, 0], "x_axis": [0, 1, 0]}
-TRACING = {"max_depth": 1, "los": True, "specular_reflection": True, "diffuse_reflection": False,
-           "refraction": False, "diffraction": False, "samples_per_src": 10000, "max_num_paths_per_src": 40000,
-           "seed": 1}
+TRACING = {
+    "max_depth": 1,
+    "los": True,
+    "specular_reflection": True,
+    "diffuse_reflection": False,
+    "refraction": False,
+    "diffraction": False,
+    "samples_per_src": 10000,
+    "max_num_paths_per_src": 40000,
+    "seed": 1,
+}
 WALL = {"wall": {"material": "metal", "center": [3.0, 1.5, 1.5], "size": [6.0, 0.02, 3.0]}}  # a wall near the targets
 
 
 def _scene(objects=None, max_depth=1) -> SimulatedScene:
-    return SimulatedScene(name="physics", gateway=GATEWAY, objects=objects or {},
-                          transmitters={"count": 1, "min": [1, -1, 0], "max": [2, 1, 1]},
-                          tracing=dict(TRACING, max_depth=max_depth), array={"pattern": "cos"})
+    return SimulatedScene(
+        name="physics",
+        gateway=GATEWAY,
+        objects=objects or {},
+        transmitters={"count": 1, "min": [1, -1, 0], "max": [2, 1, 1]},
+        tracing=dict(TRACING, max_depth=max_depth),
+        array={"pattern": "cos"},
+    )
 
 
 def _spectra(scene: SimulatedScene, positions: np.ndarray) -> torch.Tensor:
@@ -91,9 +104,10 @@ def _interpolation_errors(scene, centres, hs):
         nbr = _octahedra(centres, h)
         pts = np.concatenate([centres, nbr.reshape(-1, 3).numpy()])
         s = _spectra(scene, pts).double()
-        tgt, src = s[: len(centres)], s[len(centres):].view(len(centres), 6, 90, 360)
-        w = barycentric_weights(torch.as_tensor(centres), nbr, torch.ones(len(centres), 6, dtype=torch.bool),
-                                ridge=1e-8)
+        tgt, src = s[: len(centres)], s[len(centres) :].view(len(centres), 6, 90, 360)
+        w = barycentric_weights(
+            torch.as_tensor(centres), nbr, torch.ones(len(centres), 6, dtype=torch.bool), ridge=1e-8
+        )
         pred = torch.einsum("tl,tlhw->thw", w, src)
         errs.append(float((pred - tgt).abs().mean()))
     return np.array(errs)
@@ -118,8 +132,11 @@ def test_default_sample_budget_is_converged_on_a_small_scene():
     pos = scene.positions(32)
     runs = []
     for factor in (1, 2):
-        tracer = scene.tracer(band, samples_per_src=factor * scene.tracing["samples_per_src"],
-                              max_num_paths_per_src=factor * scene.tracing["max_num_paths_per_src"])
+        tracer = scene.tracer(
+            band,
+            samples_per_src=factor * scene.tracing["samples_per_src"],
+            max_num_paths_per_src=factor * scene.tracing["max_num_paths_per_src"],
+        )
         _, spectra, n_paths = scene.spectra(tracer, scene.bartlett(band), pos)
         assert n_paths.min() > 10  # a furnished room at depth 3: many paths per link
         runs.append(spectra)

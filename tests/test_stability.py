@@ -10,7 +10,6 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from graf.bands import Band
-from graf.pipeline.config import CONF_DIR
 from graf.data.datamodule import SpectrumDataModule
 from graf.data.scenes import NeRF2Scene
 from graf.geometry.rays import random_pixels
@@ -18,22 +17,25 @@ from graf.metrics import lpips_distance, mse_per_sample, psnr_per_sample, ssim_p
 from graf.models.knn import KNNModule
 from graf.models.nerf2 import NeRF2Module
 from graf.neighbors import NeighborSelector
+from graf.pipeline.config import CONF_DIR
 
 UHF, SHF = Band("915mhz", 915e6), Band("3ghz", 3e9)
 
 
 def _graf(**kw):
-    cfg = OmegaConf.merge(OmegaConf.load(CONF_DIR / "model" / "graf.yaml"),
-                          {k: v for k, v in OmegaConf.load(CONF_DIR / "model" / "graf_cpu.yaml").items()
-                           if k != "defaults"})
+    cfg = OmegaConf.merge(
+        OmegaConf.load(CONF_DIR / "model" / "graf.yaml"),
+        {k: v for k, v in OmegaConf.load(CONF_DIR / "model" / "graf_cpu.yaml").items() if k != "defaults"},
+    )
     torch.manual_seed(0)
     return instantiate(cfg, **{"rays_per_step": 64, "chunk_rays": 40000, **kw})
 
 
 @pytest.fixture
 def dm(make_scene):
-    d = SpectrumDataModule(NeRF2Scene("tiny", str(make_scene(n=24))), UHF, NeighborSelector(L=4, L_train=(1, 4)),
-                           batch_size=2)
+    d = SpectrumDataModule(
+        NeRF2Scene("tiny", str(make_scene(n=24))), UHF, NeighborSelector(L=4, L_train=(1, 4)), batch_size=2
+    )
     d.setup()
     return d
 
@@ -80,16 +82,21 @@ def test_transmitter_at_the_gateway_and_co_located_neighbours(dm):
 
 def test_one_neighbour_and_more_asked_than_there_are(make_scene):
     for L in (1, 50):
-        d = SpectrumDataModule(NeRF2Scene("tiny", str(make_scene(n=24, name=f"t{L}"))), UHF,
-                               NeighborSelector(L=L, L_train=(L, L)), batch_size=2)
+        d = SpectrumDataModule(
+            NeRF2Scene("tiny", str(make_scene(n=24, name=f"t{L}"))),
+            UHF,
+            NeighborSelector(L=L, L_train=(L, L)),
+            batch_size=2,
+        )
         d.setup()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             rows, idx, mask = d.split_neighbors("test")
         counts = mask.sum(1)
         if L == 50:  # 18 training spectra at most: all of them, with a warning
-            assert int(counts.max()) == len(d.train_rows) and any("candidates available" in str(w.message)
-                                                                   for w in caught)
+            assert int(counts.max()) == len(d.train_rows) and any(
+                "candidates available" in str(w.message) for w in caught
+            )
         else:
             assert (counts == 1).all()
         b = d.train_batch(0)
@@ -122,9 +129,14 @@ def test_tiny_and_huge_scenes_at_low_and_high_bands(dm, length, band, samples):
     b = dm._collate_eval([0, 1])
     s = length / float(b["ray_length"][0])
     gw = b["gw_pos"]
-    scaled = {**b, "tgt_pos": gw + (b["tgt_pos"] - gw) * s, "src_pos": gw[:, None] + (b["src_pos"] - gw[:, None]) * s,
-              "ray_length": torch.full((2,), length), "wavelength": torch.full((2,), band.wavelength),
-              "bounds": gw[:, None] + (b["bounds"] - gw[:, None]) * s}
+    scaled = {
+        **b,
+        "tgt_pos": gw + (b["tgt_pos"] - gw) * s,
+        "src_pos": gw[:, None] + (b["src_pos"] - gw[:, None]) * s,
+        "ray_length": torch.full((2,), length),
+        "wavelength": torch.full((2,), band.wavelength),
+        "bounds": gw[:, None] + (b["bounds"] - gw[:, None]) * s,
+    }
     model = _graf()
     assert model.samples_per_ray(scaled) == [samples, samples]
     info = model.ray_sampling({k: v[:1] for k, v in scaled.items()})
@@ -157,11 +169,19 @@ def test_training_until_the_learning_rate_has_decayed_fully(dm):
     import lightning as L
 
     model = _graf(lr=1e-3, lr_decay=0.1, decay_steps=20)
-    trainer = L.Trainer(max_steps=60, max_epochs=-1, accelerator="cpu", logger=False, enable_progress_bar=False,
-                        enable_model_summary=False, enable_checkpointing=False, limit_val_batches=0)
+    trainer = L.Trainer(
+        max_steps=60,
+        max_epochs=-1,
+        accelerator="cpu",
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        enable_checkpointing=False,
+        limit_val_batches=0,
+    )
     trainer.fit(model, datamodule=dm)
     lr = trainer.optimizers[0].param_groups[0]["lr"]
-    assert lr == pytest.approx(1e-3 * 0.1 ** 3, rel=1e-6)
+    assert lr == pytest.approx(1e-3 * 0.1**3, rel=1e-6)
     assert all(torch.isfinite(p).all() for p in model.parameters())
     assert torch.isfinite(trainer.callback_metrics["train/loss"])
     with torch.no_grad():

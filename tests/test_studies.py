@@ -23,9 +23,18 @@ def _run(args: list[str], cwd: Path, env: dict | None = None) -> subprocess.Comp
 
 def test_a_study_multirun_trains_its_base_once_resumes_and_reports(small_room_root, tmp_path):
     sweep = tmp_path / "nc"
-    cmd = ["graf-train", "experiment=neighbour_count", "model=knn_dl", "scene=small_room", "eval_scene=same",
-           "neighbors.L=2,4", "study_steps=2", "sim_num_tx=24", f"data_root={small_room_root}",
-           f"hydra.sweep.dir={sweep}"]
+    cmd = [
+        "graf-train",
+        "experiment=neighbour_count",
+        "model=knn_dl",
+        "scene=small_room",
+        "eval_scene=same",
+        "neighbors.L=2,4",
+        "study_steps=2",
+        "sim_num_tx=24",
+        f"data_root={small_room_root}",
+        f"hydra.sweep.dir={sweep}",
+    ]
     p = _run(cmd, tmp_path)
     assert p.returncode == 0, p.stderr[-3000:]
     jobs = {int(d.name.split("neighbors.L=")[1].split(",")[0]): d for d in sweep.iterdir() if "neighbors.L=" in d.name}
@@ -62,13 +71,30 @@ def test_a_study_multirun_trains_its_base_once_resumes_and_reports(small_room_ro
 
 
 def test_user_errors_end_with_their_message_alone(tmp_path):
-    p = _run(["graf-train", "scene=nerf2", "scene.nerf2.path=/nonexistent/folder", "band=2.4ghz",
-              f"hydra.run.dir={tmp_path / 'a'}"], tmp_path)
+    p = _run(
+        [
+            "graf-train",
+            "scene=nerf2",
+            "scene.nerf2.path=/nonexistent/folder",
+            "band=2.4ghz",
+            f"hydra.run.dir={tmp_path / 'a'}",
+        ],
+        tmp_path,
+    )
     assert p.returncode == 2
     assert p.stderr.strip().splitlines()[-2] == "error: /nonexistent/folder: scene folder does not exist"
     assert "Traceback" not in p.stderr + p.stdout
-    p = _run(["graf-train", "scene=nerf2", "scene.nerf2.path=/nonexistent/folder", "band=2.4ghz",
-              f"hydra.run.dir={tmp_path / 'b'}"], tmp_path, env={"HYDRA_FULL_ERROR": "1"})
+    p = _run(
+        [
+            "graf-train",
+            "scene=nerf2",
+            "scene.nerf2.path=/nonexistent/folder",
+            "band=2.4ghz",
+            f"hydra.run.dir={tmp_path / 'b'}",
+        ],
+        tmp_path,
+        env={"HYDRA_FULL_ERROR": "1"},
+    )
     assert p.returncode != 0 and "Traceback" in p.stderr
     p = _run(["graf-train", "finetune=f20", f"hydra.run.dir={tmp_path / 'c'}"], tmp_path)
     assert p.returncode == 2 and "finetune=f20 fine-tunes a checkpoint: set finetune.init_from=CKPT" in p.stderr
@@ -83,10 +109,12 @@ def test_study_jobs_outside_the_design_are_skipped_with_the_reason(compose_cfg):
         return skip_reason(compose_cfg("train", overrides))
 
     assert reason("same_family_only=true", "scene=conference_v1", "eval_scene=[office_v2]").startswith(
-        "same_family_only: test scenes of family office, training scenes of conference")
+        "same_family_only: test scenes of family office, training scenes of conference"
+    )
     assert reason("same_family_only=true", "scene=conference_v1", "eval_scene=[conference_v2]") is None
     assert reason("same_family_only=false", "scene=conference_v1", "eval_scene=[office_v2]") is None
     # base.band=scene: for a simulated scene the same job as with the run's band; measured data keeps its band
-    assert "the same job as the one with the run's band" in reason("experiment=unseen_layouts", "scene=bedroom",
-                                                                   "finetune.base.band=scene")
+    assert "the same job as the one with the run's band" in reason(
+        "experiment=unseen_layouts", "scene=bedroom", "finetune.base.band=scene"
+    )
     assert reason("experiment=unseen_layouts", "scene=rfid_s23", "finetune.base.band=scene") is None

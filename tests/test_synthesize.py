@@ -20,8 +20,12 @@ from graf.synthesize import synthesize
 
 
 def _dm(L=4):
-    return SpectrumDataModule(NeRF2Scene("rfid_s23", "embedded:rfid_s23_200"), Band("915mhz", 915e6),
-                              NeighborSelector(L=L, L_train=(L, L)), batch_size=8)
+    return SpectrumDataModule(
+        NeRF2Scene("rfid_s23", "embedded:rfid_s23_200"),
+        Band("915mhz", 915e6),
+        NeighborSelector(L=L, L_train=(L, L)),
+        batch_size=8,
+    )
 
 
 def test_synthesis_at_test_positions_equals_evaluation_predictions():
@@ -47,14 +51,33 @@ def test_graf_synthesize_writes_a_nerf2_folder(tmp_path):
     csv = tmp_path / "new.csv"
     csv.write_text("0.0,-0.5,1.0\n-0.1,-0.3,0.95\n0.05,0.0,1.02\n")  # no header
     out = tmp_path / "synth"
-    p = subprocess.run([str(Path(sys.executable).parent / "graf-synthesize"), "model=knn", f"positions={csv}",
-                        f"out={out}", f"hydra.run.dir={tmp_path / 'run'}"], capture_output=True, text=True, timeout=300)
+    p = subprocess.run(
+        [
+            str(Path(sys.executable).parent / "graf-synthesize"),
+            "model=knn",
+            f"positions={csv}",
+            f"out={out}",
+            f"hydra.run.dir={tmp_path / 'run'}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert p.returncode == 0, p.stderr[-2000:]
     d = read_nerf2_folder(out, frequency_hz=915e6)
     assert d.spectra.shape == (3, 90, 360) and sorted(d.ids.tolist()) == [1, 2, 3]
     np.testing.assert_allclose(d.positions[np.argsort(d.ids)], np.loadtxt(csv, delimiter=","), atol=1e-6)
     bad = tmp_path / "bad.csv"
     bad.write_text("x,y,z\n0,0\n")
-    p = subprocess.run([str(Path(sys.executable).parent / "graf-synthesize"), "model=knn", f"positions={bad}",
-                        f"hydra.run.dir={tmp_path / 'run2'}"], capture_output=True, text=True, timeout=300)
+    p = subprocess.run(
+        [
+            str(Path(sys.executable).parent / "graf-synthesize"),
+            "model=knn",
+            f"positions={bad}",
+            f"hydra.run.dir={tmp_path / 'run2'}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert p.returncode != 0 and "bad.csv: line 2 has 2 columns" in p.stderr

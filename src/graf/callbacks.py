@@ -27,11 +27,16 @@ class PredictionCollector(Callback):
 
     def arrays(self) -> dict[str, np.ndarray]:
         if not self.pred:
-            return {"pred": np.zeros((0, *SPECTRUM_SHAPE), np.float32), "target": np.zeros((0, *SPECTRUM_SHAPE), np.float32),
-                    "ids": np.zeros((0,), np.int64)}
-        return {"pred": torch.cat(self.pred).numpy().astype(np.float32),
-                "target": torch.cat(self.target).numpy().astype(np.float32),
-                "ids": torch.cat(self.ids).numpy().astype(np.int64)}
+            return {
+                "pred": np.zeros((0, *SPECTRUM_SHAPE), np.float32),
+                "target": np.zeros((0, *SPECTRUM_SHAPE), np.float32),
+                "ids": np.zeros((0,), np.int64),
+            }
+        return {
+            "pred": torch.cat(self.pred).numpy().astype(np.float32),
+            "target": torch.cat(self.target).numpy().astype(np.float32),
+            "ids": torch.cat(self.ids).numpy().astype(np.int64),
+        }
 
 
 class Preemption(Callback):
@@ -73,5 +78,8 @@ class AttemptClock(Callback):
         import time
 
         if self._t0 is not None:
-            checkpoint["graf_attempt"] = {"start_step": self._step0, "global_step": int(trainer.global_step),
-                                          "fit_s": round(time.perf_counter() - self._t0, 3)}
+            checkpoint["graf_attempt"] = {
+                "start_step": self._step0,
+                "global_step": int(trainer.global_step),
+                "fit_s": round(time.perf_counter() - self._t0, 3),
+            }

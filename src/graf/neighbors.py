@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import logging
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import torch
 
@@ -80,8 +80,11 @@ def select_neighbors(
         raise ValueError("positions must be finite")
     T, M = target_pos.shape[0], cand_pos.shape[0]
     device = target_pos.device
-    Ls = torch.as_tensor(L, dtype=torch.long, device=device).expand(T) if not torch.is_tensor(L) or L.ndim == 0 \
+    Ls = (
+        torch.as_tensor(L, dtype=torch.long, device=device).expand(T)
+        if not torch.is_tensor(L) or L.ndim == 0
         else L.to(device=device, dtype=torch.long)
+    )
     if Ls.shape != (T,):
         raise ValueError(f"L must be an int or a [T] tensor, got shape {tuple(Ls.shape)} for T={T}")
     if T and int(Ls.min()) < 1:
@@ -132,8 +135,9 @@ class NeighborSelector:
         exclude_within: drop candidates closer than this many wavelengths to the target.
     """
 
-    def __init__(self, L: int = 10, L_train: Sequence[int] = (3, 10), radius: float | None = 10.0,
-                 exclude_within: float = 0.0):
+    def __init__(
+        self, L: int = 10, L_train: Sequence[int] = (3, 10), radius: float | None = 10.0, exclude_within: float = 0.0
+    ):
         lo, hi = (int(v) for v in L_train)
         if int(L) < 1 or lo < 1 or hi < lo:
             raise ConfigError(f"neighbors: need L >= 1 and 1 <= L_train[0] <= L_train[1], got L={L}, L_train={L_train}")
@@ -146,9 +150,18 @@ class NeighborSelector:
     def max_L(self) -> int:
         return max(self.L, self.L_train[1])
 
-    def select(self, target_pos, cand_pos, wavelength: float, *, train: bool = False,
-               target_ids=None, cand_ids=None, generator: torch.Generator | None = None,
-               quiet: bool = False) -> Neighbors:
+    def select(
+        self,
+        target_pos,
+        cand_pos,
+        wavelength: float,
+        *,
+        train: bool = False,
+        target_ids=None,
+        cand_ids=None,
+        generator: torch.Generator | None = None,
+        quiet: bool = False,
+    ) -> Neighbors:
         """``quiet``: no warnings about widened radii or short neighbour lists (set-up checks)."""
         T = target_pos.shape[0]
         if train:
@@ -157,20 +170,32 @@ class NeighborSelector:
         else:
             Ls = self.L
         result = select_neighbors(
-            target_pos, cand_pos, Ls, target_ids=target_ids, cand_ids=cand_ids,
+            target_pos,
+            cand_pos,
+            Ls,
+            target_ids=target_ids,
+            cand_ids=cand_ids,
             radius=None if self.radius is None else self.radius * wavelength,
             exclude_within=self.exclude_within * wavelength,
         )
         if not train and not quiet:
             n_w, n_s = int(result.widened.sum()), int(result.short.sum())
             if n_w:
-                warnings.warn(f"neighbors: radius {self.radius} wavelengths held fewer than L={self.L} candidates "
-                              f"for {n_w} of {T} targets; widened to the L nearest", stacklevel=2)
+                warnings.warn(
+                    f"neighbors: radius {self.radius} wavelengths held fewer than L={self.L} candidates "
+                    f"for {n_w} of {T} targets; widened to the L nearest",
+                    stacklevel=2,
+                )
             if n_s:
-                warnings.warn(f"neighbors: only {int(result.counts.min())} candidates available for {n_s} of {T} "
-                              f"targets (L={self.L}); using all of them", stacklevel=2)
+                warnings.warn(
+                    f"neighbors: only {int(result.counts.min())} candidates available for {n_s} of {T} "
+                    f"targets (L={self.L}); using all of them",
+                    stacklevel=2,
+                )
         return result
 
     def __repr__(self) -> str:
-        return (f"NeighborSelector(L={self.L}, L_train={list(self.L_train)}, radius={self.radius}, "
-                f"exclude_within={self.exclude_within})")
+        return (
+            f"NeighborSelector(L={self.L}, L_train={list(self.L_train)}, radius={self.radius}, "
+            f"exclude_within={self.exclude_within})"
+        )

@@ -11,8 +11,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 
-def plot_spectra_grid(pred: np.ndarray, target: np.ndarray, ids: np.ndarray, path: str | Path,
-                      title: str = "", max_rows: int = 4) -> Path:
+def plot_spectra_grid(
+    pred: np.ndarray, target: np.ndarray, ids: np.ndarray, path: str | Path, title: str = "", max_rows: int = 4
+) -> Path:
     """One row per id: true spectrum, prediction, absolute error.  Spectra are ``[N, 90, 360]``;
     row r is elevation r+1 deg (drawn upward), column c azimuth c+1 deg."""
     n = min(max_rows, len(ids))
@@ -20,11 +21,12 @@ def plot_spectra_grid(pred: np.ndarray, target: np.ndarray, ids: np.ndarray, pat
     extent = (0.5, 360.5, 0.5, 90.5)
     for r in range(n):
         err = np.abs(pred[r] - target[r])
-        psnr = 10 * np.log10(1.0 / max(float(np.mean(err ** 2)), 1e-10))
+        psnr = 10 * np.log10(1.0 / max(float(np.mean(err**2)), 1e-10))
         for c, (img, name) in enumerate(((target[r], "true"), (pred[r], "predicted"), (err, "|error|"))):
             ax = axes[r, c]
-            im = ax.imshow(img, origin="lower", extent=extent, aspect="auto", vmin=0, vmax=1,
-                           cmap="magma" if c < 2 else "viridis")
+            im = ax.imshow(
+                img, origin="lower", extent=extent, aspect="auto", vmin=0, vmax=1, cmap="magma" if c < 2 else "viridis"
+            )
             label = f"id {int(ids[r])}: {name}" + (f" ({psnr:.2f} dB)" if c == 1 else "")
             ax.set_title(label, fontsize=9)
             ax.set_xlabel("azimuth (deg)" if r == n - 1 else "")

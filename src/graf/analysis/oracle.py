@@ -54,13 +54,15 @@ def select_targets(dm, split: str) -> tuple[torch.Tensor, torch.Tensor, torch.Te
     everything = torch.arange(len(dm.positions))
     rows = {"test": dm.test_rows, "train": dm.train_rows, "all": everything}[split]
     cand = everything if split == "all" else dm.train_rows
-    nb = dm.neighbors.select(dm.positions[rows], dm.positions[cand], dm.band.wavelength,
-                             target_ids=dm.ids[rows], cand_ids=dm.ids[cand])
+    nb = dm.neighbors.select(
+        dm.positions[rows], dm.positions[cand], dm.band.wavelength, target_ids=dm.ids[rows], cand_ids=dm.ids[cand]
+    )
     return rows, cand[nb.index], nb.mask
 
 
-def fit_weights(target: torch.Tensor, src: torch.Tensor, mask: torch.Tensor, lr: float,
-                iterations: int) -> torch.Tensor:
+def fit_weights(
+    target: torch.Tensor, src: torch.Tensor, mask: torch.Tensor, lr: float, iterations: int
+) -> torch.Tensor:
     """Per-pixel weights ``[T, L, H, W]`` fitted by Adam to ``target [T, H, W]`` from ``src [T, L, H, W]``;
     initialised to 1 / (number of real neighbours), 0 for padded ones (which stay 0).
 
@@ -109,24 +111,45 @@ class WeightStats:
     def result(self) -> dict:
         def mean_std(s, s2, n):
             mean = s / n
-            return float(mean), float((s2 / n - mean ** 2).clamp_min(0.0).sqrt())
+            return float(mean), float((s2 / n - mean**2).clamp_min(0.0).sqrt())
 
         raw_mean, raw_std = mean_std(self.sums[0], self.sums[1], self.n)
         norm_mean, norm_std = mean_std(self.sums[2], self.sums[3], self.n)
-        ranks = [mean_std(self.rank[1, r], self.rank[2, r], self.rank[0, r].clamp_min(1.0))
-                 for r in range(self.rank.shape[1])]
+        ranks = [
+            mean_std(self.rank[1, r], self.rank[2, r], self.rank[0, r].clamp_min(1.0))
+            for r in range(self.rank.shape[1])
+        ]
         return {
-            "raw": {"mean": raw_mean, "std": raw_std, "min": self.lo, "max": self.hi,
-                    "negative_fraction": self.negative / max(self.n, 1)},
-            "normalized": {"mean": norm_mean, "std": norm_std,
-                           "per_rank_mean": [m for m, _ in ranks], "per_rank_std": [s for _, s in ranks],
-                           "histogram": {"edges": np.linspace(-1.0, 1.0, HIST_BINS + 1).tolist(),
-                                         "counts": [int(c) for c in self.hist]}},
+            "raw": {
+                "mean": raw_mean,
+                "std": raw_std,
+                "min": self.lo,
+                "max": self.hi,
+                "negative_fraction": self.negative / max(self.n, 1),
+            },
+            "normalized": {
+                "mean": norm_mean,
+                "std": norm_std,
+                "per_rank_mean": [m for m, _ in ranks],
+                "per_rank_std": [s for _, s in ranks],
+                "histogram": {
+                    "edges": np.linspace(-1.0, 1.0, HIST_BINS + 1).tolist(),
+                    "counts": [int(c) for c in self.hist],
+                },
+            },
         }
 
 
-def run_oracle(spectra: torch.Tensor, positions: torch.Tensor, rows: torch.Tensor, src_index: torch.Tensor,
-               src_mask: torch.Tensor, lrs, iterations: int, chunk_targets: int = 64) -> dict:
+def run_oracle(
+    spectra: torch.Tensor,
+    positions: torch.Tensor,
+    rows: torch.Tensor,
+    src_index: torch.Tensor,
+    src_mask: torch.Tensor,
+    lrs,
+    iterations: int,
+    chunk_targets: int = 64,
+) -> dict:
     """Fit the oracle for every target ``rows`` (neighbours ``src_index``/``src_mask``) at each lr.
 
     Returns ``{"idw_psnr": [T], "runs": [{"lr", "psnr": [T], "weights": WeightStats.result()}]}``, with
@@ -142,7 +165,11 @@ def run_oracle(spectra: torch.Tensor, positions: torch.Tensor, rows: torch.Tenso
     stats = {lr: WeightStats(src_index.shape[1]) for lr in lrs}
     idw = []
     for s in range(0, len(rows), int(chunk_targets)):
-        r, idx, mask = rows[s:s + chunk_targets], src_index[s:s + chunk_targets], src_mask[s:s + chunk_targets].bool()
+        r, idx, mask = (
+            rows[s : s + chunk_targets],
+            src_index[s : s + chunk_targets],
+            src_mask[s : s + chunk_targets].bool(),
+        )
         target, src = spectra[r].float(), spectra[idx].float()
         w_idw = idw_weights(positions[r].double(), positions[idx].double(), mask).float()
         idw.append(psnr_per_sample(torch.einsum("tl,tlhw->thw", w_idw, src).clamp(0, 1), target))
@@ -150,15 +177,24 @@ def run_oracle(spectra: torch.Tensor, positions: torch.Tensor, rows: torch.Tenso
             w = fit_weights(target, src, mask, lr, int(iterations))
             psnr[lr].append(psnr_per_sample((w * src).sum(dim=1).clamp(0, 1), target))
             stats[lr].update(w, mask)
-    return {"idw_psnr": torch.cat(idw),
-            "runs": [{"lr": lr, "psnr": torch.cat(psnr[lr]), "weights": stats[lr].result()} for lr in lrs]}
+    return {
+        "idw_psnr": torch.cat(idw),
+        "runs": [{"lr": lr, "psnr": torch.cat(psnr[lr]), "weights": stats[lr].result()} for lr in lrs],
+    }
 
 
 def summarize(psnr: torch.Tensor) -> dict:
     """Mean, std (population), median, min, max, n and the per-target list of PSNRs (dB)."""
     x = psnr.double().cpu().numpy()
-    return {"mean": float(x.mean()), "std": float(x.std()), "median": float(np.median(x)), "min": float(x.min()),
-            "max": float(x.max()), "n": int(x.size), "per_target": [round(float(v), 4) for v in x]}
+    return {
+        "mean": float(x.mean()),
+        "std": float(x.std()),
+        "median": float(np.median(x)),
+        "min": float(x.min()),
+        "max": float(x.max()),
+        "n": int(x.size),
+        "per_target": [round(float(v), 4) for v in x],
+    }
 
 
 def plot_oracle(results: dict, path: str | Path) -> Path:
@@ -174,8 +210,11 @@ def plot_oracle(results: dict, path: str | Path) -> Path:
     ax.axvline(PAPER_REFERENCE["psnr_mean"], color="k", ls="--", label="paper A.2: 20.5 ± 4.1 dB")
     ax.set_xlabel("PSNR (dB)")
     ax.set_ylabel("targets")
-    ax.set_title(f"{results['scene']} ({results['split']}, n={results['n']}, L={results['L']}, "
-                 f"{results['iterations']} iterations)", fontsize=9)
+    ax.set_title(
+        f"{results['scene']} ({results['split']}, n={results['n']}, L={results['L']}, "
+        f"{results['iterations']} iterations)",
+        fontsize=9,
+    )
     ax.legend(fontsize=8)
     for run in results["runs"]:
         h = run["weights"]["normalized"]["histogram"]

@@ -53,8 +53,8 @@ from __future__ import annotations
 import logging
 import numbers
 import warnings
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Callable, Sequence
 
 import lightning as L
 import numpy as np
@@ -80,9 +80,12 @@ def measured_part(train_rows: np.ndarray, fraction: float | None, seed: int, whe
         return np.sort(train_rows)
     k = int(round(n * fraction))
     if k < 2:
-        raise DataFormatError(where, f"a measured fraction of {fraction:g} of its {n} training spectra leaves {k}: at "
-                                     "least 2 are needed (one to validate on, one to fit and take neighbours from); "
-                                     "use a larger fraction or more spectra")
+        raise DataFormatError(
+            where,
+            f"a measured fraction of {fraction:g} of its {n} training spectra leaves {k}: at "
+            "least 2 are needed (one to validate on, one to fit and take neighbours from); "
+            "use a larger fraction or more spectra",
+        )
     perm = np.random.default_rng(int(seed)).permutation(n)
     return np.sort(train_rows[perm[:k]])
 
@@ -107,11 +110,16 @@ def carve_validation(train_rows: np.ndarray, fraction: float, seed: int, where: 
     """``(fit_rows, val_rows)``: a seeded ``fraction`` (rounded, at least 1) of ``train_rows`` for validation."""
     n = len(train_rows)
     if not 0.0 < fraction < 1.0:
-        raise ConfigError(f"data.val_fraction must be in (0, 1), got {fraction}: validation is carved from each "
-                          "scene's training split (at least one spectrum), so 0 and 1 leave nothing to validate or fit on")
+        raise ConfigError(
+            f"data.val_fraction must be in (0, 1), got {fraction}: validation is carved from each "
+            "scene's training split (at least one spectrum), so 0 and 1 leave nothing to validate or fit on"
+        )
     if n < 2:
-        raise DataFormatError(where, f"the training split holds {n} spectrum(s): at least 2 are needed, one to "
-                                     "validate on and one to train on and take neighbours from")
+        raise DataFormatError(
+            where,
+            f"the training split holds {n} spectrum(s): at least 2 are needed, one to "
+            "validate on and one to train on and take neighbours from",
+        )
     n_val = min(max(int(round(n * fraction)), 1), n - 1)
     perm = np.random.default_rng(int(seed)).permutation(n)
     return np.sort(train_rows[perm[n_val:]]), np.sort(train_rows[perm[:n_val]])
@@ -168,36 +176,52 @@ class StepLoader(DataLoader):
 
     def load_state_dict(self, state: dict) -> None:
         if int(state.get("seed", self.seed)) != self.seed:
-            warnings.warn(f"resuming a run trained with data seed {state['seed']} with seed {self.seed}: the "
-                          "batches after the checkpoint differ from an uninterrupted run", stacklevel=2)
+            warnings.warn(
+                f"resuming a run trained with data seed {state['seed']} with seed {self.seed}: the "
+                "batches after the checkpoint differ from an uninterrupted run",
+                stacklevel=2,
+            )
 
 
 class SpectrumDataModule(L.LightningDataModule):
     """Args:
-        scene: a scene object (``conf/scene``) with ``load(data_root, band)``, or a list of them (trained
-            together; each batch item keeps its own scene's geometry and band).
-        band: the :class:`Band`, or a list (one per scene).
-        neighbors: the :class:`NeighborSelector`.
-        data_root: where datasets are read from and written to.
-        batch_size: targets per batch.
-        eval_split: what ``test_dataloader`` evaluates: ``test`` (default), ``val``, or ``train`` (each fit
-            target with its other fit neighbours).
-        seed: seeds the training stream (target order, L and neighbour draws).
-        val_fraction / val_seed: the validation part of each scene's training split (seeded by ``val_seed``,
-            independent of ``seed``).
-        scene_indices: the scene index each scene's items carry (default ``0 .. n_scenes - 1``).
-        measured_fraction: the part of each scene's training split that is measured (null: all of it).
-        measured_seed: draws the measured part.
-        test_pool: where test neighbours come from: ``measured`` (the measured part: default) or
-            ``train_split`` (the whole training split, measured or not).
-        simulate_missing: a simulated scene whose dataset file is missing is ray-traced first (studies).
+    scene: a scene object (``conf/scene``) with ``load(data_root, band)``, or a list of them (trained
+        together; each batch item keeps its own scene's geometry and band).
+    band: the :class:`Band`, or a list (one per scene).
+    neighbors: the :class:`NeighborSelector`.
+    data_root: where datasets are read from and written to.
+    batch_size: targets per batch.
+    eval_split: what ``test_dataloader`` evaluates: ``test`` (default), ``val``, or ``train`` (each fit
+        target with its other fit neighbours).
+    seed: seeds the training stream (target order, L and neighbour draws).
+    val_fraction / val_seed: the validation part of each scene's training split (seeded by ``val_seed``,
+        independent of ``seed``).
+    scene_indices: the scene index each scene's items carry (default ``0 .. n_scenes - 1``).
+    measured_fraction: the part of each scene's training split that is measured (null: all of it).
+    measured_seed: draws the measured part.
+    test_pool: where test neighbours come from: ``measured`` (the measured part: default) or
+        ``train_split`` (the whole training split, measured or not).
+    simulate_missing: a simulated scene whose dataset file is missing is ray-traced first (studies).
     """
 
-    def __init__(self, scene, band: Band | Sequence[Band], neighbors: NeighborSelector,
-                 data_root: str | Path | None = None, batch_size: int = 4, num_workers: int = 0,
-                 eval_split: str = "test", seed: int = 0, val_fraction: float = 0.1, val_seed: int = 0,
-                 scene_indices: Sequence[int] | None = None, measured_fraction: float | None = None,
-                 measured_seed: int = 0, test_pool: str = "measured", simulate_missing: bool = False):
+    def __init__(
+        self,
+        scene,
+        band: Band | Sequence[Band],
+        neighbors: NeighborSelector,
+        data_root: str | Path | None = None,
+        batch_size: int = 4,
+        num_workers: int = 0,
+        eval_split: str = "test",
+        seed: int = 0,
+        val_fraction: float = 0.1,
+        val_seed: int = 0,
+        scene_indices: Sequence[int] | None = None,
+        measured_fraction: float | None = None,
+        measured_seed: int = 0,
+        test_pool: str = "measured",
+        simulate_missing: bool = False,
+    ):
         super().__init__()
         if test_pool not in TEST_POOLS:
             raise ConfigError(f"finetune.test_pool must be one of {TEST_POOLS}, got {test_pool!r}")
@@ -254,22 +278,33 @@ class SpectrumDataModule(L.LightningDataModule):
             ids.append(np.asarray(d.ids, np.int64)), scene_of.append(np.full(n, k, np.int64))
             p = torch.as_tensor(d.gateway_position, dtype=torch.float64)
             b = torch.as_tensor(d.bounds(), dtype=torch.float64)
-            corners = torch.stack([torch.stack([b[i, 0], b[j, 1], b[m, 2]])
-                                   for i in (0, 1) for j in (0, 1) for m in (0, 1)])
+            corners = torch.stack(
+                [torch.stack([b[i, 0], b[j, 1], b[m, 2]]) for i in (0, 1) for j in (0, 1) for m in (0, 1)]
+            )
             gw_pos.append(p), bounds.append(b), wl.append(band.wavelength)
             gw_rot.append(torch.as_tensor(Rotation.from_quat(d.gateway_orientation).as_matrix()))
             ray_len.append(float((corners - p).norm(dim=1).max()))
-            log.info("scene %s (index %d): %d train (%s%d fit + %d validation) / %d test spectra (%s), band %s "
-                     "(%.4f m)", d.name, int(self.scene_index[k]), d.n_train,
-                     "" if len(measured) == len(train) else f"{len(measured)} measured: ", len(fit), len(val),
-                     d.n_test, d.split_source, band.name, band.wavelength)
+            log.info(
+                "scene %s (index %d): %d train (%s%d fit + %d validation) / %d test spectra (%s), band %s (%.4f m)",
+                d.name,
+                int(self.scene_index[k]),
+                d.n_train,
+                "" if len(measured) == len(train) else f"{len(measured)} measured: ",
+                len(fit),
+                len(val),
+                d.n_test,
+                d.split_source,
+                band.name,
+                band.wavelength,
+            )
             offset += n
         self.spectra = spectra[0] if len(spectra) == 1 else torch.cat(spectra)
         self.positions = torch.as_tensor(np.concatenate(pos))
         self.ids = torch.as_tensor(np.concatenate(ids))
         self.row_scene = torch.as_tensor(np.concatenate(scene_of))
         self.train_rows, self.measured_rows, self.fit_rows, self.val_rows, self.test_rows = (
-            torch.as_tensor(np.concatenate(splits[s])) for s in ("train", "measured", "fit", "val", "test"))
+            torch.as_tensor(np.concatenate(splits[s])) for s in ("train", "measured", "fit", "val", "test")
+        )
         # per-scene tables, gathered per batch item through its scene index
         self.gw_pos = torch.stack(gw_pos).float()
         self.gw_rot = torch.stack(gw_rot).float()
@@ -286,7 +321,7 @@ class SpectrumDataModule(L.LightningDataModule):
         for name in ("train", "val", "test"):
             rows, pool = self._split(name)
             for s in range(0, len(rows), 1024):
-                self.select(rows[s:s + 1024], pool, train=False, quiet=True)
+                self.select(rows[s : s + 1024], pool, train=False, quiet=True)
 
     def set_scene_indices(self, indices: Sequence[int]) -> None:
         """The scene index each scene's items carry (decided by content after set-up: see
@@ -320,8 +355,14 @@ class SpectrumDataModule(L.LightningDataModule):
         return int(len(self.train_rows))
 
     # ------------------------------------------------------------------ neighbours
-    def select(self, rows: torch.Tensor, pool: torch.Tensor, train: bool,
-               generator: torch.Generator | None = None, quiet: bool = False) -> Neighbors:
+    def select(
+        self,
+        rows: torch.Tensor,
+        pool: torch.Tensor,
+        train: bool,
+        generator: torch.Generator | None = None,
+        quiet: bool = False,
+    ) -> Neighbors:
         """Neighbours of ``rows`` among ``pool`` (both datamodule rows), each target's from its own scene only,
         never the target itself; indices returned as datamodule rows."""
         rows, pool = torch.as_tensor(rows, dtype=torch.long), torch.as_tensor(pool, dtype=torch.long)
@@ -332,22 +373,34 @@ class SpectrumDataModule(L.LightningDataModule):
             if len(cand) == 0:
                 raise DataFormatError(self.sets[k].source, "no spectra left to take neighbours from")
             try:
-                nb = self.neighbors.select(self.positions[rows[t]], self.positions[cand], float(self.wavelength[k]),
-                                           train=train, target_ids=self.ids[rows[t]], cand_ids=self.ids[cand],
-                                           generator=generator, quiet=quiet)
+                nb = self.neighbors.select(
+                    self.positions[rows[t]],
+                    self.positions[cand],
+                    float(self.wavelength[k]),
+                    train=train,
+                    target_ids=self.ids[rows[t]],
+                    cand_ids=self.ids[cand],
+                    generator=generator,
+                    quiet=quiet,
+                )
             except NoNeighborsError as exc:
                 raise NoNeighborsError(
                     f"scene {self.sets[k].name}: {exc} (neighbors.exclude_within={self.neighbors.exclude_within:g} "
                     f"wavelengths of {float(self.wavelength[k]):.4g} m): lower neighbors.exclude_within, or use more "
-                    "training spectra") from None
+                    "training spectra"
+                ) from None
             nb.index = cand[nb.index]
             parts.append((t, nb))
         if len(parts) == 1:
             return parts[0][1]
         T, Lmax = len(rows), max(nb.index.shape[1] for _, nb in parts)
-        out = Neighbors(index=torch.zeros(T, Lmax, dtype=torch.long), mask=torch.zeros(T, Lmax, dtype=torch.bool),
-                        distance=torch.zeros(T, Lmax, dtype=self.positions.dtype),
-                        widened=torch.zeros(T, dtype=torch.bool), short=torch.zeros(T, dtype=torch.bool))
+        out = Neighbors(
+            index=torch.zeros(T, Lmax, dtype=torch.long),
+            mask=torch.zeros(T, Lmax, dtype=torch.bool),
+            distance=torch.zeros(T, Lmax, dtype=self.positions.dtype),
+            widened=torch.zeros(T, dtype=torch.bool),
+            short=torch.zeros(T, dtype=torch.bool),
+        )
         for t, nb in parts:
             w = nb.index.shape[1]
             out.index[t, :w], out.mask[t, :w], out.distance[t, :w] = nb.index, nb.mask, nb.distance
@@ -357,8 +410,11 @@ class SpectrumDataModule(L.LightningDataModule):
     def _split(self, name: str) -> tuple[torch.Tensor, torch.Tensor]:
         """``(target rows, neighbour pool)`` of an evaluation split."""
         pool = self.measured_rows if self.test_pool == "measured" else self.train_rows
-        return {"test": (self.test_rows, pool), "val": (self.val_rows, self.fit_rows),
-                "train": (self.fit_rows, self.fit_rows)}[name]
+        return {
+            "test": (self.test_rows, pool),
+            "val": (self.val_rows, self.fit_rows),
+            "train": (self.fit_rows, self.fit_rows),
+        }[name]
 
     def split_neighbors(self, name: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``(rows [n], src_index [n, L], src_mask [n, L])`` of evaluation split ``name`` (selected once)."""
@@ -438,10 +494,13 @@ class SpectrumDataModule(L.LightningDataModule):
         """Training batch number ``k``: targets from epoch ``k // batches_per_epoch``'s seeded order, and L and
         neighbours drawn with a generator seeded by ``(seed, k)``."""
         epoch, j = divmod(int(k), self.batches_per_epoch)
-        order = torch.randperm(len(self.fit_rows), generator=torch.Generator().manual_seed(mixed_seed(self.seed, 0, epoch)))
-        rows = self.fit_rows[order[j * self.batch_size:(j + 1) * self.batch_size]]
-        nb = self.select(rows, self.fit_rows, train=True,
-                         generator=torch.Generator().manual_seed(mixed_seed(self.seed, 1, k)))
+        order = torch.randperm(
+            len(self.fit_rows), generator=torch.Generator().manual_seed(mixed_seed(self.seed, 0, epoch))
+        )
+        rows = self.fit_rows[order[j * self.batch_size : (j + 1) * self.batch_size]]
+        nb = self.select(
+            rows, self.fit_rows, train=True, generator=torch.Generator().manual_seed(mixed_seed(self.seed, 1, k))
+        )
         return self.make_batch(rows, nb.index, nb.mask)
 
     def _global_step(self) -> int:
@@ -453,13 +512,23 @@ class SpectrumDataModule(L.LightningDataModule):
         return int(trainer.global_step)
 
     def train_dataloader(self) -> DataLoader:
-        return StepLoader(TrainBatchStream(self.batches_per_epoch), self._global_step, self.seed,
-                          collate_fn=self.train_batch, num_workers=self.num_workers)
+        return StepLoader(
+            TrainBatchStream(self.batches_per_epoch),
+            self._global_step,
+            self.seed,
+            collate_fn=self.train_batch,
+            num_workers=self.num_workers,
+        )
 
     def _eval_loader(self, name: str) -> DataLoader:
         rows = self.split_neighbors(name)[0]
-        return DataLoader(_Positions(len(rows)), batch_size=self.batch_size, shuffle=False,
-                          collate_fn=self._eval_collate(name), num_workers=self.num_workers)
+        return DataLoader(
+            _Positions(len(rows)),
+            batch_size=self.batch_size,
+            shuffle=False,
+            collate_fn=self._eval_collate(name),
+            num_workers=self.num_workers,
+        )
 
     def val_dataloader(self) -> DataLoader:
         return self._eval_loader("val")
@@ -469,13 +538,24 @@ class SpectrumDataModule(L.LightningDataModule):
 
     def split_summary(self) -> dict:
         """What results.json records about the splits."""
-        return {"n_train": self.n_train, "n_fit": int(len(self.fit_rows)), "n_val": int(len(self.val_rows)),
-                "n_test": int(len(self.test_rows)), "val_fraction": self.val_fraction, "val_seed": self.val_seed,
-                "val_ids": [int(i) for i in self.ids[self.val_rows]],
-                "measured_fraction": self.measured_fraction, "measured_seed": self.measured_seed,
-                "n_measured": int(len(self.measured_rows)), "test_pool": self.test_pool,
-                "measured_ids": ([int(i) for i in self.ids[self.measured_rows]]
-                                 if self.measured_fraction is not None else "all training spectra")}
+        return {
+            "n_train": self.n_train,
+            "n_fit": int(len(self.fit_rows)),
+            "n_val": int(len(self.val_rows)),
+            "n_test": int(len(self.test_rows)),
+            "val_fraction": self.val_fraction,
+            "val_seed": self.val_seed,
+            "val_ids": [int(i) for i in self.ids[self.val_rows]],
+            "measured_fraction": self.measured_fraction,
+            "measured_seed": self.measured_seed,
+            "n_measured": int(len(self.measured_rows)),
+            "test_pool": self.test_pool,
+            "measured_ids": (
+                [int(i) for i in self.ids[self.measured_rows]]
+                if self.measured_fraction is not None
+                else "all training spectra"
+            ),
+        }
 
     def query_batches(self, positions, batch_size: int | None = None):
         """Batches for new transmitter positions ``[N, 3]`` of the (single) scene (no measured spectrum:
@@ -486,9 +566,9 @@ class SpectrumDataModule(L.LightningDataModule):
         src = pool[nb.index]
         bs = batch_size or self.batch_size
         for s in range(0, len(pos), bs):
-            rows = torch.zeros(len(pos[s:s + bs]), dtype=torch.long)
-            batch = self.make_batch(rows, src[s:s + bs], nb.mask[s:s + bs])
-            batch["tgt_pos"] = pos[s:s + bs].float()
+            rows = torch.zeros(len(pos[s : s + bs]), dtype=torch.long)
+            batch = self.make_batch(rows, src[s : s + bs], nb.mask[s : s + bs])
+            batch["tgt_pos"] = pos[s : s + bs].float()
             batch["tgt_spectrum"] = torch.zeros_like(batch["tgt_spectrum"])
             batch["tgt_id"] = torch.arange(s + 1, s + 1 + len(rows))
             yield batch

@@ -33,10 +33,13 @@ def scene_fingerprint(data, frequency_hz: float) -> dict:
     (sha256 hex digests; ``digest`` joins the others).  The content digests are computed once per set."""
     parts = getattr(data, "_content_digests", None)
     if parts is None:
-        parts = {"gateway": _sha(np.asarray(data.gateway_position, np.float64),
-                                 np.asarray(data.gateway_orientation, np.float64)),
-                 "positions": _sha(np.asarray(data.ids, np.int64), np.asarray(data.positions, np.float64)),
-                 "spectra": _sha(torch.as_tensor(data.spectra, dtype=torch.float32))}
+        parts = {
+            "gateway": _sha(
+                np.asarray(data.gateway_position, np.float64), np.asarray(data.gateway_orientation, np.float64)
+            ),
+            "positions": _sha(np.asarray(data.ids, np.int64), np.asarray(data.positions, np.float64)),
+            "spectra": _sha(torch.as_tensor(data.spectra, dtype=torch.float32)),
+        }
         data._content_digests = parts
     band_hz = float(frequency_hz)
     digest = hashlib.sha256(f"{parts['gateway']}|{parts['positions']}|{parts['spectra']}|{band_hz:.6f}".encode())
@@ -52,8 +55,11 @@ def find_scene(table: dict, name: str, fingerprint: dict) -> str | None:
         if fp is not None and fp.get("digest") == fingerprint["digest"]:
             return key
     if name in table and table[name].get("fingerprint") is None:
-        log.warning("scene %s: the checkpoint records no fingerprint for it (written before they were kept): "
-                    "taken as the same scene by its name alone", name)
+        log.warning(
+            "scene %s: the checkpoint records no fingerprint for it (written before they were kept): "
+            "taken as the same scene by its name alone",
+            name,
+        )
         return name
     return None
 

@@ -55,9 +55,11 @@ log = logging.getLogger(__name__)
 
 # how the number of tx_pos.csv data rows must relate to the largest spectrum id (read_nerf2_folder)
 POSITION_ROWS_RULES = ("exact", "at_least")
-_ROW_RULE = ("data row k is the position of spectrum id k and NeRF2 writes one row per spectrum, so the row "
-             "count must equal the largest id; a duplicated, missing or extra row would shift every later id's "
-             "position")
+_ROW_RULE = (
+    "data row k is the position of spectrum id k and NeRF2 writes one row per spectrum, so the row "
+    "count must equal the largest id; a duplicated, missing or extra row would shift every later id's "
+    "position"
+)
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 # leading bytes of formats that turn up under a .png name, to say what a refused file looks like
@@ -224,22 +226,29 @@ def _read_positions(path: Path) -> tuple[np.ndarray, bool]:
     numeric = [_is_number(c) for c in first]
     if any(numeric) and not all(numeric):
         raise DataFormatError(
-            path, f"line {first_no} {','.join(first)!r} is neither a header (no numeric cell) nor a numeric x,y,z "
-                  f"row: cells {[c for c, n in zip(first, numeric) if not n]!r} are not numbers, the others are")
+            path,
+            f"line {first_no} {','.join(first)!r} is neither a header (no numeric cell) nor a numeric x,y,z "
+            f"row: cells {[c for c, n in zip(first, numeric) if not n]!r} are not numbers, the others are",
+        )
     had_header = not any(numeric)
     order = [0, 1, 2]  # column of x, y, z
     if had_header:
         problem = _header_problem(first)
         if problem is not None:
             raise DataFormatError(
-                path, f"line {first_no} {','.join(first)!r} looks like a header (no numeric cell) but is not one: "
-                      f"{problem}; a header names the columns x, y, z, and a file without one starts with the "
-                      "numeric position of spectrum id 1")
+                path,
+                f"line {first_no} {','.join(first)!r} looks like a header (no numeric cell) but is not one: "
+                f"{problem}; a header names the columns x, y, z, and a file without one starts with the "
+                "numeric position of spectrum id 1",
+            )
         names = [c.strip().lower() for c in first]
         order = [names.index(n) for n in _XYZ]
         rows = rows[1:]
-    log.info("%s: %s", path, f"header row {','.join(first)!r} found and skipped" if had_header
-             else "no header row; first row is id 1")
+    log.info(
+        "%s: %s",
+        path,
+        f"header row {','.join(first)!r} found and skipped" if had_header else "no header row; first row is id 1",
+    )
     out = np.full((len(rows), 3), np.nan)
     for i, (line_no, r) in enumerate(rows):
         if len(r) != 3:
@@ -310,8 +319,10 @@ def read_nerf2_folder(
     """
     if position_rows not in POSITION_ROWS_RULES:
         raise DataFormatError(
-            "position_rows", f"must be 'exact' or 'at_least' (data rows of tx_pos.csv = or >= the largest "
-                             f"spectrum id), got {position_rows!r}")
+            "position_rows",
+            f"must be 'exact' or 'at_least' (data rows of tx_pos.csv = or >= the largest "
+            f"spectrum id), got {position_rows!r}",
+        )
     root = Path(path)
     if not root.is_dir():
         raise DataFormatError(root, "scene folder does not exist")
@@ -325,8 +336,11 @@ def read_nerf2_folder(
         for index_file, ids in ((train_file, train_ids), (test_file, test_ids)):
             missing = [k for k in ids if k not in files]
             if missing:
-                raise DataFormatError(index_file, f"lists id {missing[0]} but spectrum/ has no PNG for it"
-                                      + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
+                raise DataFormatError(
+                    index_file,
+                    f"lists id {missing[0]} but spectrum/ has no PNG for it"
+                    + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""),
+                )
         split_source = f"index files {train_file.name} / {test_file.name}"
     elif train_file.is_file() or test_file.is_file():
         present, absent = (train_file, test_file) if train_file.is_file() else (test_file, train_file)
@@ -334,8 +348,10 @@ def read_nerf2_folder(
     else:
         if len(files) < 2:
             raise DataFormatError(
-                root, f"{len(files)} spectrum and no index files: a seeded split needs at least 2 "
-                      "(one to train on, one to test)")
+                root,
+                f"{len(files)} spectrum and no index files: a seeded split needs at least 2 "
+                "(one to train on, one to test)",
+            )
         train_ids, test_ids = seeded_split(list(files), split_seed, train_fraction)
         split_source = f"seeded split (no index files): seed={split_seed}, train_fraction={train_fraction}"
         log.warning("%s: no index files; %s", root, split_source)
@@ -353,26 +369,42 @@ def read_nerf2_folder(
         k = int(all_ids[rows.argmax()])
         note = " (not counting the header row)" if had_header else " (the file has no header row)"
         raise DataFormatError(
-            pos_file, f"has {len(positions_all)} position rows but spectrum id {k} needs row {k}{note}; "
-                      f"{_ROW_RULE}")
+            pos_file, f"has {len(positions_all)} position rows but spectrum id {k} needs row {k}{note}; {_ROW_RULE}"
+        )
     n_rows, largest = len(positions_all), max(files)
     if n_rows != largest:
-        counts = (f"has {n_rows} position rows but the largest spectrum id in spectrum/ is {largest} "
-                  f"({files[largest].name})")
+        counts = (
+            f"has {n_rows} position rows but the largest spectrum id in spectrum/ is {largest} ({files[largest].name})"
+        )
         if n_rows < largest or position_rows == "exact":
             raise DataFormatError(
-                pos_file, f"{counts}; {_ROW_RULE}"
-                          + (". If this file holds a larger dataset's rows (a slice of it), read with "
-                             "position_rows='at_least'" if n_rows > largest else ""))
+                pos_file,
+                f"{counts}; {_ROW_RULE}"
+                + (
+                    ". If this file holds a larger dataset's rows (a slice of it), read with position_rows='at_least'"
+                    if n_rows > largest
+                    else ""
+                ),
+            )
         extra = n_rows - largest
-        log.warning("%s %s: %d row%s more than the spectra need, accepted because position_rows='at_least' "
-                    "(rows 1..%d are taken as ids 1..%d; if a row was duplicated or inserted, every later id's "
-                    "position is WRONG)", pos_file, counts, extra, "" if extra == 1 else "s", largest, largest)
+        log.warning(
+            "%s %s: %d row%s more than the spectra need, accepted because position_rows='at_least' "
+            "(rows 1..%d are taken as ids 1..%d; if a row was duplicated or inserted, every later id's "
+            "position is WRONG)",
+            pos_file,
+            counts,
+            extra,
+            "" if extra == 1 else "s",
+            largest,
+            largest,
+        )
     positions = positions_all[rows]
     bad = ~np.isfinite(positions).all(axis=1)
     if bad.any():
         k = int(all_ids[np.argmax(bad)])
-        raise DataFormatError(pos_file, f"position of spectrum id {k} (data row {k}) is not finite: {positions[np.argmax(bad)].tolist()}")
+        raise DataFormatError(
+            pos_file, f"position of spectrum id {k} (data row {k}) is not finite: {positions[np.argmax(bad)].tolist()}"
+        )
 
     spectra = torch.empty((len(all_ids), *SPECTRUM_SHAPE), dtype=torch.float32)
     for i, k in enumerate(all_ids.tolist()):
@@ -391,8 +423,11 @@ def read_nerf2_folder(
         frequency_hz=float(frequency_hz),
         source=str(root),
         split_source=split_source,
-        meta={"tx_pos_header": had_header, "unused_spectra": len(files) - len(all_ids),
-              "position_rows": {"rows": n_rows, "largest_id": largest, "rule": position_rows}},
+        meta={
+            "tx_pos_header": had_header,
+            "unused_spectra": len(files) - len(all_ids),
+            "position_rows": {"rows": n_rows, "largest_id": largest, "rule": position_rows},
+        },
     )
 
 
@@ -436,8 +471,12 @@ def write_nerf2_folder(
     table[ids - 1] = positions
     lines = ["x,y,z"] + [",".join(repr(float(v)) for v in row) for row in table]  # repr: exact round trip
     atomic_write_bytes(root / "tx_pos.csv", ("\n".join(lines) + "\n").encode())
-    gw = {"gateway1": {"position": [float(v) for v in gateway_position],
-                       "orientation": [float(v) for v in gateway_orientation]}}
+    gw = {
+        "gateway1": {
+            "position": [float(v) for v in gateway_position],
+            "orientation": [float(v) for v in gateway_orientation],
+        }
+    }
     atomic_write_bytes(root / "gateway_info.yml", yaml.safe_dump(gw).encode())
     if train_ids is not None and test_ids is not None:
         for fname, sel in (("train_index.txt", train_ids), ("test_index.txt", test_ids)):

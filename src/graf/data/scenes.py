@@ -20,10 +20,12 @@ def resolve_scene_path(path: str, data_root: str | Path | None) -> Path:
     """``embedded:NAME`` is a folder shipped inside the package; an absolute path is used as is; a
     relative path is looked up under ``data_root`` first, then the working directory."""
     if path is None or str(path) in ("", "???"):
-        raise DataFormatError("scene.path", "no scene folder given: set scene.<name>.path=DIR (scene=nerf2 scene.nerf2.path=DIR)")
+        raise DataFormatError(
+            "scene.path", "no scene folder given: set scene.<name>.path=DIR (scene=nerf2 scene.nerf2.path=DIR)"
+        )
     path = str(path)
     if path.startswith(EMBEDDED_PREFIX):
-        p = EMBEDDED_DIR / path[len(EMBEDDED_PREFIX):]
+        p = EMBEDDED_DIR / path[len(EMBEDDED_PREFIX) :]
         if not p.is_dir():
             known = sorted(d.name for d in EMBEDDED_DIR.iterdir() if d.is_dir())
             raise DataFormatError(p, f"unknown embedded scene {path!r}; embedded: {known}")
@@ -52,26 +54,46 @@ class NeRF2Scene:
 
     kind = "nerf2_folder"
 
-    def __init__(self, name: str, path: str, split_seed: int = 0, train_fraction: float = 0.8,
-                 band: str | None = None, fixed_band: bool = False, position_rows: str = "exact"):
+    def __init__(
+        self,
+        name: str,
+        path: str,
+        split_seed: int = 0,
+        train_fraction: float = 0.8,
+        band: str | None = None,
+        fixed_band: bool = False,
+        position_rows: str = "exact",
+    ):
         from graf.data.nerf2_format import POSITION_ROWS_RULES
         from graf.errors import ConfigError
 
-        if isinstance(train_fraction, bool) or not isinstance(train_fraction, (int, float)) \
-                or not 0.0 < float(train_fraction) < 1.0:
-            raise ConfigError(f"scene.{name}.train_fraction must be in (0, 1) (the seeded split's training part when "
-                              f"the folder has no index files), got {train_fraction!r}")
+        if (
+            isinstance(train_fraction, bool)
+            or not isinstance(train_fraction, (int, float))
+            or not 0.0 < float(train_fraction) < 1.0
+        ):
+            raise ConfigError(
+                f"scene.{name}.train_fraction must be in (0, 1) (the seeded split's training part when "
+                f"the folder has no index files), got {train_fraction!r}"
+            )
         if isinstance(split_seed, bool) or not isinstance(split_seed, int):
             raise ConfigError(f"scene.{name}.split_seed must be an integer, got {split_seed!r}")
         if position_rows not in POSITION_ROWS_RULES:
-            raise ConfigError(f"scene.{name}.position_rows must be 'exact' (tx_pos.csv rows = the largest spectrum id) "
-                              f"or 'at_least' (more rows accepted, with a warning), got {position_rows!r}")
+            raise ConfigError(
+                f"scene.{name}.position_rows must be 'exact' (tx_pos.csv rows = the largest spectrum id) "
+                f"or 'at_least' (more rows accepted, with a warning), got {position_rows!r}"
+            )
         self.name, self.path, self.band, self.fixed_band = name, path, band, bool(fixed_band)
         self.split_seed, self.train_fraction = split_seed, float(train_fraction)
         self.position_rows = position_rows
 
     def load(self, data_root: str | Path | None, band: Band) -> SpectrumSet:
         folder = resolve_scene_path(self.path, data_root)
-        return read_nerf2_folder(folder, name=self.name, frequency_hz=band.frequency_hz,
-                                 split_seed=self.split_seed, train_fraction=self.train_fraction,
-                                 position_rows=self.position_rows)
+        return read_nerf2_folder(
+            folder,
+            name=self.name,
+            frequency_hz=band.frequency_hz,
+            split_seed=self.split_seed,
+            train_fraction=self.train_fraction,
+            position_rows=self.position_rows,
+        )

@@ -28,8 +28,9 @@ class PositionalEncoding(nn.Module):
     def __init__(self, num_freqs: int = 10, include_input: bool = True):
         super().__init__()
         self.num_freqs, self.include_input = int(num_freqs), bool(include_input)
-        self.register_buffer("freqs", math.pi * 2.0 ** torch.arange(self.num_freqs, dtype=torch.float32),
-                             persistent=False)
+        self.register_buffer(
+            "freqs", math.pi * 2.0 ** torch.arange(self.num_freqs, dtype=torch.float32), persistent=False
+        )
 
     def out_dim(self, in_dim: int) -> int:
         return in_dim * (int(self.include_input) + 2 * self.num_freqs)

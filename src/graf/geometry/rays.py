@@ -46,8 +46,14 @@ def world_directions(gw_rot: torch.Tensor, dirs_local: torch.Tensor) -> torch.Te
     return torch.einsum("bij,brj->bri", gw_rot, dirs_local.to(gw_rot.dtype))
 
 
-def sample_voxels(gw_pos: torch.Tensor, gw_rot: torch.Tensor, dirs_local: torch.Tensor, ray_length: torch.Tensor,
-                  wavelength: torch.Tensor, max_samples: int):
+def sample_voxels(
+    gw_pos: torch.Tensor,
+    gw_rot: torch.Tensor,
+    dirs_local: torch.Tensor,
+    ray_length: torch.Tensor,
+    wavelength: torch.Tensor,
+    max_samples: int,
+):
     """Voxel centres along the rays ``dirs_local`` ([B, R, 3] or [R, 3], gateway frame) of each item.
 
     Returns ``(positions [B, R, S_max, 3], mask [B, S_max], samples list[int] of length B)``.
@@ -72,7 +78,7 @@ def render_spectra(render, ctx: dict, batch_size: int, chunk_rays: int, device=N
     ``chunk_rays`` rays over the whole batch (memory bounded by the chunk, not by the spectrum)."""
     per = max(1, chunk_rays // batch_size)
     allpix = torch.arange(N_RAYS, device=device)
-    out = [render(ctx, allpix[s:s + per].expand(batch_size, -1)) for s in range(0, N_RAYS, per)]
+    out = [render(ctx, allpix[s : s + per].expand(batch_size, -1)) for s in range(0, N_RAYS, per)]
     return torch.cat(out, dim=1).view(batch_size, N_ELEVATION, N_AZIMUTH).float()
 
 
@@ -84,8 +90,10 @@ def fp32(device: torch.device):
 # ---------------------------------------------------------------------------------------------------------
 # Ray-box sampling (GRaF): each ray's voxels from its own entry to its own exit of the scene box.
 
-def box_segments(gw_pos: torch.Tensor, gw_rot: torch.Tensor, bounds: torch.Tensor,
-                 dirs_local: torch.Tensor, eps: float = 1e-12) -> tuple[torch.Tensor, torch.Tensor]:
+
+def box_segments(
+    gw_pos: torch.Tensor, gw_rot: torch.Tensor, bounds: torch.Tensor, dirs_local: torch.Tensor, eps: float = 1e-12
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Where each ray from the gateway is inside the scene box (slab method, float64).
 
     ``gw_pos [3]``, ``gw_rot [3, 3]`` (local -> world), ``bounds [2, 3]`` (min, max), ``dirs_local [R, 3]``
@@ -110,8 +118,9 @@ def box_segments(gw_pos: torch.Tensor, gw_rot: torch.Tensor, bounds: torch.Tenso
     return t_in, t_out
 
 
-def segment_samples(t_in: torch.Tensor, t_out: torch.Tensor, voxel: float, max_samples: int
-                    ) -> tuple[torch.Tensor, torch.Tensor]:
+def segment_samples(
+    t_in: torch.Tensor, t_out: torch.Tensor, voxel: float, max_samples: int
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Voxels of length ``voxel`` (m) over each segment: ``(samples [R] long, step [R])`` with
     ``samples = clamp(ceil((t_out - t_in) / voxel), 1, max_samples)`` and ``step = (t_out - t_in) / samples``
     (voxel centres at ``t_in + (s + 0.5) * step``; a length-0 segment is one voxel at ``t_in``)."""

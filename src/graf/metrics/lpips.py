@@ -168,13 +168,9 @@ def _check_image(name: str, x: object) -> Tensor:
     if not x.is_floating_point():
         raise TypeError(f"lpips_distance: {name} must be a floating-point tensor in [0, 1], got dtype {x.dtype}")
     if x.ndim != 4 or x.shape[1] not in (1, 3):
-        raise ValueError(
-            f"lpips_distance: {name} must have shape [N, C, H, W] with C = 1 or 3, got {tuple(x.shape)}"
-        )
+        raise ValueError(f"lpips_distance: {name} must have shape [N, C, H, W] with C = 1 or 3, got {tuple(x.shape)}")
     if x.shape[2] < MIN_SIDE or x.shape[3] < MIN_SIDE:
-        raise ValueError(
-            f"lpips_distance: {name} is {x.shape[2]}x{x.shape[3]}; AlexNet-LPIPS needs H, W >= {MIN_SIDE}"
-        )
+        raise ValueError(f"lpips_distance: {name} is {x.shape[2]}x{x.shape[3]}; AlexNet-LPIPS needs H, W >= {MIN_SIDE}")
     return x
 
 

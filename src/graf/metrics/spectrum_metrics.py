@@ -32,9 +32,7 @@ def _check_spectra(metric: str, pred: Tensor, target: Tensor) -> None:
         if not isinstance(x, Tensor):
             raise TypeError(f"{metric}.update: {name} must be a torch.Tensor, got {type(x).__name__}")
         if not (x.ndim == 3 or (x.ndim == 4 and x.shape[1] == 1)):
-            raise ValueError(
-                f"{metric}.update: {name} must have shape [N, H, W] or [N, 1, H, W], got {tuple(x.shape)}"
-            )
+            raise ValueError(f"{metric}.update: {name} must have shape [N, H, W] or [N, 1, H, W], got {tuple(x.shape)}")
 
 
 class _SpectrumMean(Metric):

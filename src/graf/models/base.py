@@ -58,9 +58,11 @@ def check_checkpoint(ckpt: dict, cls: type, path) -> None:
     if layout != want:
         changes = getattr(cls, "LAYOUT_CHANGES", {})
         why = "; ".join(f"layout {v}: {changes[v]}" for v in sorted(changes) if layout < v <= want)
-        raise CheckpointError(f"{path}: was written by {cls.__name__} layout {layout}; this version reads layout "
-                              f"{want} only, and the weights do not carry over{': ' + why if why else ''}. "
-                              "Retrain (or use the version that wrote it).")
+        raise CheckpointError(
+            f"{path}: was written by {cls.__name__} layout {layout}; this version reads layout "
+            f"{want} only, and the weights do not carry over{': ' + why if why else ''}. "
+            "Retrain (or use the version that wrote it)."
+        )
 
 
 def adam_exponential_decay(module, lr: float, lr_decay: float, decay_steps: int) -> dict:
@@ -84,8 +86,11 @@ class SpectrumModule(L.LightningModule):
         self.test_metrics = spectrum_metrics("test/")
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
-        checkpoint["graf"] = {"target": class_path(type(self)), "layout": int(self.LAYOUT),
-                              "scenes": self.trained_scenes()}
+        checkpoint["graf"] = {
+            "target": class_path(type(self)),
+            "layout": int(self.LAYOUT),
+            "scenes": self.trained_scenes(),
+        }
         if getattr(self, "run_settings", None):  # data, neighbours, seed, trainer: a resume is checked against them
             checkpoint["graf"]["run"] = self.run_settings
 
@@ -119,9 +124,14 @@ class SpectrumModule(L.LightningModule):
         span = float(ray_length) - float(getattr(self, "near", 0.0))
         nominal = float(getattr(self, "sample_spacing", 1.0))
         spacing = span / S / float(wavelength)
-        return {"samples_per_ray": S, "sample_spacing_m": span / S, "sample_spacing_wavelengths": spacing,
-                "nominal_spacing_wavelengths": nominal, "capped": bool(spacing > nominal * (1 + 1e-6)),
-                "uncapped_samples": int(math.ceil(span / (nominal * float(wavelength)) - 1e-6))}
+        return {
+            "samples_per_ray": S,
+            "sample_spacing_m": span / S,
+            "sample_spacing_wavelengths": spacing,
+            "nominal_spacing_wavelengths": nominal,
+            "capped": bool(spacing > nominal * (1 + 1e-6)),
+            "uncapped_samples": int(math.ceil(span / (nominal * float(wavelength)) - 1e-6)),
+        }
 
     @property
     def has_trainable_parameters(self) -> bool:

@@ -80,23 +80,38 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from graf.errors import ConfigError
+from graf.io import atomic_write_bytes, atomic_write_json
 from graf.pipeline.build import build_datamodule
 from graf.pipeline.config import CONF_DIR, band_choices, output_dir, task_wrapper
 from graf.pipeline.simulate import simulate
-from graf.io import atomic_write_bytes, atomic_write_json
 
 log = logging.getLogger("graf")
 
 N_RAYS = 90 * 360  # rays (pixels) of one spectrum
-ROW_KEYS = ("method", "preset", "scene", "samples_per_ray", "infer_s_per_spectrum", "train_s_per_step",
-            "train_rays_per_s", "peak_mb_train", "peak_mb_infer", "peak_mb", "parameters", "checkpoint_mb",
-            "infer_ratio_to_graf", "train_ratio_to_graf")
+ROW_KEYS = (
+    "method",
+    "preset",
+    "scene",
+    "samples_per_ray",
+    "infer_s_per_spectrum",
+    "train_s_per_step",
+    "train_rays_per_s",
+    "peak_mb_train",
+    "peak_mb_infer",
+    "peak_mb",
+    "parameters",
+    "checkpoint_mb",
+    "infer_ratio_to_graf",
+    "train_ratio_to_graf",
+)
 GRAF_METHODS = ("graf", "graf-residual")
 BASE_PRESET = "graf"
 LIGHT_WARMUP_RAYS = 256  # rays of quick=true's warm-up training step
-WARMUP = {"whole": "one whole spectrum before the timed ones; one whole training step before the timed ones",
-          "light": "quick: one chunk of chunk_rays rays (GRaF, NeRF2; a whole spectrum for the others) before the "
-                   "timed spectrum; one training step at 256 rays (models with rays_per_step) before the timed one"}
+WARMUP = {
+    "whole": "one whole spectrum before the timed ones; one whole training step before the timed ones",
+    "light": "quick: one chunk of chunk_rays rays (GRaF, NeRF2; a whole spectrum for the others) before the "
+    "timed spectrum; one training step at 256 rays (models with rays_per_step) before the timed one",
+}
 
 
 # ---------------------------------------------------------------------------------------------- machine
@@ -188,7 +203,7 @@ class PeakMemory:
     def __exit__(self, *exc):
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
-            self.mb = (torch.cuda.max_memory_allocated(self.device) - self._start) / 2 ** 20
+            self.mb = (torch.cuda.max_memory_allocated(self.device) - self._start) / 2**20
             return False
         if self._start is None:
             return False
@@ -196,16 +211,20 @@ class PeakMemory:
         self._thread.join()
         r = rss_bytes()
         self._peak = max(self._peak, r if r is not None else 0)
-        self.mb = max(0, self._peak - self._start) / 2 ** 20
+        self.mb = max(0, self._peak - self._start) / 2**20
         return False
 
 
 def memory_method(device: torch.device) -> str:
     if device.type == "cuda":
-        return ("cuda: torch.cuda.max_memory_allocated() after reset_peak_memory_stats(), minus the memory "
-                "allocated at the phase's start (MiB)")
-    return ("cpu: peak resident set size during the phase (sampled every 5 ms) minus the resident set size at "
-            "its start (MiB)")
+        return (
+            "cuda: torch.cuda.max_memory_allocated() after reset_peak_memory_stats(), minus the memory "
+            "allocated at the phase's start (MiB)"
+        )
+    return (
+        "cpu: peak resident set size during the phase (sampled every 5 ms) minus the resident set size at "
+        "its start (MiB)"
+    )
 
 
 # ---------------------------------------------------------------------------------------------- model pieces
@@ -222,12 +241,18 @@ def checkpoint_mb(model) -> float:
 
 def _checkpoint_mb(model) -> float:
     with tempfile.TemporaryDirectory() as tmp:
-        trainer = L.Trainer(accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                            enable_model_summary=False, max_steps=0)
+        trainer = L.Trainer(
+            accelerator="cpu",
+            logger=False,
+            enable_checkpointing=False,
+            enable_progress_bar=False,
+            enable_model_summary=False,
+            max_steps=0,
+        )
         trainer.strategy.connect(model)
         path = Path(tmp) / "m.ckpt"
         trainer.save_checkpoint(path, weights_only=True)
-        return path.stat().st_size / 2 ** 20
+        return path.stat().st_size / 2**20
 
 
 def samples_per_ray(model, batch: dict) -> float | int | None:
@@ -297,8 +322,11 @@ def measure_inference(model, batches: list[dict], device: torch.device, light_wa
     with torch.no_grad(), PeakMemory(device) as mem:
         warm_up_inference(model, batches[0], light_warmup)
         times = [_timed(lambda b=b: model.predict_spectra(b), device) for b in batches[1:]]
-    return {"infer_s_per_spectrum": _median(times), "infer_times_s": [round(t, 6) for t in times],
-            "peak_mb_infer": None if mem.mb is None else round(mem.mb, 1)}
+    return {
+        "infer_s_per_spectrum": _median(times),
+        "infer_times_s": [round(t, 6) for t in times],
+        "peak_mb_infer": None if mem.mb is None else round(mem.mb, 1),
+    }
 
 
 def measure_training(model, batches: list[dict], device: torch.device, light_warmup: bool = False) -> dict:
@@ -330,9 +358,14 @@ def measure_training(model, batches: list[dict], device: torch.device, light_war
     B = int(batches[0]["tgt_pos"].shape[0])
     rays = rays_per_train_step(model, B)
     s = _median(times)
-    return {"train_s_per_step": s, "train_times_s": [round(t, 6) for t in times], "train_batch_size": B,
-            "train_rays_per_step": rays, "train_rays_per_s": round(rays / s, 1) if s else None,
-            "peak_mb_train": None if mem.mb is None else round(mem.mb, 1)}
+    return {
+        "train_s_per_step": s,
+        "train_times_s": [round(t, 6) for t in times],
+        "train_batch_size": B,
+        "train_rays_per_step": rays,
+        "train_rays_per_s": round(rays / s, 1) if s else None,
+        "peak_mb_train": None if mem.mb is None else round(mem.mb, 1),
+    }
 
 
 # ---------------------------------------------------------------------------------------------- scenes
@@ -359,16 +392,24 @@ def ensure_simulated(cfg: DictConfig, key: str, scene_cfg: DictConfig, band_cfg:
     path = scene.dataset_path(cfg.data_root, band, scene.num_tx)
     if path.is_file():
         return path
-    log.info("%s is not there: simulating %s positions of %s at %s first", path, scene.num_tx or "all",
-             scene.name, band.name)
+    log.info(
+        "%s is not there: simulating %s positions of %s at %s first", path, scene.num_tx or "all", scene.name, band.name
+    )
     try:
         sim = OmegaConf.load(CONF_DIR / "simulate.yaml").sim
     except Exception:  # pragma: no cover - the config ships with the package
         sim = OmegaConf.create({"chunk_size": 256, "export": None, "overwrite": False, "device": "auto"})
     sim = OmegaConf.merge(sim, {"num_tx": scene.num_tx, "progress": False})
-    scfg = OmegaConf.create({"task_name": "simulate", "data_root": cfg.data_root, "scene": scene_cfg,
-                             "band": band_cfg, "sim": sim,
-                             "paths": {"output_dir": str(output_dir(cfg) / "simulate" / key)}})
+    scfg = OmegaConf.create(
+        {
+            "task_name": "simulate",
+            "data_root": cfg.data_root,
+            "scene": scene_cfg,
+            "band": band_cfg,
+            "sim": sim,
+            "paths": {"output_dir": str(output_dir(cfg) / "simulate" / key)},
+        }
+    )
     simulate(scfg)
     return path
 
@@ -377,15 +418,21 @@ def prepare_scene(cfg: DictConfig, key: str, spectra: int, train_steps: int):
     """``(datamodule, inference batches [1 + spectra], training batches [1 + train_steps], band name)``."""
     scene_cfg, band_cfg = scene_and_band(cfg, key)
     ensure_simulated(cfg, key, scene_cfg, band_cfg)
-    dcfg = OmegaConf.create({"scene": scene_cfg, "band": band_cfg, "data_root": cfg.get("data_root"),
-                             "neighbors": OmegaConf.to_container(cfg.neighbors, resolve=True),
-                             "data": OmegaConf.to_container(cfg.data, resolve=True)})
+    dcfg = OmegaConf.create(
+        {
+            "scene": scene_cfg,
+            "band": band_cfg,
+            "data_root": cfg.get("data_root"),
+            "neighbors": OmegaConf.to_container(cfg.neighbors, resolve=True),
+            "data": OmegaConf.to_container(cfg.data, resolve=True),
+        }
+    )
     bands, _, _, dm = build_datamodule(dcfg)
     band = bands[0]
     dm.setup("fit")
     idx, mask = dm.eval_neighbors()
     rows = dm.eval_rows[: spectra + 1]
-    infer = [dm.make_batch(rows[i:i + 1], idx[i:i + 1], mask[i:i + 1]) for i in range(len(rows))]
+    infer = [dm.make_batch(rows[i : i + 1], idx[i : i + 1], mask[i : i + 1]) for i in range(len(rows))]
     train = [dm.train_batch(k) for k in range(train_steps + 1)]
     return dm, infer, train, band.name
 
@@ -399,12 +446,16 @@ def add_ratios(rows: list[dict]) -> dict:
         if s in bases:
             continue
         ok = [x for x in rows if x["scene"] == s and not x.get("error") and x.get("infer_s_per_spectrum")]
-        base = next((x for x in ok if x["preset"] == BASE_PRESET), None) or \
-            next((x for x in ok if x["method"] in GRAF_METHODS), None)
+        base = next((x for x in ok if x["preset"] == BASE_PRESET), None) or next(
+            (x for x in ok if x["method"] in GRAF_METHODS), None
+        )
         bases[s] = base
     for r in rows:
         base = bases[r["scene"]]
-        for key, ratio in (("infer_s_per_spectrum", "infer_ratio_to_graf"), ("train_s_per_step", "train_ratio_to_graf")):
+        for key, ratio in (
+            ("infer_s_per_spectrum", "infer_ratio_to_graf"),
+            ("train_s_per_step", "train_ratio_to_graf"),
+        ):
             v, b = r.get(key), (base or {}).get(key)
             r[ratio] = round(v / b, 4) if v is not None and b and not r.get("error") else None
     return {s: (b["preset"] if b else None) for s, b in bases.items()}
@@ -418,22 +469,49 @@ def _f(v, spec: str = ".4g", none: str = "-") -> str:
 
 def markdown(result: dict) -> str:
     """The table of ``result["rows"]`` with a line on how it was measured."""
-    head = (f"graf-bench on {result['device']} ({result['device_type']}, {result['threads']} threads, torch "
-            f"{result['torch']}): median of {result['spectra_timed']} spectra and of {result['train_steps_timed']} "
-            f"training steps (warm-up: {result['warmup']}); peak memory: {result['memory']}; "
-            "ratios: to the scene's GRaF row (paper size where present).")
-    cols = ["scene", "preset", "method", "samples/ray", "s/spectrum", "× GRaF", "s/step", "rays/step", "rays/s",
-            "× GRaF", "peak MB train", "peak MB infer", "parameters", "checkpoint MB"]
+    head = (
+        f"graf-bench on {result['device']} ({result['device_type']}, {result['threads']} threads, torch "
+        f"{result['torch']}): median of {result['spectra_timed']} spectra and of {result['train_steps_timed']} "
+        f"training steps (warm-up: {result['warmup']}); peak memory: {result['memory']}; "
+        "ratios: to the scene's GRaF row (paper size where present)."
+    )
+    cols = [
+        "scene",
+        "preset",
+        "method",
+        "samples/ray",
+        "s/spectrum",
+        "× GRaF",
+        "s/step",
+        "rays/step",
+        "rays/s",
+        "× GRaF",
+        "peak MB train",
+        "peak MB infer",
+        "parameters",
+        "checkpoint MB",
+    ]
     lines = [head, "", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for r in result["rows"]:
         if r.get("error"):
             cells = [r["scene"], r["preset"], r.get("method") or "-", f"error: {r['error']}"] + [""] * (len(cols) - 4)
         else:
-            cells = [r["scene"], r["preset"], r["method"], _f(r["samples_per_ray"], "g"),
-                     _f(r["infer_s_per_spectrum"]), _f(r["infer_ratio_to_graf"], ".3g"), _f(r["train_s_per_step"]),
-                     _f(r.get("train_rays_per_step"), ","), _f(r["train_rays_per_s"], ",.0f"),
-                     _f(r["train_ratio_to_graf"], ".3g"), _f(r["peak_mb_train"], ".1f"), _f(r["peak_mb_infer"], ".1f"),
-                     _f(r["parameters"], ","), _f(r["checkpoint_mb"], ".2f")]
+            cells = [
+                r["scene"],
+                r["preset"],
+                r["method"],
+                _f(r["samples_per_ray"], "g"),
+                _f(r["infer_s_per_spectrum"]),
+                _f(r["infer_ratio_to_graf"], ".3g"),
+                _f(r["train_s_per_step"]),
+                _f(r.get("train_rays_per_step"), ","),
+                _f(r["train_rays_per_s"], ",.0f"),
+                _f(r["train_ratio_to_graf"], ".3g"),
+                _f(r["peak_mb_train"], ".1f"),
+                _f(r["peak_mb_infer"], ".1f"),
+                _f(r["parameters"], ","),
+                _f(r["checkpoint_mb"], ".2f"),
+            ]
         lines.append("| " + " | ".join(str(c).replace("|", "/") for c in cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -471,11 +549,21 @@ def bench(cfg: DictConfig) -> dict:
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     out = output_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
-    result = {"device": device_name(device), "device_type": device.type, "threads": torch.get_num_threads(),
-              "torch": torch.__version__, "quick": quick, "spectra_timed": spectra, "train_steps_timed": steps,
-              "warmup": WARMUP["light" if quick else "whole"], "rays_per_step": cfg.bench.get("rays_per_step"),
-              "memory": memory_method(device), "ratio_base": {},
-              "rows": [], "config": OmegaConf.to_container(cfg, resolve=True)}
+    result = {
+        "device": device_name(device),
+        "device_type": device.type,
+        "threads": torch.get_num_threads(),
+        "torch": torch.__version__,
+        "quick": quick,
+        "spectra_timed": spectra,
+        "train_steps_timed": steps,
+        "warmup": WARMUP["light" if quick else "whole"],
+        "rays_per_step": cfg.bench.get("rays_per_step"),
+        "memory": memory_method(device),
+        "ratio_base": {},
+        "rows": [],
+        "config": OmegaConf.to_container(cfg, resolve=True),
+    }
     rows = result["rows"]
     rps = cfg.bench.get("rays_per_step")
     skip = set(cfg.bench.get("quick_skip") or []) if quick else set()
@@ -491,12 +579,26 @@ def bench(cfg: DictConfig) -> dict:
             log.exception("scene %s: could not prepare its data; its rows record the error", key)
             name = cfg.scenes[key].get("name", key)
             for m in model_keys:
-                rows.append({**dict.fromkeys(ROW_KEYS), "scene": name, "scene_key": key, "preset": m,
-                             "error": f"{type(exc).__name__}: {exc}", "seconds": round(time.perf_counter() - started, 3)})
+                rows.append(
+                    {
+                        **dict.fromkeys(ROW_KEYS),
+                        "scene": name,
+                        "scene_key": key,
+                        "preset": m,
+                        "error": f"{type(exc).__name__}: {exc}",
+                        "seconds": round(time.perf_counter() - started, 3),
+                    }
+                )
             _write(out, result)
             continue
-        log.info("scene %s (%s): %d test spectra, %d training batches of %d targets prepared", scene_name, band_name,
-                 len(infer), len(train), int(train[0]["tgt_pos"].shape[0]))
+        log.info(
+            "scene %s (%s): %d test spectra, %d training batches of %d targets prepared",
+            scene_name,
+            band_name,
+            len(infer),
+            len(train),
+            int(train[0]["tgt_pos"].shape[0]),
+        )
         for m in model_keys:
             if f"{key}/{m}" in skip:
                 log.info("%s on %s: skipped (quick=true, bench.quick_skip)", m, scene_name)
@@ -520,8 +622,14 @@ def bench(cfg: DictConfig) -> dict:
                 if row["trainable_parameters"]:
                     row.update(measure_training(model, train, device, light_warmup=quick))
                 else:
-                    row.update({"train_s_per_step": None, "train_rays_per_step": None, "train_rays_per_s": None,
-                                "peak_mb_train": None})
+                    row.update(
+                        {
+                            "train_s_per_step": None,
+                            "train_rays_per_step": None,
+                            "train_rays_per_s": None,
+                            "peak_mb_train": None,
+                        }
+                    )
                 peaks = [v for v in (row.get("peak_mb_train"), row.get("peak_mb_infer")) if v is not None]
                 row["peak_mb"] = max(peaks) if peaks else None
                 row["device"] = device.type
@@ -534,8 +642,14 @@ def bench(cfg: DictConfig) -> dict:
             row["seconds"] = round(time.perf_counter() - started, 3)
             rows.append({**dict.fromkeys(ROW_KEYS), **row})
             _write(out, result)
-            log.info("%s on %s: %s", m, scene_name, "error" if row.get("error") else
-                     f"{_f(row['infer_s_per_spectrum'])} s/spectrum, {_f(row['train_s_per_step'])} s/step")
+            log.info(
+                "%s on %s: %s",
+                m,
+                scene_name,
+                "error"
+                if row.get("error")
+                else f"{_f(row['infer_s_per_spectrum'])} s/spectrum, {_f(row['train_s_per_step'])} s/step",
+            )
     _write(out, result)
     print(markdown(result))
     log.info("results: %s", out / "results.json")

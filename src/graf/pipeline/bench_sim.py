@@ -19,8 +19,8 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from graf.pipeline.config import output_dir, scene_band_config, single_scene_config, task_wrapper
 from graf.io import atomic_write_json
+from graf.pipeline.config import output_dir, scene_band_config, single_scene_config, task_wrapper
 
 PAPER_SECONDS_PER_SPECTRUM = 59.5
 
@@ -55,12 +55,12 @@ def bench(cfg: DictConfig) -> dict:
     t0 = time.perf_counter()
     tracer.trace(positions[:spc])  # first call: JIT compilation
     t_first = time.perf_counter() - t0
-    steady = positions[spc:spc + n] if len(positions) > spc else positions[:n]
+    steady = positions[spc : spc + n] if len(positions) > spc else positions[:n]
     t_trace = t_bart = t_q = 0.0
     path_counts = []
     for s in range(0, len(steady), spc):
         t0 = time.perf_counter()
-        g, d, c = tracer.trace(steady[s:s + spc])
+        g, d, c = tracer.trace(steady[s : s + spc])
         path_counts.append(c)
         t1 = time.perf_counter()
         h, spectra = spectra_from_paths(bart, g, d, scene.array.get("pattern", "cos"))
@@ -73,44 +73,70 @@ def bench(cfg: DictConfig) -> dict:
     m = len(steady)
     total = t_trace + t_bart + t_q
     out = {
-        "scene": scene.name, "band": band.name, "band_hz": band.frequency_hz, "positions": m,
-        "machine": {"cpu": _cpu_name(), "threads": torch.get_num_threads(), "cores": os.cpu_count(),
-                    "gpu": torch.cuda.get_device_name(0) if device == "cuda" else None},
-        "setup_seconds": round(t_build, 3), "first_call_seconds": round(t_first, 3),
+        "scene": scene.name,
+        "band": band.name,
+        "band_hz": band.frequency_hz,
+        "positions": m,
+        "machine": {
+            "cpu": _cpu_name(),
+            "threads": torch.get_num_threads(),
+            "cores": os.cpu_count(),
+            "gpu": torch.cuda.get_device_name(0) if device == "cuda" else None,
+        },
+        "setup_seconds": round(t_build, 3),
+        "first_call_seconds": round(t_first, 3),
         "spectra_per_second": round(m / total, 2),
-        "ms_per_spectrum": {"trace": round(1e3 * t_trace / m, 3), "bartlett": round(1e3 * t_bart / m, 3),
-                            "quantise": round(1e3 * t_q / m, 3), "total": round(1e3 * total / m, 3)},
+        "ms_per_spectrum": {
+            "trace": round(1e3 * t_trace / m, 3),
+            "bartlett": round(1e3 * t_bart / m, 3),
+            "quantise": round(1e3 * t_q / m, 3),
+            "total": round(1e3 * total / m, 3),
+        },
         "speedup_vs_paper_matlab": round(PAPER_SECONDS_PER_SPECTRUM / (total / m), 1),
-        "paths_per_position": {"mean": round(float(np.mean(np.concatenate(path_counts))), 2),
-                               "fraction_without_paths": round(float(np.mean(np.concatenate(path_counts) == 0)), 4)},
+        "paths_per_position": {
+            "mean": round(float(np.mean(np.concatenate(path_counts))), 2),
+            "fraction_without_paths": round(float(np.mean(np.concatenate(path_counts) == 0)), 4),
+        },
         "tracing": dict(scene.tracing),
     }
     k = int(cfg.bench.convergence_tx)
     if k > 0:
         pos = positions[:k]
         base = scene.spectra(tracer, bart, pos)[1]
-        doubled = {"samples_per_src": 2 * int(scene.tracing["samples_per_src"]),
-                   "max_num_paths_per_src": 2 * int(scene.tracing["max_num_paths_per_src"])}
+        doubled = {
+            "samples_per_src": 2 * int(scene.tracing["samples_per_src"]),
+            "max_num_paths_per_src": 2 * int(scene.tracing["max_num_paths_per_src"]),
+        }
         ref = scene.spectra(scene.tracer(band, **doubled), bart, pos)[1]
         p = psnr_per_sample(base.cpu(), ref.cpu())
-        out["convergence"] = {"positions": k, "samples_per_src": [int(scene.tracing["samples_per_src"]),
-                                                                  doubled["samples_per_src"]],
-                              "psnr_min": round(float(p.min()), 2), "psnr_median": round(float(p.median()), 2),
-                              "fraction_under_40db": round(float((p < 40).float().mean()), 4)}
+        out["convergence"] = {
+            "positions": k,
+            "samples_per_src": [int(scene.tracing["samples_per_src"]), doubled["samples_per_src"]],
+            "psnr_min": round(float(p.min()), 2),
+            "psnr_median": round(float(p.median()), 2),
+            "fraction_under_40db": round(float((p < 40).float().mean()), 4),
+        }
     out["config"] = OmegaConf.to_container(cfg, resolve=True)
     atomic_write_json(output_dir(cfg) / "results.json", out)
     mach = out["machine"]
     print(f"graf-bench-sim {scene.name} {band.name} on {mach['gpu'] or mach['cpu']} ({mach['threads']} threads)")
     print(f"  set-up {t_build:.2f} s, first call (JIT) {t_first:.2f} s")
     ms = out["ms_per_spectrum"]
-    print(f"  steady state over {m} positions: {out['spectra_per_second']:.1f} spectra/s "
-          f"(trace {ms['trace']:.2f} ms + Bartlett {ms['bartlett']:.3f} ms + quantise {ms['quantise']:.3f} ms)")
+    print(
+        f"  steady state over {m} positions: {out['spectra_per_second']:.1f} spectra/s "
+        f"(trace {ms['trace']:.2f} ms + Bartlett {ms['bartlett']:.3f} ms + quantise {ms['quantise']:.3f} ms)"
+    )
     pp = out["paths_per_position"]
-    print(f"  {pp['mean']:.1f} traced paths per position; {100 * pp['fraction_without_paths']:.1f}% of positions without any")
+    print(
+        f"  {pp['mean']:.1f} traced paths per position; {100 * pp['fraction_without_paths']:.1f}% of "
+        f"positions without any"
+    )
     print(f"  vs the paper's MATLAB ray tracing, 59.5 s per spectrum: {out['speedup_vs_paper_matlab']:.0f}x faster")
     if "convergence" in out:
         c = out["convergence"]
-        print(f"  convergence, {c['samples_per_src'][0]} vs {c['samples_per_src'][1]} samples per source on {k} "
-              f"positions: PSNR min {c['psnr_min']:.1f} dB, median {c['psnr_median']:.1f} dB, "
-              f"{100 * c['fraction_under_40db']:.1f}% under 40 dB")
+        print(
+            f"  convergence, {c['samples_per_src'][0]} vs {c['samples_per_src'][1]} samples per source on {k} "
+            f"positions: PSNR min {c['psnr_min']:.1f} dB, median {c['psnr_median']:.1f} dB, "
+            f"{100 * c['fraction_under_40db']:.1f}% under 40 dB"
+        )
     return out

@@ -17,14 +17,23 @@ from omegaconf import DictConfig, OmegaConf
 from graf.data.fingerprint import find_scene, next_index, register_scene
 from graf.errors import ConfigError
 from graf.models.base import read_checkpoint
-from graf.pipeline.config import check_run_settings, hz, load_band_config, output_dir, run_settings, scene_band_config, scene_configs
+from graf.pipeline.config import (
+    check_run_settings,
+    hz,
+    load_band_config,
+    output_dir,
+    run_settings,
+    scene_band_config,
+    scene_configs,
+)
 
 log = logging.getLogger("graf")
 
 
 def build_datamodule(cfg: DictConfig, which: str = "scene", scene_indices=None):
     """Bands, scenes, neighbour selector and the datamodule that joins them (``cfg.data``), for the scenes
-    of ``cfg[which]`` (``scene``: what is trained on; ``eval_scene``: what is tested).  The fine-tuning settings (``cfg.finetune``: measured fraction,
+    of ``cfg[which]`` (``scene``: what is trained on; ``eval_scene``: what is tested).  The fine-tuning settings
+    (``cfg.finetune``: measured fraction,
     its seed, the test neighbour pool) apply to the scenes trained on."""
     configs = scene_configs(cfg.get(which))
     if not configs:
@@ -34,12 +43,26 @@ def build_datamodule(cfg: DictConfig, which: str = "scene", scene_indices=None):
     scenes = [hydra.utils.instantiate(c) for c in configs]
     neighbors = hydra.utils.instantiate(cfg.neighbors)
     ft = cfg.get("finetune") or {}
-    measured = {"measured_fraction": ft.get("fraction"), "measured_seed": int(ft.get("seed") or 0),
-                "test_pool": ft.get("test_pool") or "measured"} if which == "scene" else {}
+    measured = (
+        {
+            "measured_fraction": ft.get("fraction"),
+            "measured_seed": int(ft.get("seed") or 0),
+            "test_pool": ft.get("test_pool") or "measured",
+        }
+        if which == "scene"
+        else {}
+    )
     make = hydra.utils.instantiate(cfg.data, _partial_=True)  # lists of objects must not pass through OmegaConf
-    datamodule = make(scene=scenes, band=bands, neighbors=neighbors, data_root=cfg.get("data_root"),
-                      scene_indices=scene_indices, **measured)
+    datamodule = make(
+        scene=scenes,
+        band=bands,
+        neighbors=neighbors,
+        data_root=cfg.get("data_root"),
+        scene_indices=scene_indices,
+        **measured,
+    )
     return bands, scenes, neighbors, datamodule
+
 
 def assign_scene_indices(known: dict[str, int], names: list[str]) -> list[int]:
     """The scene index of each scene in ``names``: its index in ``known`` (the scenes a model was trained on,
@@ -53,10 +76,12 @@ def assign_scene_indices(known: dict[str, int], names: list[str]) -> list[int]:
             new += 1
     return out
 
+
 def eval_scene_indices(train_names: list[str], eval_names: list[str]) -> list[int]:
     """The scene index of each test scene: its training index when the model was trained on it, else a new
     index after the training scenes' (an unseen scene)."""
     return assign_scene_indices({n: i for i, n in enumerate(train_names)}, eval_names)
+
 
 def checkpoint_scenes(cfg: DictConfig) -> tuple[str | None, dict]:
     """``(path, {scene name: {"index", "band_hz"}})`` of the checkpoint a run starts from or tests
@@ -67,6 +92,7 @@ def checkpoint_scenes(cfg: DictConfig) -> tuple[str | None, dict]:
         return None, {}
     ckpt = read_checkpoint(path)
     return str(path), dict((ckpt.get("graf") or {}).get("scenes") or {})
+
 
 def check_bands(cfg: DictConfig, trained: dict, dm, source: str) -> None:
     """Refuse a scene at a band the model was not trained at (``trained``: name -> {"band_hz"}) unless
@@ -81,7 +107,9 @@ def check_bands(cfg: DictConfig, trained: dict, dm, source: str) -> None:
                 f"{source} was trained at {', '.join(hz(x) for x in sorted(bands))} (scenes "
                 f"{', '.join(sorted(trained))}), but scene {d.name} is at {hz(b.frequency_hz)} in this run: a "
                 "cross-band transfer.  Set cross_band=true to run it anyway (the bands and unseen_layouts studies "
-                "do), or band=... to match")
+                "do), or band=... to match"
+            )
+
 
 def build(cfg: DictConfig, trains: bool = True) -> dict:
     """Instantiate band, scene, neighbour selector, datamodule (set up), model, loggers and trainer.  ``trains``:
@@ -101,8 +129,12 @@ def build(cfg: DictConfig, trains: bool = True) -> dict:
     # a scene the checkpoint was trained on (the same content, whatever its name) keeps its index; a new one
     # gets the next; the table is what the checkpoints this run writes record
     table = dict(known)
-    datamodule.set_scene_indices([table[register_scene(table, d.name, fp, next_index(table))]["index"]
-                                  for d, fp in zip(datamodule.sets, datamodule.fingerprints())])
+    datamodule.set_scene_indices(
+        [
+            table[register_scene(table, d.name, fp, next_index(table))]["index"]
+            for d, fp in zip(datamodule.sets, datamodule.fingerprints())
+        ]
+    )
     evaluations = eval_datamodules(cfg, datamodule, table, seen=table if trains or not known else known)
     for ev in evaluations:
         if ev["datamodule"] is not datamodule:
@@ -110,15 +142,34 @@ def build(cfg: DictConfig, trains: bool = True) -> dict:
     model = hydra.utils.instantiate(cfg.model)
     model.scene_table = dict(table)  # what the checkpoints it writes record: the checkpoint's and this run's scenes
     model.run_settings = run_settings(cfg)
-    loggers = [hydra.utils.instantiate(c) for c in (cfg.get("logger") or {}).values()
-               if isinstance(c, DictConfig) and "_target_" in c]
+    loggers = [
+        hydra.utils.instantiate(c)
+        for c in (cfg.get("logger") or {}).values()
+        if isinstance(c, DictConfig) and "_target_" in c
+    ]
     # the callbacks group, composed by Hydra; an entry may make nothing (None: the Optuna pruning callback of a run
     # that is no search trial)
-    callbacks = [cb for cb in (hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values()
-                               if isinstance(c, DictConfig) and "_target_" in c) if cb is not None]
+    callbacks = [
+        cb
+        for cb in (
+            hydra.utils.instantiate(c)
+            for c in (cfg.get("callbacks") or {}).values()
+            if isinstance(c, DictConfig) and "_target_" in c
+        )
+        if cb is not None
+    ]
     trainer = hydra.utils.instantiate(trainer_args(cfg), logger=loggers or False, callbacks=callbacks)
-    return {"neighbors": neighbors, "datamodule": datamodule, "evaluations": evaluations, "model": model,
-            "loggers": loggers, "trainer": trainer, "output_dir": out, "scene_table": table}
+    return {
+        "neighbors": neighbors,
+        "datamodule": datamodule,
+        "evaluations": evaluations,
+        "model": model,
+        "loggers": loggers,
+        "trainer": trainer,
+        "output_dir": out,
+        "scene_table": table,
+    }
+
 
 def eval_datamodules(cfg: DictConfig, train_dm, table: dict | None = None, seen: dict | None = None) -> list[dict]:
     """What the final evaluations test: ``[{"eval_scene", "datamodule", "within_scene"}]``.  Without
@@ -133,8 +184,9 @@ def eval_datamodules(cfg: DictConfig, train_dm, table: dict | None = None, seen:
     configs = scene_configs(cfg.get("eval_scene"))
     eval_band = cfg.get("eval_band")
     if not configs and not eval_band:
-        within = seen is None or all(find_scene(seen, d.name, fp) is not None
-                                     for d, fp in zip(train_dm.sets, train_dm.fingerprints()))
+        within = seen is None or all(
+            find_scene(seen, d.name, fp) is not None for d, fp in zip(train_dm.sets, train_dm.fingerprints())
+        )
         return [{"eval_scene": train_dm.scene_name, "datamodule": train_dm, "within_scene": within}]
     if not configs:
         configs = scene_configs(cfg.get("scene"))
@@ -147,10 +199,18 @@ def eval_datamodules(cfg: DictConfig, train_dm, table: dict | None = None, seen:
     out, new = [], next_index(table)
     for c, name in zip(configs, names):
         scene = OmegaConf.create({name: OmegaConf.to_container(c, resolve=True)})  # resolved in the run's config
-        sub = OmegaConf.create({key: OmegaConf.to_container(v, resolve=True) if isinstance(v, DictConfig) else v
-                                for key, v in (("eval_scene", scene), ("band", band),
-                                             ("neighbors", cfg.neighbors), ("data", cfg.data),
-                                             ("data_root", cfg.get("data_root")))})
+        sub = OmegaConf.create(
+            {
+                key: OmegaConf.to_container(v, resolve=True) if isinstance(v, DictConfig) else v
+                for key, v in (
+                    ("eval_scene", scene),
+                    ("band", band),
+                    ("neighbors", cfg.neighbors),
+                    ("data", cfg.data),
+                    ("data_root", cfg.get("data_root")),
+                )
+            }
+        )
         _, _, _, dm = build_datamodule(sub, "eval_scene")
         dm.setup("test")
         key = find_scene(table, name, dm.fingerprints()[0])  # by content: another folder of the same name is unseen
@@ -160,10 +220,16 @@ def eval_datamodules(cfg: DictConfig, train_dm, table: dict | None = None, seen:
         else:
             k, new = new, new + 1
         dm.set_scene_indices([k])
-        log.info("test scene %s at %s: %s (scene index %d)", name, dm.bands[0].name,
-                 "within-scene (the model was trained on it)" if within else "unseen in training (zero-shot)", k)
+        log.info(
+            "test scene %s at %s: %s (scene index %d)",
+            name,
+            dm.bands[0].name,
+            "within-scene (the model was trained on it)" if within else "unseen in training (zero-shot)",
+            k,
+        )
         out.append({"eval_scene": name, "datamodule": dm, "within_scene": within})
     return out
+
 
 def trainer_args(cfg: DictConfig) -> DictConfig:
     """``cfg.trainer`` without the keys that are not Trainer arguments, after applying them:
@@ -174,14 +240,23 @@ def trainer_args(cfg: DictConfig) -> DictConfig:
         torch.set_float32_matmul_precision(str(fmp))
     return OmegaConf.create(t)
 
+
 def evaluation_trainer(cfg: DictConfig, loggers=(), callbacks=()) -> L.Trainer:
     """The trainer of the final evaluations (validation and test of the final weights).  Both evaluate
     ``trainer.limit_test_batches`` of their split; validation during training (off by default) is the fit
     trainer's business."""
     t = trainer_args(cfg)
     limit = t.get("limit_test_batches", 1.0)
-    return L.Trainer(accelerator=t.get("accelerator", "auto"), devices=t.get("devices", 1),
-                     precision=t.get("precision", "32-true"), logger=list(loggers) or False,
-                     callbacks=list(callbacks), enable_progress_bar=bool(t.get("enable_progress_bar", True)),
-                     enable_model_summary=False, enable_checkpointing=False, limit_val_batches=limit,
-                     limit_test_batches=limit, default_root_dir=t.get("default_root_dir"))
+    return L.Trainer(
+        accelerator=t.get("accelerator", "auto"),
+        devices=t.get("devices", 1),
+        precision=t.get("precision", "32-true"),
+        logger=list(loggers) or False,
+        callbacks=list(callbacks),
+        enable_progress_bar=bool(t.get("enable_progress_bar", True)),
+        enable_model_summary=False,
+        enable_checkpointing=False,
+        limit_val_batches=limit,
+        limit_test_batches=limit,
+        default_root_dir=t.get("default_root_dir"),
+    )

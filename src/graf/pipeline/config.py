@@ -53,8 +53,12 @@ def task_wrapper(task):
             return task(cfg, *args, **kwargs)
         except Exception as exc:
             if (is_user_error(exc) or hasattr(exc, "exit_code")) and os.environ.get("HYDRA_FULL_ERROR") != "1":
-                log.error("%s failed: %s (output folder: %s)", cfg.get("task_name", "task"), user_message(exc),
-                          output_dir(cfg))
+                log.error(
+                    "%s failed: %s (output folder: %s)",
+                    cfg.get("task_name", "task"),
+                    user_message(exc),
+                    output_dir(cfg),
+                )
             else:
                 log.exception("%s failed; output folder: %s", cfg.get("task_name", "task"), output_dir(cfg))
             raise
@@ -69,6 +73,7 @@ def task_wrapper(task):
 
     return wrapped
 
+
 def scene_configs(node) -> list[DictConfig]:
     """The scene configs a ``scene`` or ``eval_scene`` node selects, in order.  ``scene=conference_v1`` composes
     to ``scene.conference_v1: {...}`` and ``scene=[conference_v1,office_v1]`` to one entry per scene (Hydra's
@@ -80,23 +85,29 @@ def scene_configs(node) -> list[DictConfig]:
         return [node]
     return [v for v in node.values() if isinstance(v, DictConfig) and "_target_" in v]
 
+
 def single_scene_config(cfg: DictConfig, command: str) -> DictConfig:
     """The one scene of a command that works on one scene (graf-simulate, graf-oracle, graf-synthesize)."""
     scenes = scene_configs(cfg.get("scene"))
     if len(scenes) != 1:
-        raise ConfigError(f"{command} works on one scene; scene= selects {len(scenes)} "
-                          f"({', '.join(str(s.get('name')) for s in scenes) or 'none'})")
+        raise ConfigError(
+            f"{command} works on one scene; scene= selects {len(scenes)} "
+            f"({', '.join(str(s.get('name')) for s in scenes) or 'none'})"
+        )
     return scenes[0]
+
 
 def band_choices() -> list[str]:
     """The options of the ``band`` config group."""
     return sorted(p.stem for p in (CONF_DIR / "band").glob("*.yaml"))
+
 
 def load_band_config(name: str) -> DictConfig:
     path = CONF_DIR / "band" / f"{name}.yaml"
     if not path.is_file():
         raise ConfigError(f"unknown band {name!r}: one of {', '.join(band_choices())}")
     return OmegaConf.load(path)
+
 
 def scene_band_config(scene_cfg: DictConfig, run_band: DictConfig | None) -> DictConfig:
     """A scene's band: its own when fixed (measured data: rfid_s23 is 915 MHz whatever the run says), else the
@@ -108,16 +119,21 @@ def scene_band_config(scene_cfg: DictConfig, run_band: DictConfig | None) -> Dic
         return run_band
     if own:
         return load_band_config(own)
-    raise ConfigError(f"scene {scene_cfg.get('name', '?')!r} does not say its carrier frequency: add "
-                      f"band=<one of {', '.join(band_choices())}> (the band its spectra were measured at)")
+    raise ConfigError(
+        f"scene {scene_cfg.get('name', '?')!r} does not say its carrier frequency: add "
+        f"band=<one of {', '.join(band_choices())}> (the band its spectra were measured at)"
+    )
+
 
 def hz(v: float) -> str:
     return f"{v / 1e9:.3g} GHz" if v >= 1e9 else f"{v / 1e6:.4g} MHz"
+
 
 def family(scene: str) -> str:
     """A catalog scene's layout family: ``conference_v2`` -> ``conference`` (a scene without variants is its
     own family)."""
     return scene.rsplit("_v", 1)[0] if "_v" in scene and scene.rsplit("_v", 1)[1].isdigit() else scene
+
 
 def heldout_scenes(train: list[str], heldout) -> list[str]:
     """``eval_scene=heldout``: the catalog scenes of the training scenes' families that the run does not train
@@ -131,6 +147,7 @@ def heldout_scenes(train: list[str], heldout) -> list[str]:
         if unknown:
             raise ConfigError(f"eval_scene.heldout: unknown scene(s) {', '.join(unknown)}")
     return [n for n in candidates if family(n) in families and n not in train]
+
 
 def expand_heldout(cfg: DictConfig) -> DictConfig:
     """The run's config with ``eval_scene=heldout`` replaced by the held-out scenes' configs (composed from
@@ -154,6 +171,7 @@ def expand_heldout(cfg: DictConfig) -> DictConfig:
     log.info("eval_scene=heldout: testing on %s (held out from training on %s)", ", ".join(names), ", ".join(train))
     return cfg
 
+
 def run_settings(cfg: DictConfig) -> dict:
     """The settings of a training run that its checkpoints record (``checkpoint["graf"]["run"]``: data,
     neighbours, seed, trainer), so that resuming with other ones is refused or recorded
@@ -161,6 +179,7 @@ def run_settings(cfg: DictConfig) -> dict:
     c = OmegaConf.to_container(cfg, resolve=True)
     trainer = {k: v for k, v in (c.get("trainer") or {}).items() if k not in ("_target_", "default_root_dir")}
     return {"data": c.get("data"), "neighbors": c.get("neighbors"), "seed": c.get("seed"), "trainer": trainer}
+
 
 def check_run_settings(cfg: DictConfig) -> None:
     """Top-level settings that must be integers, checked before anything is built (one clear error)."""

@@ -5,7 +5,8 @@
 For each regime and method, one training trajectory: a ``graf-train`` run per evaluation step of ``steps``
 (up to the regime's ``max_steps``), into ``<out>/<regime>/<method>/step_<N>/``, each resuming the previous
 step's ``checkpoints/last.ckpt`` with a longer ``trainer.max_steps`` (once the next point is done, a point's
-checkpoint is removed unless ``keep_checkpoints=true``: a curve keeps its newest, which a later run resumes) (the schedule's length is the regime's
+checkpoint is removed unless ``keep_checkpoints=true``: a curve keeps its newest, which a later run resumes) (the
+schedule's length is the regime's
 budget at every point, so the points lie on one run).  Every run validates (``test=false``: the curves choose
 nothing on test data) and measures validation reliance.  KNN, which trains nothing, is validated once per
 regime into ``<out>/<regime>/knn/``.  A point whose results.json exists is skipped, so the command resumes
@@ -35,12 +36,11 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig
 
-from graf.errors import ConfigError
+from graf.errors import ConfigError, Preempted
+from graf.io import atomic_write_json, atomic_write_text
 from graf.pipeline.config import output_dir, task_wrapper
 from graf.pipeline.pareto import _run
 from graf.pipeline.table import to_csv
-from graf.errors import Preempted
-from graf.io import atomic_write_json, atomic_write_text
 
 log = logging.getLogger("graf")
 
@@ -98,10 +98,19 @@ def collect(out: Path, cfg: DictConfig) -> tuple[list[dict], dict]:
                 parts = [t.get("fit_s"), *(p.get("fit_s") for p in _preempted_runs(f.parent))]
                 fit_s = None if fit_s is None or any(x is None for x in parts) else fit_s + sum(map(float, parts))
                 v = val_figures(r)
-                rows.append({"regime": rname, "method": mname, "step": int(r.get("global_step", step)),
-                             "val_psnr": v["val/psnr"], "val_ssim": v["val/ssim"], "val_lpips": v["val/lpips"],
-                             "val_reliance_db": v["val/reliance_db"], "fit_s": None if fit_s is None else round(fit_s, 1),
-                             "s_per_step": t.get("fit_s_per_step")})
+                rows.append(
+                    {
+                        "regime": rname,
+                        "method": mname,
+                        "step": int(r.get("global_step", step)),
+                        "val_psnr": v["val/psnr"],
+                        "val_ssim": v["val/ssim"],
+                        "val_lpips": v["val/lpips"],
+                        "val_reliance_db": v["val/reliance_db"],
+                        "fit_s": None if fit_s is None else round(fit_s, 1),
+                        "s_per_step": t.get("fit_s_per_step"),
+                    }
+                )
     return rows, knn
 
 
@@ -131,8 +140,11 @@ def _resume_preempted(folder: Path, prev: Path | None) -> Path | None:
         # save) is resumed from again, and its seconds are not counted twice
         if not any(r.get("global_step") == killed["global_step"] for r in _preempted_runs(folder)):
             if killed["fit_s"] is None:
-                log.warning("%s: the checkpoint holds no training time of its attempt; the curve's seconds become "
-                            "n/a from this point", killed["checkpoint"])
+                log.warning(
+                    "%s: the checkpoint holds no training time of its attempt; the curve's seconds become "
+                    "n/a from this point",
+                    killed["checkpoint"],
+                )
             atomic_write_json(folder / PREEMPTED_RUNS, [*_preempted_runs(folder), killed])
         log.info("%s: resuming a killed run from its checkpoint at step %d", folder, killed["global_step"])
         return Path(killed["checkpoint"])
@@ -156,8 +168,13 @@ def _killed_attempt(folder: Path) -> dict | None:
         return None
     attempt = state.get("graf_attempt") or {}
     fit_s = attempt.get("fit_s") if attempt.get("global_step") == step else None
-    return {"killed": True, "global_step": step, "start_step": attempt.get("start_step"), "checkpoint": str(ckpt),
-            "fit_s": fit_s}
+    return {
+        "killed": True,
+        "global_step": step,
+        "start_step": attempt.get("start_step"),
+        "checkpoint": str(ckpt),
+        "fit_s": fit_s,
+    }
 
 
 def _fmt(v, spec):
@@ -165,15 +182,21 @@ def _fmt(v, spec):
 
 
 def write_outputs(out: Path, rows: list[dict], knn: dict, failed: list[dict]) -> None:
-    lines = ["| regime | method | step | val PSNR | val SSIM | val LPIPS | val reliance dB | train s (cum.) | s/step |",
-             "|" + "---|" * 9]
+    lines = [
+        "| regime | method | step | val PSNR | val SSIM | val LPIPS | val reliance dB | train s (cum.) | s/step |",
+        "|" + "---|" * 9,
+    ]
     for r in rows:
-        lines.append(f"| {r['regime']} | {r['method']} | {r['step']} | {_fmt(r['val_psnr'], '.2f')} | "
-                     f"{_fmt(r['val_ssim'], '.3f')} | {_fmt(r['val_lpips'], '.3f')} | {_fmt(r['val_reliance_db'], '.2f')} | "
-                     f"{_fmt(r['fit_s'], '.0f')} | {_fmt(r['s_per_step'], '.3f')} |")
+        lines.append(
+            f"| {r['regime']} | {r['method']} | {r['step']} | {_fmt(r['val_psnr'], '.2f')} | "
+            f"{_fmt(r['val_ssim'], '.3f')} | {_fmt(r['val_lpips'], '.3f')} | {_fmt(r['val_reliance_db'], '.2f')} | "
+            f"{_fmt(r['fit_s'], '.0f')} | {_fmt(r['s_per_step'], '.3f')} |"
+        )
     for rname, k in knn.items():
-        lines.append(f"| {rname} | knn (line) | 0 | {_fmt(k['val/psnr'], '.2f')} | {_fmt(k['val/ssim'], '.3f')} | "
-                     f"{_fmt(k['val/lpips'], '.3f')} | {_fmt(k['val/reliance_db'], '.2f')} | 0 | n/a |")
+        lines.append(
+            f"| {rname} | knn (line) | 0 | {_fmt(k['val/psnr'], '.2f')} | {_fmt(k['val/ssim'], '.3f')} | "
+            f"{_fmt(k['val/lpips'], '.3f')} | {_fmt(k['val/reliance_db'], '.2f')} | 0 | n/a |"
+        )
     atomic_write_text(out / "curves.md", "\n".join(lines) + "\n")
     atomic_write_text(out / "curves.csv", to_csv(COLUMNS, [[r[c] for c in COLUMNS] for r in rows]))
     atomic_write_json(out / "results.json", {"task": "curves", "rows": rows, "knn": knn, "failed": failed})
@@ -191,13 +214,18 @@ def plot(path: Path, rows: list[dict], knn: dict) -> None:
     # one colour per method in every panel, so a method reads the same across regimes
     cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     colour = {m: cycle[k % len(cycle)] for k, m in enumerate(sorted({r["method"] for r in rows}))}
-    fig, axes = plt.subplots(len(regimes), len(FIGURES), figsize=(13, 3.3 * len(regimes)), squeeze=False,
-                             constrained_layout=True)
+    fig, axes = plt.subplots(
+        len(regimes), len(FIGURES), figsize=(13, 3.3 * len(regimes)), squeeze=False, constrained_layout=True
+    )
     for i, rname in enumerate(regimes):
         for j, (key, col, label) in enumerate(FIGURES):
             ax = axes[i][j]
             for m in sorted({r["method"] for r in rows if r["regime"] == rname}):
-                pts = [(r["step"], r[col]) for r in rows if r["regime"] == rname and r["method"] == m and r[col] is not None]
+                pts = [
+                    (r["step"], r[col])
+                    for r in rows
+                    if r["regime"] == rname and r["method"] == m and r[col] is not None
+                ]
                 if pts:
                     ax.plot(*zip(*pts), marker="o", label=m, color=colour[m])
             if rname in knn and knn[rname].get(key) is not None:
@@ -241,19 +269,32 @@ def curves(cfg: DictConfig) -> dict:
                 if (folder / "results.json").exists():
                     prev = folder
                     continue
-                cmd = [*train, *base, *method.overrides, *extra, f"{method.schedule}={int(regime.max_steps)}",
-                       f"trainer.max_steps={step}",
-                       f"callbacks.model_checkpoint.every_n_train_steps={min(step, int(cfg.checkpoint_every))}",
-                       f"hydra.run.dir={folder}"]
+                cmd = [
+                    *train,
+                    *base,
+                    *method.overrides,
+                    *extra,
+                    f"{method.schedule}={int(regime.max_steps)}",
+                    f"trainer.max_steps={step}",
+                    f"callbacks.model_checkpoint.every_n_train_steps={min(step, int(cfg.checkpoint_every))}",
+                    f"hydra.run.dir={folder}",
+                ]
                 start = _resume_preempted(folder, prev)
                 if start is not None:
                     cmd.append(f"ckpt_path={start}")
-                log.info("%s / %s: training to step %d%s", rname, mname, step,
-                         f" from {start.parent.parent.name}" if start else "")
+                log.info(
+                    "%s / %s: training to step %d%s",
+                    rname,
+                    mname,
+                    step,
+                    f" from {start.parent.parent.name}" if start else "",
+                )
                 try:
                     ok, tail = _run(cmd, folder, env, timeout)
                     if not ok and (folder / "preempted.json").exists():  # the run alone got the SIGTERM
-                        raise Preempted(f"SIGTERM: {folder} was pre-empted; run the same command again to resume\n{tail}")
+                        raise Preempted(
+                            f"SIGTERM: {folder} was pre-empted; run the same command again to resume\n{tail}"
+                        )
                 except Preempted:
                     rows, knn = collect(out, cfg)
                     write_outputs(out, rows, knn, failed)

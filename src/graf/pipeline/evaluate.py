@@ -11,7 +11,7 @@ as ``config.model`` and the checkpoint itself under ``checkpoint``.
 from __future__ import annotations
 
 import time
-from typing import Sequence
+from collections.abc import Sequence
 
 from hydra.core.hydra_config import HydraConfig
 from hydra.utils import get_class
@@ -31,8 +31,9 @@ def _model_overrides(overrides: Sequence[str]) -> tuple[str | None, list[str]]:
         if key == "model":
             choice = o.split("=", 1)[1]
         elif key.startswith("model."):
-            keys.append(key[len("model."):])
+            keys.append(key[len("model.") :])
     return choice, keys
+
 
 def load_checkpoint_model(cfg: DictConfig, path: str, overrides: Sequence[str]):
     """The checkpoint's model with the allowed ``model.*`` overrides applied; and what results.json records."""
@@ -42,8 +43,10 @@ def load_checkpoint_model(cfg: DictConfig, path: str, overrides: Sequence[str]):
     if target is None:  # written before checkpoints named their class: trust model=..., check the layout
         target = cfg.model._target_
     elif choice is not None and get_class(cfg.model._target_) is not get_class(target):
-        raise CheckpointError(f"{path}: holds a {target} checkpoint, but model={choice} is {cfg.model._target_}; "
-                              "drop model=... (graf-eval takes the class from the checkpoint)")
+        raise CheckpointError(
+            f"{path}: holds a {target} checkpoint, but model={choice} is {cfg.model._target_}; "
+            "drop model=... (graf-eval takes the class from the checkpoint)"
+        )
     cls = get_class(target)
     check_checkpoint(ckpt, cls, path)
     saved = dict(ckpt.get("hyper_parameters") or {})
@@ -57,13 +60,21 @@ def load_checkpoint_model(cfg: DictConfig, path: str, overrides: Sequence[str]):
             raise CheckpointError(
                 f"model.{key}={value} cannot change the trained checkpoint {path} (it was trained with "
                 f"{key}={saved.get(key, '<not a setting of ' + cls.__name__ + '>')}); only inference settings "
-                f"may be overridden at evaluation: {', '.join('model.' + a for a in allowed) or 'none'}")
+                f"may be overridden at evaluation: {', '.join('model.' + a for a in allowed) or 'none'}"
+            )
     model = cls.load_from_checkpoint(path, map_location="cpu", **applied)
     ran = {"_target_": target, **{k: v for k, v in dict(model.hparams).items()}}
-    info = {"path": str(path), "global_step": int(ckpt.get("global_step", 0)), "class": target,
-            "layout": int((ckpt.get("graf") or {}).get("layout", 1)), "hyper_parameters": saved,
-            "applied_overrides": applied, "model": OmegaConf.to_container(OmegaConf.create(ran), resolve=True)}
+    info = {
+        "path": str(path),
+        "global_step": int(ckpt.get("global_step", 0)),
+        "class": target,
+        "layout": int((ckpt.get("graf") or {}).get("layout", 1)),
+        "hyper_parameters": saved,
+        "applied_overrides": applied,
+        "model": OmegaConf.to_container(OmegaConf.create(ran), resolve=True),
+    }
     return model, info
+
 
 @task_wrapper
 def evaluate(cfg: DictConfig, overrides: Sequence[str] | None = None) -> Results:
@@ -77,14 +88,16 @@ def evaluate(cfg: DictConfig, overrides: Sequence[str] | None = None) -> Results
     metrics = test_and_report(cfg, objects, started, task="eval")
     return Results(metrics, objects)
 
+
 def checkpoint_model_choice(args: Sequence[str]) -> str | None:
     """``model=<option>`` to add to a command line that tests a checkpoint (``ckpt_path=``) and overrides a
     ``model.*`` key without naming ``model=``: the model config of the checkpoint's class, so that the key
     exists when Hydra composes (the default model, KNN, has no ``lr``) and :func:`load_checkpoint_model` can
     apply or refuse it.  None when nothing is to be added (or the checkpoint cannot be read: the run then
     reports that itself)."""
-    if not any(a.startswith("ckpt_path=") for a in args) or any(a.split("=", 1)[0].lstrip("+~") == "model"
-                                                                for a in args):
+    if not any(a.startswith("ckpt_path=") for a in args) or any(
+        a.split("=", 1)[0].lstrip("+~") == "model" for a in args
+    ):
         return None
     if not any(a.lstrip("+~").startswith("model.") for a in args):
         return None

@@ -15,9 +15,9 @@ import time
 
 from omegaconf import DictConfig, OmegaConf
 
+from graf.io import atomic_write_json
 from graf.pipeline.build import build_datamodule
 from graf.pipeline.config import output_dir, single_scene_config, task_wrapper
-from graf.io import atomic_write_json
 
 
 def format_table(results: dict) -> str:
@@ -25,16 +25,20 @@ def format_table(results: dict) -> str:
     lines = [head, "-" * len(head)]
 
     def row(name, lr, s):
-        lines.append(f"{name:<18}{lr:>8}{s['n']:>6}{s['mean']:>8.2f}{s['std']:>7.2f}{s['median']:>8.2f}"
-                     f"{s['min']:>8.2f}{s['max']:>8.2f}")
+        lines.append(
+            f"{name:<18}{lr:>8}{s['n']:>6}{s['mean']:>8.2f}{s['std']:>7.2f}{s['median']:>8.2f}"
+            f"{s['min']:>8.2f}{s['max']:>8.2f}"
+        )
 
     for run in results["runs"]:
         row("oracle (A.2)", f"{run['lr']:g}", run["psnr"])
     row("IDW KNN", "-", results["idw"]["psnr"])
     ref = results["reference"]
     lines.append(f"{'paper A.2':<18}{'?':>8}{'':>6}{ref['psnr_mean']:>8.2f}{ref['psnr_std']:>7.2f}")
-    return f"PSNR (dB) of {results['scene']} {results['split']} targets, L={results['L']}, " \
-           f"{results['iterations']} iterations\n" + "\n".join(lines)
+    return (
+        f"PSNR (dB) of {results['scene']} {results['split']} targets, L={results['L']}, "
+        f"{results['iterations']} iterations\n" + "\n".join(lines)
+    )
 
 
 @task_wrapper
@@ -48,8 +52,9 @@ def run(cfg: DictConfig) -> dict:
     band = bands[0]
     dm.setup()
     rows, src_index, src_mask = select_targets(dm, oc.split)
-    fit = run_oracle(dm.data.spectra, dm.positions, rows, src_index, src_mask, list(oc.lrs), oc.iterations,
-                     oc.chunk_targets)
+    fit = run_oracle(
+        dm.data.spectra, dm.positions, rows, src_index, src_mask, list(oc.lrs), oc.iterations, oc.chunk_targets
+    )
     runs = [{"lr": r["lr"], "psnr": summarize(r["psnr"]), "weights": r["weights"]} for r in fit["runs"]]
     head = runs[0]
     results = {

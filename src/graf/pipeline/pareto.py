@@ -35,14 +35,26 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from graf.pipeline.config import output_dir, task_wrapper
 from graf.errors import Preempted
 from graf.io import atomic_write_json, atomic_write_text
+from graf.pipeline.config import output_dir, task_wrapper
 
 log = logging.getLogger("graf")
 
-COLUMNS = ("scene", "point", "knob", "value", "train_s", "train_s_per_step", "infer_s_per_spectrum", "val_psnr",
-           "test_psnr", "knn_test_psnr", "front_infer", "front_train")
+COLUMNS = (
+    "scene",
+    "point",
+    "knob",
+    "value",
+    "train_s",
+    "train_s_per_step",
+    "infer_s_per_spectrum",
+    "val_psnr",
+    "test_psnr",
+    "knn_test_psnr",
+    "front_infer",
+    "front_train",
+)
 
 
 def _run(cmd: list[str], folder: Path, env: dict, timeout: float) -> tuple[bool, str]:
@@ -72,8 +84,10 @@ def _run(cmd: list[str], folder: Path, env: dict, timeout: float) -> tuple[bool,
                 signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
     tail = "\n".join((folder / "run.log").read_text(errors="replace").splitlines()[-5:])
     if got:
-        raise Preempted(f"SIGTERM: stopped while running into {folder} (exit code {p.returncode}); run the same "
-                        f"command again to resume\n{tail}")
+        raise Preempted(
+            f"SIGTERM: stopped while running into {folder} (exit code {p.returncode}); run the same "
+            f"command again to resume\n{tail}"
+        )
     return p.returncode == 0 and (folder / "results.json").exists(), tail
 
 
@@ -90,9 +104,15 @@ def pareto_front(rows: list[dict], cost: str, score: str = "val_psnr") -> set[in
     for i, r in enumerate(rows):
         if r.get(cost) is None or r.get(score) is None:
             continue
-        dominated = any(o is not r and o.get(cost) is not None and o.get(score) is not None
-                        and o[cost] <= r[cost] and o[score] >= r[score] and (o[cost] < r[cost] or o[score] > r[score])
-                        for o in rows)
+        dominated = any(
+            o is not r
+            and o.get(cost) is not None
+            and o.get(score) is not None
+            and o[cost] <= r[cost]
+            and o[score] >= r[score]
+            and (o[cost] < r[cost] or o[score] > r[score])
+            for o in rows
+        )
         if not dominated:
             front.add(i)
     return front
@@ -115,8 +135,10 @@ def collect(out: Path, cfg: DictConfig) -> list[dict]:
     for scene in _selected(cfg, "scenes", "only_scenes"):
         base_train = None
         scene_rows = []
-        for kind, points in (("train", _selected(cfg, "points", "only_points")),
-                             ("eval", _selected(cfg, "eval_points", "only_points"))):
+        for kind, points in (
+            ("train", _selected(cfg, "points", "only_points")),
+            ("eval", _selected(cfg, "eval_points", "only_points")),
+        ):
             for name, p in points.items():
                 f = out / scene / name / "results.json"
                 if not f.exists():
@@ -124,11 +146,18 @@ def collect(out: Path, cfg: DictConfig) -> list[dict]:
                 r = json.loads(f.read_text())
                 t = r.get("timing") or {}
                 m = r["metrics"]
-                row = {"scene": scene, "point": name, "knob": p.knob, "value": str(p.value),
-                       "train_s": t.get("fit_s"), "train_s_per_step": t.get("fit_s_per_step"),
-                       "infer_s_per_spectrum": t.get("test_s_per_spectrum"), "val_psnr": m.get("val/psnr"),
-                       "test_psnr": m.get("test/psnr"),
-                       "knn_test_psnr": ((r.get("baselines") or {}).get("knn") or {}).get("metrics", {}).get("test/psnr")}
+                row = {
+                    "scene": scene,
+                    "point": name,
+                    "knob": p.knob,
+                    "value": str(p.value),
+                    "train_s": t.get("fit_s"),
+                    "train_s_per_step": t.get("fit_s_per_step"),
+                    "infer_s_per_spectrum": t.get("test_s_per_spectrum"),
+                    "val_psnr": m.get("val/psnr"),
+                    "test_psnr": m.get("test/psnr"),
+                    "knn_test_psnr": ((r.get("baselines") or {}).get("knn") or {}).get("metrics", {}).get("test/psnr"),
+                }
                 if kind == "train" and name == "base":
                     base_train = (row["train_s"], row["train_s_per_step"])
                 if kind == "eval" and base_train is not None:  # no training of its own: the base's
@@ -146,16 +175,23 @@ def _fmt(v, spec=".2f"):
 
 
 def write_tables(out: Path, rows: list[dict], failed: list[dict], meta: dict) -> None:
-    lines = ["| scene | point | knob | value | train s | train s/step | infer s/spectrum | val PSNR | test PSNR | "
-             "KNN test PSNR | front (infer) | front (train) |", "|" + "---|" * 12]
+    lines = [
+        "| scene | point | knob | value | train s | train s/step | infer s/spectrum | val PSNR | test PSNR | "
+        "KNN test PSNR | front (infer) | front (train) |",
+        "|" + "---|" * 12,
+    ]
     for r in rows:
-        lines.append(f"| {r['scene']} | {r['point']} | {r['knob']} | {r['value']} | {_fmt(r['train_s'], '.1f')} | "
-                     f"{_fmt(r['train_s_per_step'], '.3f')} | {_fmt(r['infer_s_per_spectrum'], '.3f')} | "
-                     f"{_fmt(r['val_psnr'])} | {_fmt(r['test_psnr'])} | {_fmt(r['knn_test_psnr'])} | "
-                     f"{'yes' if r['front_infer'] else ''} | {'yes' if r['front_train'] else ''} |")
+        lines.append(
+            f"| {r['scene']} | {r['point']} | {r['knob']} | {r['value']} | {_fmt(r['train_s'], '.1f')} | "
+            f"{_fmt(r['train_s_per_step'], '.3f')} | {_fmt(r['infer_s_per_spectrum'], '.3f')} | "
+            f"{_fmt(r['val_psnr'])} | {_fmt(r['test_psnr'])} | {_fmt(r['knn_test_psnr'])} | "
+            f"{'yes' if r['front_infer'] else ''} | {'yes' if r['front_train'] else ''} |"
+        )
     lines.append("")
-    lines.append("Fronts on validation PSNR; test PSNR reported, never used to choose. Times: "
-                 f"{meta['device']}, {meta['threads']} threads.")
+    lines.append(
+        "Fronts on validation PSNR; test PSNR reported, never used to choose. Times: "
+        f"{meta['device']}, {meta['threads']} threads."
+    )
     atomic_write_text(out / "pareto.md", "\n".join(lines) + "\n")
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=COLUMNS)
@@ -180,20 +216,36 @@ def plot(path: Path, rows: list[dict]) -> None:
     fig, axes = plt.subplots(len(scenes), 2, figsize=(11, 4.2 * len(scenes)), squeeze=False)
     for i, scene in enumerate(scenes):
         sr = [r for r in rows if r["scene"] == scene]
-        for j, (cost, label, front) in enumerate((("infer_s_per_spectrum", "inference s / spectrum", "front_infer"),
-                                                  ("train_s", "training s (whole fit)", "front_train"))):
+        for j, (cost, label, front) in enumerate(
+            (
+                ("infer_s_per_spectrum", "inference s / spectrum", "front_infer"),
+                ("train_s", "training s (whole fit)", "front_train"),
+            )
+        ):
             ax = axes[i][j]
             for r in sr:
                 if r[cost] is None or r["test_psnr"] is None:
                     continue
-                ax.scatter(r[cost], r["test_psnr"], marker=markers[r["knob"]], s=60 if r[front] else 30,
-                           edgecolors="k" if r[front] else "none", label=r["knob"])
-                ax.annotate(f"{r['value']}", (r[cost], r["test_psnr"]), fontsize=7, xytext=(3, 3),
-                            textcoords="offset points")
+                ax.scatter(
+                    r[cost],
+                    r["test_psnr"],
+                    marker=markers[r["knob"]],
+                    s=60 if r[front] else 30,
+                    edgecolors="k" if r[front] else "none",
+                    label=r["knob"],
+                )
+                ax.annotate(
+                    f"{r['value']}", (r[cost], r["test_psnr"]), fontsize=7, xytext=(3, 3), textcoords="offset points"
+                )
             fr = sorted((r for r in sr if r[front] and r[cost] is not None), key=lambda r: r[cost])
             if fr:
-                ax.plot([r[cost] for r in fr], [r["test_psnr"] for r in fr], "k--", lw=0.8,
-                        label="front (chosen on val PSNR)")
+                ax.plot(
+                    [r[cost] for r in fr],
+                    [r["test_psnr"] for r in fr],
+                    "k--",
+                    lw=0.8,
+                    label="front (chosen on val PSNR)",
+                )
             knn = next((r["knn_test_psnr"] for r in sr if r["knn_test_psnr"] is not None), None)
             if knn is not None:
                 ax.axhline(knn, color="gray", lw=1, ls=":", label="KNN")
@@ -235,28 +287,58 @@ def sweep(cfg: DictConfig) -> dict:
     py = sys.executable
     failed_path = out / "failed.json"
     failed = json.loads(failed_path.read_text()) if failed_path.exists() else []
-    meta = {"device": _device(), "threads": cfg.get("threads") or "default", "config": OmegaConf.to_container(cfg, resolve=True)}
+    meta = {
+        "device": _device(),
+        "threads": cfg.get("threads") or "default",
+        "config": OmegaConf.to_container(cfg, resolve=True),
+    }
     started = time.perf_counter()
     for scene, sc in _selected(cfg, "scenes", "only_scenes").items():
         sim = list(sc.get("simulate") or [])
         if sim and _dataset_missing(cfg, sim):
             log.info("%s: dataset missing under %s, simulating it first", scene, cfg.data_root)
-            ok, tail = _run([py, "-m", "graf.cli.simulate", *sim, f"data_root={env['GRAF_DATA_ROOT']}",
-                             f"hydra.run.dir={out / scene / '_simulate'}"], out / scene / "_simulate", env,
-                            cfg.run_timeout_s)
+            ok, tail = _run(
+                [
+                    py,
+                    "-m",
+                    "graf.cli.simulate",
+                    *sim,
+                    f"data_root={env['GRAF_DATA_ROOT']}",
+                    f"hydra.run.dir={out / scene / '_simulate'}",
+                ],
+                out / scene / "_simulate",
+                env,
+                cfg.run_timeout_s,
+            )
             if not ok or _dataset_missing(cfg, sim):
                 failed.append({"scene": scene, "point": "_simulate", "log": tail})
                 atomic_write_json(failed_path, failed)
                 continue
         common = list(sc.get("common") or [])
         skip = set(sc.get("skip_points") or [])
-        jobs = [(name, p, [py, "-m", "graf.cli.train", *sc.get("train", []), *common, *cfg.base, *p.overrides])
-                for name, p in _selected(cfg, "points", "only_points").items()]
+        jobs = [
+            (name, p, [py, "-m", "graf.cli.train", *sc.get("train", []), *common, *cfg.base, *p.overrides])
+            for name, p in _selected(cfg, "points", "only_points").items()
+        ]
         ckpt = out / scene / "base" / "checkpoints" / "last.ckpt"
-        jobs += [(name, p, [py, "-m", "graf.cli.evaluate", f"ckpt_path={ckpt}", *common, "logger=none",
-                            "plot_count=0", *p.overrides])
-                 for name, p in _selected(cfg, "eval_points", "only_points").items()]
-        for name, p, cmd in jobs:
+        jobs += [
+            (
+                name,
+                p,
+                [
+                    py,
+                    "-m",
+                    "graf.cli.evaluate",
+                    f"ckpt_path={ckpt}",
+                    *common,
+                    "logger=none",
+                    "plot_count=0",
+                    *p.overrides,
+                ],
+            )
+            for name, p in _selected(cfg, "eval_points", "only_points").items()
+        ]
+        for name, _p, cmd in jobs:
             folder = out / scene / name
             if name in skip:
                 log.info("%s / %s: skipped (scenes.%s.skip_points)", scene, name, scene)

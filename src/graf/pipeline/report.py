@@ -36,17 +36,21 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from graf.errors import ConfigError
+from graf.io import atomic_write_bytes, atomic_write_json
 from graf.pipeline.config import family, task_wrapper
 from graf.pipeline.table import read_run_result, to_csv
 from graf.pipeline.table import to_markdown as table_markdown
-from graf.io import atomic_write_bytes, atomic_write_json
 
 log = logging.getLogger("graf")
 
 # neighbour reliance (PSNR with true minus with swapped neighbours): a column of the tables, not a figure
 RELIANCE = ("test/reliance_db", "reliance dB", "{:.2f}")
-METRICS = (("test/mse", "MSE", "{:.4f}"), ("test/lpips", "LPIPS", "{:.3f}"), ("test/psnr", "PSNR", "{:.2f}"),
-           ("test/ssim", "SSIM", "{:.3f}"))
+METRICS = (
+    ("test/mse", "MSE", "{:.4f}"),
+    ("test/lpips", "LPIPS", "{:.3f}"),
+    ("test/psnr", "PSNR", "{:.2f}"),
+    ("test/ssim", "SSIM", "{:.3f}"),
+)
 # the settings a study may vary, in the order its table blocks are nested
 AXES = ("trained_on", "train_band", "finetune", "L", "eval_scene", "eval_band")
 REFERENCE = {"L": 10, "finetune": "f20"}  # which job of a varied axis the spectra grids show
@@ -95,27 +99,60 @@ def rows_of(result: dict, job: str) -> list[dict]:
         trained = sorted(ft["base_scenes"], key=lambda n: ft["base_scenes"][n]["index"])
         train_hz = sorted({float(v["band_hz"]) for v in ft["base_scenes"].values() if v.get("band_hz")})
     else:
-        trained, train_hz = list(result.get("train_scenes") or [result.get("scene")]), sorted(
-            set(result.get("train_bands_hz") or [result.get("band_hz")]))
+        trained, train_hz = (
+            list(result.get("train_scenes") or [result.get("scene")]),
+            sorted(set(result.get("train_bands_hz") or [result.get("band_hz")])),
+        )
     steps = int(result.get("global_step") or 0)
     budget = f"{steps}" if not ft else f"{ft.get('base_steps', '?')}+{ft.get('steps', 0)}"
-    common = {"job": job, "trained_on": "+".join(trained), "train_band": " + ".join(_band(h) for h in train_hz),
-              "finetune": _ft_label(ft), "test_pool": (ft or {}).get("test_pool", ""),
-              "L": (cfg.get("neighbors") or {}).get("L")}
-    evals = result.get("evaluations") or [{"eval_scene": result.get("eval_scene") or result.get("scene"),
-                                           "within_scene": result.get("within_scene", True),
-                                           "metrics": result.get("metrics", {}), "n_test": result.get("n_test"),
-                                           "band_hz": result.get("band_hz"), "baselines": result.get("baselines")}]
+    common = {
+        "job": job,
+        "trained_on": "+".join(trained),
+        "train_band": " + ".join(_band(h) for h in train_hz),
+        "finetune": _ft_label(ft),
+        "test_pool": (ft or {}).get("test_pool", ""),
+        "L": (cfg.get("neighbors") or {}).get("L"),
+    }
+    evals = result.get("evaluations") or [
+        {
+            "eval_scene": result.get("eval_scene") or result.get("scene"),
+            "within_scene": result.get("within_scene", True),
+            "metrics": result.get("metrics", {}),
+            "n_test": result.get("n_test"),
+            "band_hz": result.get("band_hz"),
+            "baselines": result.get("baselines"),
+        }
+    ]
     out = []
     for ev in evals:
-        base = {**common, "eval_scene": ev["eval_scene"], "eval_band": _band(ev.get("band_hz")),
-                "within_scene": bool(ev.get("within_scene")), "n_test": ev.get("n_test")}
-        out.append({**base, "method": result.get("method"), "steps": budget,
-                    **{k: (ev.get("metrics") or {}).get(k) for k, _, _ in (*METRICS, RELIANCE)}})
+        base = {
+            **common,
+            "eval_scene": ev["eval_scene"],
+            "eval_band": _band(ev.get("band_hz")),
+            "within_scene": bool(ev.get("within_scene")),
+            "n_test": ev.get("n_test"),
+        }
+        out.append(
+            {
+                **base,
+                "method": result.get("method"),
+                "steps": budget,
+                **{k: (ev.get("metrics") or {}).get(k) for k, _, _ in (*METRICS, RELIANCE)},
+            }
+        )
         for name, b in (ev.get("baselines") or {}).items():
             # a baseline is not trained: it is the same whatever the job trained on
-            out.append({**base, "trained_on": "-", "train_band": "-", "within_scene": None, "method": name, "steps": "0",
-                        **{k: (b.get("metrics") or {}).get(k) for k, _, _ in (*METRICS, RELIANCE)}})
+            out.append(
+                {
+                    **base,
+                    "trained_on": "-",
+                    "train_band": "-",
+                    "within_scene": None,
+                    "method": name,
+                    "steps": "0",
+                    **{k: (b.get("metrics") or {}).get(k) for k, _, _ in (*METRICS, RELIANCE)},
+                }
+            )
     return out
 
 
@@ -138,8 +175,11 @@ def collect_rows(runs: Path) -> tuple[list[dict], list[Path]]:
 
 
 def varying_axes(rows: list[dict]) -> list[str]:
-    return [a for a in AXES if len({str(r.get(a)) for r in rows if r["steps"] != "0" or a not in
-                                    ("trained_on", "train_band")}) > 1]
+    return [
+        a
+        for a in AXES
+        if len({str(r.get(a)) for r in rows if r["steps"] != "0" or a not in ("trained_on", "train_band")}) > 1
+    ]
 
 
 def _sort_key(v):
@@ -153,8 +193,12 @@ def table(rows: list[dict], axes: list[str]) -> tuple[list[str], list[list]]:
     """Method x metric rows, sorted by the study's varying axes (the seed's tables: one block per setting)."""
     header = [*axes, "method", "n_test", "steps", *[n for _, n, _ in (*METRICS, RELIANCE)]]
     order = sorted(rows, key=lambda r: ([_sort_key(r.get(a)) for a in axes], r["method"] == "knn", r["method"]))
-    return header, [[r.get(a) for a in axes] + [r["method"], r.get("n_test"), r["steps"]]
-                    + [r.get(k) for k, _, _ in (*METRICS, RELIANCE)] for r in order]
+    return header, [
+        [r.get(a) for a in axes]
+        + [r["method"], r.get("n_test"), r["steps"]]
+        + [r.get(k) for k, _, _ in (*METRICS, RELIANCE)]
+        for r in order
+    ]
 
 
 def _fmt(v, col: str) -> str:
@@ -172,8 +216,12 @@ def to_markdown(header, body) -> str:
 
 def to_latex(header, body) -> str:
     esc = lambda s: str(s).replace("_", r"\_").replace("%", r"\%").replace("&", r"\&")  # noqa: E731
-    lines = [r"\begin{tabular}{" + "l" * (len(header) - len(METRICS) - 1) + "r" * (len(METRICS) + 1) + "}", r"\toprule",
-             " & ".join(esc(h) for h in header) + r" \\", r"\midrule"]
+    lines = [
+        r"\begin{tabular}{" + "l" * (len(header) - len(METRICS) - 1) + "r" * (len(METRICS) + 1) + "}",
+        r"\toprule",
+        " & ".join(esc(h) for h in header) + r" \\",
+        r"\midrule",
+    ]
     lines += [" & ".join(esc(_fmt(v, c)) for v, c in zip(row, header)) + r" \\" for row in body]
     return "\n".join(lines + [r"\bottomrule", r"\end{tabular}"]) + "\n"
 
@@ -202,8 +250,13 @@ def matrix_figures(rows: list[dict], out: Path) -> dict:
     ev = sorted({r["eval_scene"] for r in rows})
     mats, written = {}, []
     for key, name, spec in METRICS:
-        fig, axes = plt.subplots(1, len(methods), figsize=(3.2 * len(methods) + 1, 0.6 * len(tr) + 2.2),
-                                 squeeze=False, constrained_layout=True)
+        fig, axes = plt.subplots(
+            1,
+            len(methods),
+            figsize=(3.2 * len(methods) + 1, 0.6 * len(tr) + 2.2),
+            squeeze=False,
+            constrained_layout=True,
+        )
         for ax, m in zip(axes[0], methods):
             baseline = all(r["steps"] == "0" for r in rows if r["method"] == m)
             ylabels = ["(no training)"] if baseline else tr
@@ -235,8 +288,11 @@ def curve(rows: list[dict], axis: str, same_family: bool) -> dict:
     """``{method: {x: {metric: mean}}}`` over test scenes (same-family pairs only when asked and present)."""
     pick = [r for r in rows if r.get(axis) is not None]
     if same_family:
-        fam = [r for r in pick if r["steps"] == "0" or all(
-            family(t) == family(r["eval_scene"]) for t in r["trained_on"].split("+"))]
+        fam = [
+            r
+            for r in pick
+            if r["steps"] == "0" or all(family(t) == family(r["eval_scene"]) for t in r["trained_on"].split("+"))
+        ]
         pick = fam or pick
     groups = defaultdict(list)
     for r in pick:
@@ -269,8 +325,7 @@ def band_figure(rows: list[dict], path: Path) -> dict:
     methods = sorted({r["method"] for r in rows})
     tb = sorted({r["train_band"] for r in rows if r["train_band"] not in ("-", "")}, key=_band_hz)
     eb = sorted({r["eval_band"] for r in rows}, key=_band_hz)
-    fig, axes = plt.subplots(1, len(methods), figsize=(4.2 * len(methods), 3.6), squeeze=False,
-                             constrained_layout=True)
+    fig, axes = plt.subplots(1, len(methods), figsize=(4.2 * len(methods), 3.6), squeeze=False, constrained_layout=True)
     mats = {}
     for ax, m in zip(axes[0], methods):
         rs = [r for r in rows if r["method"] == m]
@@ -322,8 +377,9 @@ def spectra_grids(rows: list[dict], runs: Path, out: Path, axes: list[str]) -> l
         data = {m: np.load(f) for m, f in sorted(files.items())}
         first = next(iter(data.values()))
         n = len(first["ids"])
-        fig, axs = plt.subplots(len(data) + 1, n, figsize=(3.6 * n, 1.25 * (len(data) + 1) + 0.6), squeeze=False,
-                                constrained_layout=True)
+        fig, axs = plt.subplots(
+            len(data) + 1, n, figsize=(3.6 * n, 1.25 * (len(data) + 1) + 0.6), squeeze=False, constrained_layout=True
+        )
         for j in range(n):
             axs[0, j].imshow(first["target"][j], origin="lower", aspect="auto", cmap="magma", vmin=0, vmax=255)
             axs[0, j].set_title(f"id {int(first['ids'][j])}: true", fontsize=8)
@@ -356,8 +412,7 @@ def make_report(runs: Path, out: Path) -> dict:
     summary = {"runs": str(runs), "n_results": len(files), "n_rows": len(rows), "axes": axes, "figures": []}
     if "L" in axes:
         data = curve(rows, "L", same_family=True)
-        curve_figure(data, "neighbours L at test", out / "vs_L.png",
-                     "metric vs L (mean over same-family test pairs)")
+        curve_figure(data, "neighbours L at test", out / "vs_L.png", "metric vs L (mean over same-family test pairs)")
         summary["vs_L"] = data
         summary["figures"].append("vs_L.png")
     if "finetune" in axes:
@@ -366,8 +421,12 @@ def make_report(runs: Path, out: Path) -> dict:
             sub = [r for r in rows if r["eval_scene"] == key[0] and r["train_band"] in (key[1], "-")]
             data = curve([{**r, "fraction": _ft_fraction(r["finetune"])} for r in sub], "fraction", False)
             name = f"vs_fraction_{key[0]}_{key[1].replace(' ', '')}.png"
-            curve_figure(data, "fraction of the new scene's training split (0: zero-shot)", out / name,
-                         f"{key[0]}: metric vs fine-tuned fraction (models trained at {key[1]})")
+            curve_figure(
+                data,
+                "fraction of the new scene's training split (0: zero-shot)",
+                out / name,
+                f"{key[0]}: metric vs fine-tuned fraction (models trained at {key[1]})",
+            )
             summary["vs_fraction"][f"{key[0]} | trained at {key[1]}"] = data
             summary["figures"].append(name)
     if "eval_band" in axes and "train_band" in axes and "eval_scene" not in axes and "finetune" not in axes:
@@ -390,8 +449,10 @@ def report(cfg: DictConfig) -> dict:
     out = Path(str(cfg.out)) if cfg.get("out") else runs
     summary = make_report(runs, out)
     print((out / "report.md").read_text())
-    print(f"{summary['n_results']} results, {summary['n_rows']} rows; varying: {', '.join(summary['axes']) or 'none'}; "
-          f"figures: {', '.join(summary['figures']) or 'none'} -> {out}")
+    print(
+        f"{summary['n_results']} results, {summary['n_rows']} rows; varying: {', '.join(summary['axes']) or 'none'}; "
+        f"figures: {', '.join(summary['figures']) or 'none'} -> {out}"
+    )
     return summary
 
 

@@ -19,8 +19,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
-from graf.pipeline.config import output_dir, task_wrapper
 from graf.io import atomic_write_json  # noqa: E402
+from graf.pipeline.config import output_dir, task_wrapper
 from graf.plotting import save_figure  # noqa: E402
 
 
@@ -35,20 +35,38 @@ def show(cfg: DictConfig) -> dict:
         path = Path(cfg.data_root) / "sim" / name / f"{band.name}{suffix}.h5"
         if not path.is_file():
             limited = sorted(p.name for p in path.parent.glob(f"{band.name}-n*.h5"))
-            raise FileNotFoundError(f"{path}: no dataset; make it with graf-simulate scene={name} band={band.name}"
-                                    + (f" (limited ones there: {limited}; show them with num_tx=N)" if limited else ""))
+            raise FileNotFoundError(
+                f"{path}: no dataset; make it with graf-simulate scene={name} band={band.name}"
+                + (f" (limited ones there: {limited}; show them with num_tx=N)" if limited else "")
+            )
         d = read_dataset(path)
         pick = np.linspace(0, len(d.ids) - 1, int(cfg.count)).round().astype(int)
         rows.append((name, d, pick))
-        summary[name] = {"file": str(path), "spectra": int(len(d.ids)), "mb": round(path.stat().st_size / 1e6, 1),
-                         "mean_paths_per_position": round(float(np.mean(d.meta["num_paths"])), 1)}
-    fig, axes = plt.subplots(len(rows), int(cfg.count), figsize=(3.2 * int(cfg.count), 1.25 * len(rows) + 0.6),
-                             squeeze=False, constrained_layout=True)
+        summary[name] = {
+            "file": str(path),
+            "spectra": int(len(d.ids)),
+            "mb": round(path.stat().st_size / 1e6, 1),
+            "mean_paths_per_position": round(float(np.mean(d.meta["num_paths"])), 1),
+        }
+    fig, axes = plt.subplots(
+        len(rows),
+        int(cfg.count),
+        figsize=(3.2 * int(cfg.count), 1.25 * len(rows) + 0.6),
+        squeeze=False,
+        constrained_layout=True,
+    )
     for r, (name, d, pick) in enumerate(rows):
         for c, i in enumerate(pick):
             ax = axes[r, c]
-            ax.imshow(d.spectra[i].numpy(), origin="lower", extent=(0.5, 360.5, 0.5, 90.5), aspect="auto",
-                      vmin=0, vmax=1, cmap="magma")
+            ax.imshow(
+                d.spectra[i].numpy(),
+                origin="lower",
+                extent=(0.5, 360.5, 0.5, 90.5),
+                aspect="auto",
+                vmin=0,
+                vmax=1,
+                cmap="magma",
+            )
             p = d.positions[i]
             ax.set_title(f"{name} id {int(d.ids[i])} ({p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}) m", fontsize=7)
             ax.set_xticks([]), ax.set_yticks([])
@@ -62,5 +80,8 @@ def show(cfg: DictConfig) -> dict:
         shutil.copy(out / "scenes.png", Path(cfg.out) / f"scenes_{band.name}.png")
         atomic_write_json(Path(cfg.out) / f"scenes_{band.name}.json", result)
     for name, s in summary.items():
-        print(f"{name:<15} {s['spectra']:>6} spectra  {s['mean_paths_per_position']:>6.1f} paths/position  {s['mb']:>7.1f} MB")
+        print(
+            f"{name:<15} {s['spectra']:>6} spectra  {s['mean_paths_per_position']:>6.1f} paths/position  "
+            f"{s['mb']:>7.1f} MB"
+        )
     return result

@@ -15,8 +15,8 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from graf.errors import ConfigError
-from graf.pipeline.config import output_dir, scene_band_config, single_scene_config, task_wrapper
 from graf.io import atomic_write_json, writable_dir
+from graf.pipeline.config import output_dir, scene_band_config, single_scene_config, task_wrapper
 
 log = logging.getLogger("graf")
 
@@ -31,23 +31,41 @@ def simulate(cfg: DictConfig) -> dict:
     band = hydra.utils.instantiate(scene_band_config(scene_cfg, cfg.get("band")))
     scene = hydra.utils.instantiate(scene_cfg)
     if not isinstance(scene, SimulatedScene):
-        raise ConfigError(f"scene {getattr(scene, 'name', scene_cfg.get('name'))} is not a simulated scene: graf-simulate "
-                          "needs a scene config with _target_: graf.sim.scene.SimulatedScene")
+        raise ConfigError(
+            f"scene {getattr(scene, 'name', scene_cfg.get('name'))} is not a simulated scene: graf-simulate "
+            "needs a scene config with _target_: graf.sim.scene.SimulatedScene"
+        )
     sim = cfg.sim
     if sim.export not in (None, "none", "nerf2"):
         raise ConfigError(f"sim.export must be null or 'nerf2', got {sim.export!r}")
     writable_dir(cfg.data_root, "data_root")  # before any tracing: a long run must not fail at its first write
     device = sim.device if sim.device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu")
-    summary = generate(scene, band, cfg.data_root, num_tx=sim.num_tx, chunk_size=int(sim.chunk_size),
-                       overwrite=bool(sim.overwrite), device=device, progress=bool(sim.progress))
+    summary = generate(
+        scene,
+        band,
+        cfg.data_root,
+        num_tx=sim.num_tx,
+        chunk_size=int(sim.chunk_size),
+        overwrite=bool(sim.overwrite),
+        device=device,
+        progress=bool(sim.progress),
+    )
     if sim.export == "nerf2":
         folder = export_nerf2(summary["path"], summary["path"].replace(".h5", "_nerf2"))
         summary["nerf2_folder"] = str(folder)
-    results = {"scene": scene.name, "band": band.name, "band_hz": band.frequency_hz, **summary,
-               "device": device, "command_seconds": round(time.perf_counter() - started, 3),
-               "config": OmegaConf.to_container(cfg, resolve=True)}
+    results = {
+        "scene": scene.name,
+        "band": band.name,
+        "band_hz": band.frequency_hz,
+        **summary,
+        "device": device,
+        "command_seconds": round(time.perf_counter() - started, 3),
+        "config": OmegaConf.to_container(cfg, resolve=True),
+    }
     atomic_write_json(output_dir(cfg) / "results.json", results)
     rate = summary.get("spectra_per_second")
-    print(f"{scene.name} {band.name}: {summary['n']} spectra in {summary['path']}"
-          + (f"; made {summary['made']} at {rate:.1f} spectra/s" if rate else " (already there)"))
+    print(
+        f"{scene.name} {band.name}: {summary['n']} spectra in {summary['path']}"
+        + (f"; made {summary['made']} at {rate:.1f} spectra/s" if rate else " (already there)")
+    )
     return results

@@ -17,11 +17,11 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from graf.data.spectrum_set import DataFormatError
 from graf.errors import ConfigError
+from graf.io import atomic_write_json
 from graf.pipeline.build import build_datamodule
 from graf.pipeline.config import output_dir, single_scene_config, task_wrapper
-from graf.data.spectrum_set import DataFormatError
-from graf.io import atomic_write_json
 
 
 def read_query_positions(path: Path):
@@ -33,13 +33,15 @@ def read_query_positions(path: Path):
 
     positions, had_header = _read_positions(path)
     if len(positions) == 0:
-        raise DataFormatError(path, "holds no positions (a header row alone): give one x,y,z row per spectrum to "
-                                    "synthesize")
+        raise DataFormatError(
+            path, "holds no positions (a header row alone): give one x,y,z row per spectrum to synthesize"
+        )
     bad = ~np.isfinite(positions).all(axis=1)
     if bad.any():
         i = int(np.argmax(bad))
-        raise DataFormatError(path, f"data row {i + 1}: position {positions[i].tolist()} is not finite "
-                                    f"({int(bad.sum())} such row(s))")
+        raise DataFormatError(
+            path, f"data row {i + 1}: position {positions[i].tolist()} is not finite ({int(bad.sum())} such row(s))"
+        )
     return positions, had_header
 
 
@@ -68,19 +70,30 @@ def run(cfg: DictConfig) -> dict:
     else:
         model = hydra.utils.instantiate(cfg.model)
         if getattr(model, "has_trainable_parameters", False):
-            raise ConfigError(f"{model_cls.__name__} (model={_model_choice()}) is a trained model: give its checkpoint with "
-                              "ckpt_path=<run>/checkpoints/last.ckpt (only a method with nothing to train, model=knn, "
-                              "runs without one)")
+            raise ConfigError(
+                f"{model_cls.__name__} (model={_model_choice()}) is a trained model: give its checkpoint with "
+                "ckpt_path=<run>/checkpoints/last.ckpt (only a method with nothing to train, model=knn, "
+                "runs without one)"
+            )
     t0 = time.perf_counter()
     spectra = synthesize(model, dm, positions)
     t_pred = time.perf_counter() - t0
     out = Path(cfg.out) if cfg.get("out") else output_dir(cfg) / "synthesized"
     ids = list(range(1, len(positions) + 1))
     write_nerf2_folder(out, spectra, positions, ids, dm.data.gateway_position, dm.data.gateway_orientation)
-    result = {"method": getattr(model, "method", model_cls.__name__), "scene": dm.data.name, "band_hz": band.frequency_hz,
-              "n": len(ids), "folder": str(out), "seconds": round(time.perf_counter() - started, 3),
-              "seconds_per_spectrum": round(t_pred / max(len(ids), 1), 4), "positions_header": had_header,
-              "config": OmegaConf.to_container(cfg, resolve=True)}
+    result = {
+        "method": getattr(model, "method", model_cls.__name__),
+        "scene": dm.data.name,
+        "band_hz": band.frequency_hz,
+        "n": len(ids),
+        "folder": str(out),
+        "seconds": round(time.perf_counter() - started, 3),
+        "seconds_per_spectrum": round(t_pred / max(len(ids), 1), 4),
+        "positions_header": had_header,
+        "config": OmegaConf.to_container(cfg, resolve=True),
+    }
     atomic_write_json(output_dir(cfg) / "results.json", result)
-    print(f"{len(ids)} spectra synthesized by {result['method']} into {out} ({result['seconds_per_spectrum']:.3f} s each)")
+    print(
+        f"{len(ids)} spectra synthesized by {result['method']} into {out} ({result['seconds_per_spectrum']:.3f} s each)"
+    )
     return result

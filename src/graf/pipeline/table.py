@@ -32,19 +32,38 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, ListConfig
 
-from graf.errors import ConfigError
-from graf.pipeline.config import output_dir, task_wrapper
-from graf.errors import PREEMPTED_EXIT_CODE, is_preempted
+from graf.errors import PREEMPTED_EXIT_CODE, ConfigError, is_preempted
 from graf.io import atomic_write_bytes, atomic_write_json
+from graf.pipeline.config import output_dir, task_wrapper
 
 log = logging.getLogger("graf")
 
-METRICS = ("val/psnr", "val/ssim", "test/mse", "test/psnr", "test/ssim", "test/lpips",  # blank where absent
-           "test/reliance_db")
-IGNORED_PREFIXES = ("paths.", "hydra.", "data_root", "task_name", "logger.", "trainer.default_root_dir", "callbacks.",
-                    "save_predictions", "plot_count", "ckpt_path",
-                    # a search trial's link to its study (its number stays: trials.csv's key)
-                    "optuna_trial.storage", "optuna_trial.study_name", "optuna_trial.trial_id", "optuna_trial.pruner")
+METRICS = (
+    "val/psnr",
+    "val/ssim",
+    "test/mse",
+    "test/psnr",
+    "test/ssim",
+    "test/lpips",  # blank where absent
+    "test/reliance_db",
+)
+IGNORED_PREFIXES = (
+    "paths.",
+    "hydra.",
+    "data_root",
+    "task_name",
+    "logger.",
+    "trainer.default_root_dir",
+    "callbacks.",
+    "save_predictions",
+    "plot_count",
+    "ckpt_path",
+    # a search trial's link to its study (its number stays: trials.csv's key)
+    "optuna_trial.storage",
+    "optuna_trial.study_name",
+    "optuna_trial.trial_id",
+    "optuna_trial.pruner",
+)
 
 
 # config groups that hold whole scene configs keyed by scene name: one column of the names (the scenes'
@@ -95,8 +114,9 @@ def read_run_result(f: Path) -> dict | None:
     except (json.JSONDecodeError, OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{f}: not a readable results.json ({exc})") from None
     if not isinstance(r, dict):
-        raise ConfigError(f"{f}: a results.json holds one run's results as a JSON object; this one holds a "
-                          f"{type(r).__name__}")
+        raise ConfigError(
+            f"{f}: a results.json holds one run's results as a JSON object; this one holds a {type(r).__name__}"
+        )
     if r.get("task") in COLLECTED or ("rows" in r and "metrics" not in r):
         return None
     return r
@@ -133,8 +153,11 @@ def varying_keys(rows: list[dict]) -> list[str]:
     methods, the method column names the model, and each run's results.json holds its full config."""
     flats = [_flat_config(r.get("config", {})) for r in rows]
     keys = sorted(set().union(*flats)) if flats else []
-    varying = [k for k in keys if not k.startswith(IGNORED_PREFIXES)
-               and len({json.dumps(f.get(k), default=str) for f in flats}) > 1]
+    varying = [
+        k
+        for k in keys
+        if not k.startswith(IGNORED_PREFIXES) and len({json.dumps(f.get(k), default=str) for f in flats}) > 1
+    ]
     if "model._target_" in varying:
         varying = [k for k in varying if not k.startswith("model.")]
     return varying
@@ -142,33 +165,75 @@ def varying_keys(rows: list[dict]) -> list[str]:
 
 def _evaluations(r: dict) -> list[dict]:
     """A run's evaluations: one per test scene (``evaluations`` of a cross-scene run; the run itself before)."""
-    return r.get("evaluations") or [{"eval_scene": r.get("scene"), "metrics": r.get("metrics", {}),
-                                      "n_test": r.get("n_test"), "baselines": r.get("baselines") or {}}]
+    return r.get("evaluations") or [
+        {
+            "eval_scene": r.get("scene"),
+            "metrics": r.get("metrics", {}),
+            "n_test": r.get("n_test"),
+            "baselines": r.get("baselines") or {},
+        }
+    ]
 
 
 def build_table(rows: list[dict]) -> tuple[list[str], list[list]]:
     """One row per (run, test scene) and per baseline tested beside it: the method, the scenes it was trained
     and tested on, the config keys that vary between the runs, the budget and the metrics."""
     axes = [k for k in varying_keys(rows) if k not in NAMED_GROUPS]  # the two scene columns name them
-    header = ["method", "trained on", "tested on", *axes, "parameters", "steps", "n_test", "val PSNR", "val SSIM",
-              "MSE", "PSNR", "SSIM", "LPIPS", "reliance dB", "seconds"]
+    header = [
+        "method",
+        "trained on",
+        "tested on",
+        *axes,
+        "parameters",
+        "steps",
+        "n_test",
+        "val PSNR",
+        "val SSIM",
+        "MSE",
+        "PSNR",
+        "SSIM",
+        "LPIPS",
+        "reliance dB",
+        "seconds",
+    ]
     body, seen = [], set()
     for r in rows:
         flat = _flat_config(r.get("config", {}))
         trained = "+".join(r.get("train_scenes") or [r.get("scene")]) if r.get("global_step") else "-"
         for i, e in enumerate(_evaluations(r)):
             m = e.get("metrics", {})
-            body.append([r.get("method"), trained, e.get("eval_scene"), *[flat.get(k) for k in axes],
-                         r.get("trainable_parameters"), r.get("global_step"), e.get("n_test"),
-                         *[m.get(k) for k in METRICS], r.get("seconds") if i == 0 else None])
+            body.append(
+                [
+                    r.get("method"),
+                    trained,
+                    e.get("eval_scene"),
+                    *[flat.get(k) for k in axes],
+                    r.get("trainable_parameters"),
+                    r.get("global_step"),
+                    e.get("n_test"),
+                    *[m.get(k) for k in METRICS],
+                    r.get("seconds") if i == 0 else None,
+                ]
+            )
             for name, b in (e.get("baselines") or {}).items():  # tested in the same run, same split and neighbours
                 ax = [None if k.startswith(BASELINE_BLANK) else flat.get(k) for k in axes]
                 key = json.dumps([name, e.get("eval_scene"), ax, b["metrics"]], default=str)
                 if key in seen:
                     continue
                 seen.add(key)
-                body.append([name, "-", e.get("eval_scene"), *ax, b.get("trainable_parameters"), None,
-                             e.get("n_test"), *[b["metrics"].get(k) for k in METRICS], b.get("seconds")])
+                body.append(
+                    [
+                        name,
+                        "-",
+                        e.get("eval_scene"),
+                        *ax,
+                        b.get("trainable_parameters"),
+                        None,
+                        e.get("n_test"),
+                        *[b["metrics"].get(k) for k in METRICS],
+                        b.get("seconds"),
+                    ]
+                )
     return header, body
 
 
@@ -176,9 +241,16 @@ def _fmt(v, col):
     if isinstance(v, float):
         if math.isnan(v):
             return "nan"
-        return {"MSE": f"{v:.4f}", "PSNR": f"{v:.2f}", "SSIM": f"{v:.3f}", "LPIPS": f"{v:.3f}", "val PSNR": f"{v:.2f}",
-                "reliance dB": f"{v:.2f}",
-                "val SSIM": f"{v:.3f}", "seconds": f"{v:.1f}"}.get(col, f"{v:g}")
+        return {
+            "MSE": f"{v:.4f}",
+            "PSNR": f"{v:.2f}",
+            "SSIM": f"{v:.3f}",
+            "LPIPS": f"{v:.3f}",
+            "val PSNR": f"{v:.2f}",
+            "reliance dB": f"{v:.2f}",
+            "val SSIM": f"{v:.3f}",
+            "seconds": f"{v:.1f}",
+        }.get(col, f"{v:g}")
     return "" if v is None else str(v)
 
 
@@ -232,11 +304,16 @@ class SweepTable(Callback):
         sweep_dir = Path(config.hydra.sweep.dir)
         try:
             pruned = type(job_return._return_value).__name__ == "TrialPruned"  # an Optuna search's pruned trial:
-            if job_return.status == JobStatus.FAILED and not pruned:           # stored as PRUNED, not a failure
+            if job_return.status == JobStatus.FAILED and not pruned:  # stored as PRUNED, not a failure
                 failed_file = sweep_dir / "failed.json"
                 failed = json.loads(failed_file.read_text()) if failed_file.exists() else []
-                failed.append({"job": int(config.hydra.job.num), "overrides": list(config.hydra.overrides.task),
-                               "error": repr(job_return._return_value)})
+                failed.append(
+                    {
+                        "job": int(config.hydra.job.num),
+                        "overrides": list(config.hydra.overrides.task),
+                        "error": repr(job_return._return_value),
+                    }
+                )
                 atomic_write_json(failed_file, failed)
             files = sorted(sweep_dir.rglob("results.json"), key=_natural)
             if files:
@@ -248,8 +325,13 @@ class SweepTable(Callback):
         # pre-empted too, or run on after the user asked to stop; the same command resumes (finished jobs are
         # skipped; a study's base model resumes from its checkpoint).  An Optuna search's trial is the sweeper's
         # to handle (queued again, then the search stops).
-        if job_return.status == JobStatus.FAILED and is_preempted(job_return._return_value) \
-                and config.get("optuna_trial") is None:
-            log.error("job %s was pre-empted (SIGTERM): the multirun stops here; run the same command again to resume",
-                      config.hydra.job.num)
+        if (
+            job_return.status == JobStatus.FAILED
+            and is_preempted(job_return._return_value)
+            and config.get("optuna_trial") is None
+        ):
+            log.error(
+                "job %s was pre-empted (SIGTERM): the multirun stops here; run the same command again to resume",
+                config.hydra.job.num,
+            )
             raise SystemExit(PREEMPTED_EXIT_CODE)

@@ -59,15 +59,19 @@ def evaluate_model(cfg: DictConfig, model, dm, loggers=(), timing: dict | None =
                 metrics[f"{split}/psnr_swapped"] = swapped
                 metrics[f"{split}/reliance_db"] = metrics[f"{split}/psnr"] - swapped
                 for lg in trainer.loggers:  # beside the split's other figures (csv, wandb)
-                    lg.log_metrics({f"{split}/psnr_swapped": swapped,
-                                    f"{split}/reliance_db": metrics[f"{split}/reliance_db"]}, step=trainer.global_step)
+                    lg.log_metrics(
+                        {f"{split}/psnr_swapped": swapped, f"{split}/reliance_db": metrics[f"{split}/reliance_db"]},
+                        step=trainer.global_step,
+                    )
                     lg.save()
     if timing is not None:
         timing.update(val_s=round(t1 - t0, 3), test_s=round(t2 - t1, 3), reliance_s=round(time.perf_counter() - t2, 3))
     return {k: metrics.get(k) for k in EVAL_METRICS}, collector.arrays()
 
+
 def swapped_psnr(cfg: DictConfig, model, dm, split: str = "test") -> float | None:
-    """Neighbour reliance's second pass: the ``split`` (test or val) PSNR with each target's neighbours replaced by another
+    """Neighbour reliance's second pass: the ``split`` (test or val) PSNR with each target's neighbours "
+    "replaced by another
     target's of the same scene (a derangement seeded by ``reliance_seed``; the same L, positions and spectra of
     real neighbours, only the wrong ones).  A model that reads its neighbours loses PSNR; one that ignores them
     scores the same.  None when a scene has a single target in the split."""
@@ -82,12 +86,14 @@ def swapped_psnr(cfg: DictConfig, model, dm, split: str = "test") -> float | Non
         dm.swap_seed = None
     return float(trainer.callback_metrics[f"{split}/psnr"])
 
+
 def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -> dict:
     """Validate and test the model, then write results.json (+ predictions.npz, spectra.png).  Returns the
     metrics (``val/...`` and ``test/...``)."""
     trainer, model, train_dm = objects["trainer"], objects["model"], objects["datamodule"]
-    evaluations = objects.get("evaluations") or [{"eval_scene": train_dm.scene_name, "datamodule": train_dm,
-                                                   "within_scene": True}]
+    evaluations = objects.get("evaluations") or [
+        {"eval_scene": train_dm.scene_name, "datamodule": train_dm, "within_scene": True}
+    ]
     timing = dict(objects.get("timing") or {})
     done = []
     for ev in evaluations:  # each test scene on its own (the first one's figures are the run's headline)
@@ -138,17 +144,26 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -
         atomic_write_npz(out / "predictions.npz", **arrays)
         results["predictions"] = "predictions.npz"
     if int(cfg.get("plot_count", 0)) > 0 and len(arrays["ids"]):
-        fig = plot_spectra_grid(arrays["pred"], arrays["target"], arrays["ids"], out / "spectra.png",
-                                title=f"{results['method']} on {dm.scene_name}", max_rows=int(cfg.plot_count))
+        fig = plot_spectra_grid(
+            arrays["pred"],
+            arrays["target"],
+            arrays["ids"],
+            out / "spectra.png",
+            title=f"{results['method']} on {dm.scene_name}",
+            max_rows=int(cfg.plot_count),
+        )
         results["figure"] = fig.name
         for lg in objects["loggers"]:
             if hasattr(lg, "log_image"):
                 lg.log_image(key="test/spectra", images=[str(fig)])
     baselines = [(name, bcfg) for name, bcfg in selected_baselines(cfg).items() if bcfg != cfg.model]
     rows, per_eval = [], []
-    for i, (ev, m, a, t) in enumerate(done):  # every test scene: the model, then its baselines on the same data
-        head = results if i == 0 else {"method": results["method"], "scene": ev["eval_scene"],
-                                       "n_test": int(len(a["ids"])), "metrics": m}
+    for i, (ev, m, a, _t) in enumerate(done):  # every test scene: the model, then its baselines on the same data
+        head = (
+            results
+            if i == 0
+            else {"method": results["method"], "scene": ev["eval_scene"], "n_test": int(len(a["ids"])), "metrics": m}
+        )
         brows = [_test_baseline(cfg, name, bcfg, ev["datamodule"]) for name, bcfg in baselines]
         if int(cfg.get("save_samples") or 0) > 0:
             for method, arr in [(results["method"], a)] + [(r["method"], r.pop("_arrays")) for r in brows]:
@@ -156,16 +171,33 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -
         for r in brows:
             r.pop("_arrays", None)
         rows += [head, *brows]
-        per_eval.append({r["method"]: {"metrics": r["metrics"], "seconds": r["seconds"],
-                                       "trainable_parameters": r["trainable_parameters"]} for r in brows})
+        per_eval.append(
+            {
+                r["method"]: {
+                    "metrics": r["metrics"],
+                    "seconds": r["seconds"],
+                    "trainable_parameters": r["trainable_parameters"],
+                }
+                for r in brows
+            }
+        )
     if per_eval[0]:
         results["baselines"] = per_eval[0]
     if len(done) > 1 or not first["within_scene"] or first["eval_scene"] != train_dm.scene_name:
         results["evaluations"] = [
-            {"eval_scene": ev["eval_scene"], "within_scene": bool(ev["within_scene"]), "metrics": m,
-             "n_test": int(len(a["ids"])), "band_hz": float(ev["datamodule"].bands[0].frequency_hz),
-             "scene_index": int(ev["datamodule"].scene_index[0]), "splits": ev["datamodule"].split_summary(),
-             "timing": t, "baselines": b} for (ev, m, a, t), b in zip(done, per_eval)]
+            {
+                "eval_scene": ev["eval_scene"],
+                "within_scene": bool(ev["within_scene"]),
+                "metrics": m,
+                "n_test": int(len(a["ids"])),
+                "band_hz": float(ev["datamodule"].bands[0].frequency_hz),
+                "scene_index": int(ev["datamodule"].scene_index[0]),
+                "splits": ev["datamodule"].split_summary(),
+                "timing": t,
+                "baselines": b,
+            }
+            for (ev, m, a, t), b in zip(done, per_eval)
+        ]
     if objects.get("training"):  # steps asked and reached, and why training stopped early if it did
         results["training"] = objects["training"]
     if objects.get("resumed"):  # the checkpoint resumed from, and the trainer settings changed since
@@ -180,30 +212,48 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -
     log.info("results: %s", out / "results.json")
     print(format_metrics_table(rows))
     if "evaluations" in results:  # say which test scenes the model was trained on
-        print("; ".join(f"{e['eval_scene']}: {'within-scene (trained on it)' if e['within_scene'] else 'zero-shot'}"
-                        for e in results["evaluations"]))
+        print(
+            "; ".join(
+                f"{e['eval_scene']}: {'within-scene (trained on it)' if e['within_scene'] else 'zero-shot'}"
+                for e in results["evaluations"]
+            )
+        )
     if cfg.get("regime"):
         print(f"regime: {cfg.regime}")
     return metrics
+
 
 def ray_sampling(model, dm) -> dict | None:
     """Samples per ray and the effective voxel (sample spacing) of a ray-rendering model on each of the
     datamodule's scenes; logs a warning where ``max_samples`` caps S (voxels longer than nominal)."""
     out = {}
     for k, d in enumerate(dm.sets):
-        geometry = {"ray_length": dm.ray_length[k:k + 1], "wavelength": dm.wavelength[k:k + 1],
-                    "gw_pos": dm.gw_pos[k:k + 1], "gw_rot": dm.gw_rot[k:k + 1], "bounds": dm.bounds[k:k + 1],
-                    "scene_index": dm.scene_index[k:k + 1]}
+        geometry = {
+            "ray_length": dm.ray_length[k : k + 1],
+            "wavelength": dm.wavelength[k : k + 1],
+            "gw_pos": dm.gw_pos[k : k + 1],
+            "gw_rot": dm.gw_rot[k : k + 1],
+            "bounds": dm.bounds[k : k + 1],
+            "scene_index": dm.scene_index[k : k + 1],
+        }
         r = model.ray_sampling(geometry)
         if r is None:
             return None
         out[d.name] = r
         if r["capped"]:
-            log.warning("%s on %s: max_samples caps the samples per ray at %d (%d needed), so each sample spans "
-                        "%.2f wavelengths (%.3f m) instead of %.2f", type(model).__name__, d.name,
-                        r["samples_per_ray"], r["uncapped_samples"], r["sample_spacing_wavelengths"],
-                        r["sample_spacing_m"], r["nominal_spacing_wavelengths"])
+            log.warning(
+                "%s on %s: max_samples caps the samples per ray at %d (%d needed), so each sample spans "
+                "%.2f wavelengths (%.3f m) instead of %.2f",
+                type(model).__name__,
+                d.name,
+                r["samples_per_ray"],
+                r["uncapped_samples"],
+                r["sample_spacing_wavelengths"],
+                r["sample_spacing_m"],
+                r["nominal_spacing_wavelengths"],
+            )
     return out
+
 
 def selected_baselines(cfg: DictConfig) -> dict:
     """The baselines to test beside the model (``{name: model config}``).  ``baselines=null`` and ``baselines={}``
@@ -211,20 +261,33 @@ def selected_baselines(cfg: DictConfig) -> dict:
     ``baselines={}`` is honoured here."""
     from hydra.core.hydra_config import HydraConfig
 
-    if HydraConfig.initialized() and any(o.replace(" ", "") in ("baselines={}", "baselines=null", "baselines=[]")
-                                         for o in HydraConfig.get().overrides.task):
+    if HydraConfig.initialized() and any(
+        o.replace(" ", "") in ("baselines={}", "baselines=null", "baselines=[]")
+        for o in HydraConfig.get().overrides.task
+    ):
         return {}
-    return {name: bcfg for name, bcfg in (cfg.get("baselines") or {}).items()
-            if isinstance(bcfg, DictConfig) and "_target_" in bcfg}
+    return {
+        name: bcfg
+        for name, bcfg in (cfg.get("baselines") or {}).items()
+        if isinstance(bcfg, DictConfig) and "_target_" in bcfg
+    }
+
 
 def _test_baseline(cfg: DictConfig, name: str, bcfg: DictConfig, dm) -> dict:
     """Validate and test a baseline (nothing trained) on the same datamodule, neighbours and splits."""
     started = time.perf_counter()
     model = hydra.utils.instantiate(bcfg)
     metrics, arrays = evaluate_model(cfg, model, dm)
-    return {"method": getattr(model, "method", name), "scene": dm.scene_name, "n_test": int(len(arrays["ids"])),
-            "trainable_parameters": int(sum(p.numel() for p in model.parameters() if p.requires_grad)),
-            "metrics": metrics, "seconds": round(time.perf_counter() - started, 3), "_arrays": arrays}
+    return {
+        "method": getattr(model, "method", name),
+        "scene": dm.scene_name,
+        "n_test": int(len(arrays["ids"])),
+        "trainable_parameters": int(sum(p.numel() for p in model.parameters() if p.requires_grad)),
+        "metrics": metrics,
+        "seconds": round(time.perf_counter() - started, 3),
+        "_arrays": arrays,
+    }
+
 
 def save_samples(out: Path, scene: str, method: str, arrays: dict, n: int) -> Path:
     """The first ``n`` test spectra of an evaluation (lowest ids: the same positions for every method on a
@@ -239,23 +302,29 @@ def save_samples(out: Path, scene: str, method: str, arrays: dict, n: int) -> Pa
     atomic_write_npz(path, pred=q(arrays["pred"]), target=q(arrays["target"]), ids=np.asarray(arrays["ids"])[order])
     return path
 
+
 def format_metrics_table(rows: list[dict]) -> str:
     """A plain-text table of the four test metrics (and the validation PSNR), one row per results dict."""
-    head = (f"{'method':<22}{'scene':<16}{'n_test':>7}{'MSE':>10}{'PSNR':>9}{'SSIM':>8}{'LPIPS':>8}"
-            f"{'val PSNR':>10}{'reliance dB':>13}")
+    head = (
+        f"{'method':<22}{'scene':<16}{'n_test':>7}{'MSE':>10}{'PSNR':>9}{'SSIM':>8}{'LPIPS':>8}"
+        f"{'val PSNR':>10}{'reliance dB':>13}"
+    )
     lines = [head, "-" * len(head)]
     for r in rows:
         m = r["metrics"]
 
-        def f(key, spec):
+        def f(key, spec, m=m):
             v = m.get(key)
             width = spec.split(".")[0]
             return format(v, spec) if v is not None and not math.isnan(v) else format("n/a", f">{width}")
 
-        lines.append(f"{r['method']:<22}{r['scene']:<16}{r['n_test']:>7}{f('test/mse', '10.4f')}"
-                     f"{f('test/psnr', '9.2f')}{f('test/ssim', '8.3f')}{f('test/lpips', '8.3f')}"
-                     f"{f('val/psnr', '10.2f')}{f('test/reliance_db', '13.2f')}")
+        lines.append(
+            f"{r['method']:<22}{r['scene']:<16}{r['n_test']:>7}{f('test/mse', '10.4f')}"
+            f"{f('test/psnr', '9.2f')}{f('test/ssim', '8.3f')}{f('test/lpips', '8.3f')}"
+            f"{f('val/psnr', '10.2f')}{f('test/reliance_db', '13.2f')}"
+        )
     return "\n".join(lines)
+
 
 def sweep_value(cfg: DictConfig, metrics: dict, objects: dict | None = None):
     """The value(s) a sweep optimises (``optimized_metric``: one name, or a list for a multi-objective search;

@@ -52,9 +52,11 @@ def train(cfg: DictConfig) -> Results:
     cfg = expand_heldout(resolve_base(cfg))
     ft = cfg.get("finetune") or {}
     if ft and OmegaConf.is_missing(ft, "init_from"):
-        raise ConfigError(f"finetune={_choice(cfg, 'finetune')} fine-tunes a checkpoint: set finetune.init_from=CKPT "
-                          "(e.g. <run>/checkpoints/last.ckpt), or finetune.init_from=null to train from scratch on "
-                          "the fraction")
+        raise ConfigError(
+            f"finetune={_choice(cfg, 'finetune')} fine-tunes a checkpoint: set finetune.init_from=CKPT "
+            "(e.g. <run>/checkpoints/last.ckpt), or finetune.init_from=null to train from scratch on "
+            "the fraction"
+        )
     if ft.get("init_from"):
         ensure_base(cfg)
         cfg = finetune_config(cfg)
@@ -80,23 +82,33 @@ def train(cfg: DictConfig) -> Results:
             raise preempted(cfg, trainer, step0, time.perf_counter() - t0) from None
         fit_s, steps = time.perf_counter() - t0, max(0, trainer.global_step - step0)
         check_last_checkpoint(trainer, out)
-        objects["timing"] = {"fit_s": round(fit_s, 3), "fit_steps": int(steps),
-                             "fit_s_per_step": round(fit_s / steps, 4) if steps else None}
+        objects["timing"] = {
+            "fit_s": round(fit_s, 3),
+            "fit_steps": int(steps),
+            "fit_s_per_step": round(fit_s / steps, 4) if steps else None,
+        }
         objects["training"] = training_record(trainer, step0)
     else:
         log.info("%s has no trainable parameters: nothing to fit, testing directly", type(model).__name__)
     if init_from:
         dm, start = objects["datamodule"], read_checkpoint(init_from)
         objects["finetune"] = {
-            "init_from": str(init_from), "mode": "zero-shot" if zero_shot else "fine-tune",
-            "fraction": ft.get("fraction"), "seed": int(ft.get("seed") or 0), "test_pool": dm.test_pool,
-            "n_measured": int(len(dm.measured_rows)), "n_train": dm.n_train,
+            "init_from": str(init_from),
+            "mode": "zero-shot" if zero_shot else "fine-tune",
+            "fraction": ft.get("fraction"),
+            "seed": int(ft.get("seed") or 0),
+            "test_pool": dm.test_pool,
+            "n_measured": int(len(dm.measured_rows)),
+            "n_train": dm.n_train,
             "steps": 0 if zero_shot else int(objects.get("timing", {}).get("fit_steps", 0)),
-            "lr": ft.get("lr"), "base_steps": int(start.get("global_step", 0)),
-            "base_scenes": (start.get("graf") or {}).get("scenes")}
+            "lr": ft.get("lr"),
+            "base_steps": int(start.get("global_step", 0)),
+            "base_scenes": (start.get("graf") or {}).get("scenes"),
+        }
     # the final weights are validated and tested (nothing is chosen on the test split)
     metrics = test_and_report(cfg, objects, started, task="train")
     return Results(metrics, objects)
+
 
 def check_last_checkpoint(trainer, out: Path) -> None:
     """After a finished fit: the ``last.ckpt`` that every reader opens (fine-tuning from a study's base,
@@ -106,14 +118,18 @@ def check_last_checkpoint(trainer, out: Path) -> None:
     for cb in getattr(trainer, "checkpoint_callbacks", []):
         if not getattr(cb, "save_last", False) or not getattr(cb, "dirpath", None):
             continue
-        require_step(Path(cb.dirpath) / "last.ckpt", int(trainer.global_step),
-                     f"training ended at step {int(trainer.global_step)} (its final weights are in "
-                     f"{cb.last_model_path or 'no file'}); readers of last.ckpt would get stale weights: keep "
-                     "callbacks.model_checkpoint.enable_version_counter=false")
+        require_step(
+            Path(cb.dirpath) / "last.ckpt",
+            int(trainer.global_step),
+            f"training ended at step {int(trainer.global_step)} (its final weights are in "
+            f"{cb.last_model_path or 'no file'}); readers of last.ckpt would get stale weights: keep "
+            "callbacks.model_checkpoint.enable_version_counter=false",
+        )
     stale = out / "preempted.json"
     if stale.is_file():
         log.info("%s: the pre-empted run has finished; removing its preempted.json", out)
         stale.unlink()
+
 
 def check_training_length(cfg: DictConfig) -> None:
     """``trainer.max_steps`` governs training; epochs are unbounded unless ``trainer.max_epochs`` is set (a limit
@@ -124,8 +140,11 @@ def check_training_length(cfg: DictConfig) -> None:
         if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < -1):
             raise ConfigError(f"trainer.{key} must be an integer >= -1 (-1: no limit), got {v!r}")
     if t.get("max_steps", -1) in (None, -1) and t.get("max_epochs", -1) in (None, -1):
-        raise ConfigError("trainer.max_steps=-1 and trainer.max_epochs=-1: training would never end; set "
-                          "trainer.max_steps=N (optimiser steps)")
+        raise ConfigError(
+            "trainer.max_steps=-1 and trainer.max_epochs=-1: training would never end; set "
+            "trainer.max_steps=N (optimiser steps)"
+        )
+
 
 def training_record(trainer, step0: int) -> dict:
     """What results.json records of the training length (``training``): the steps asked and reached, and why
@@ -133,13 +152,24 @@ def training_record(trainer, step0: int) -> dict:
     (``trainer.max_epochs``, ``trainer.max_time``) is warned about loudly."""
     asked, epochs = int(trainer.max_steps), int(trainer.max_epochs if trainer.max_epochs is not None else -1)
     reached = int(trainer.global_step)
-    rec = {"max_steps": asked, "max_epochs": epochs, "start_step": int(step0), "global_step": reached,
-           "steps_trained": reached - int(step0), "epochs_trained": int(trainer.current_epoch),
-           "stopped_early": False}
+    rec = {
+        "max_steps": asked,
+        "max_epochs": epochs,
+        "start_step": int(step0),
+        "global_step": reached,
+        "steps_trained": reached - int(step0),
+        "epochs_trained": int(trainer.current_epoch),
+        "stopped_early": False,
+    }
     if asked > 0 and reached < asked:
         if epochs > 0 and trainer.current_epoch >= epochs:
-            reason, own = (f"trainer.max_epochs={epochs} reached first ({trainer.num_training_batches} steps per "
-                           "epoch): your own limit"), True
+            reason, own = (
+                (
+                    f"trainer.max_epochs={epochs} reached first ({trainer.num_training_batches} steps per "
+                    "epoch): your own limit"
+                ),
+                True,
+            )
         elif any(isinstance(cb, Timer) and cb.time_remaining() <= 0 for cb in trainer.callbacks):
             reason, own = "trainer.max_time reached first: your own limit", True
         else:
@@ -153,6 +183,7 @@ def training_record(trainer, step0: int) -> dict:
             print(f"WARNING: {msg}", file=sys.stderr)
     return rec
 
+
 def preempted(cfg: DictConfig, trainer, step0: int, fit_s: float | None = None) -> Preempted:
     """After a SIGTERM stopped ``trainer.fit``: ``preempted.json`` in the output folder (the step, the checkpoint,
     the wall seconds the fit ran before the signal, the command's way to resume) and the :class:`Preempted` to
@@ -161,27 +192,41 @@ def preempted(cfg: DictConfig, trainer, step0: int, fit_s: float | None = None) 
 
     saved = next((cb.saved for cb in trainer.callbacks if isinstance(cb, Preemption) and cb.saved), None)
     out = output_dir(cfg)
-    record = {"preempted": "SIGTERM", "global_step": int(trainer.global_step), "start_step": int(step0),
-              "max_steps": int(trainer.max_steps), "checkpoint": (saved or {}).get("checkpoint"),
-              "fit_s": None if fit_s is None else round(float(fit_s), 3)}
+    record = {
+        "preempted": "SIGTERM",
+        "global_step": int(trainer.global_step),
+        "start_step": int(step0),
+        "max_steps": int(trainer.max_steps),
+        "checkpoint": (saved or {}).get("checkpoint"),
+        "fit_s": None if fit_s is None else round(float(fit_s), 3),
+    }
     if saved:
-        msg = (f"SIGTERM: training stopped at step {saved['global_step']} of {int(trainer.max_steps)}; checkpoint saved "
-               f"to {saved['checkpoint']}; resume with the same command and ckpt_path={saved['checkpoint']}")
+        msg = (
+            f"SIGTERM: training stopped at step {saved['global_step']} of {int(trainer.max_steps)}; checkpoint saved "
+            f"to {saved['checkpoint']}; resume with the same command and ckpt_path={saved['checkpoint']}"
+        )
     elif not any(isinstance(cb, Preemption) for cb in trainer.callbacks):
-        msg = (f"SIGTERM: training stopped at step {int(trainer.global_step)} with no checkpoint saved (this run's "
-               "callbacks have no pre-emption callback, graf.callbacks.Preemption)")
+        msg = (
+            f"SIGTERM: training stopped at step {int(trainer.global_step)} with no checkpoint saved (this run's "
+            "callbacks have no pre-emption callback, graf.callbacks.Preemption)"
+        )
     else:  # the signal came between training steps (during a validation): the last checkpoint is what there is
-        last = next((cb.last_model_path for cb in trainer.checkpoint_callbacks if getattr(cb, "last_model_path", "")),
-                    None)
-        msg = (f"SIGTERM: stopped at step {int(trainer.global_step)} of {int(trainer.max_steps)} outside a training "
-               f"step (during validation); " + (f"resume with the same command and ckpt_path={last}" if last
-                                                 else "no checkpoint was written"))
+        last = next(
+            (cb.last_model_path for cb in trainer.checkpoint_callbacks if getattr(cb, "last_model_path", "")), None
+        )
+        msg = (
+            f"SIGTERM: stopped at step {int(trainer.global_step)} of {int(trainer.max_steps)} outside a training "
+            f"step (during validation); "
+            + (f"resume with the same command and ckpt_path={last}" if last else "no checkpoint was written")
+        )
         record["checkpoint"] = last
     atomic_write_json(out / "preempted.json", record)
     return Preempted(msg)
 
+
 # settings whose change between a checkpoint and the run resuming it changes what is trained: refused
 RESUME_FIXED = ("data", "neighbors", "seed")
+
 
 def check_resume(cfg: DictConfig, model, dm, path) -> dict:
     """Resuming ``ckpt_path``: refuse another class's or an old layout's checkpoint, another architecture or
@@ -196,30 +241,47 @@ def check_resume(cfg: DictConfig, model, dm, path) -> dict:
     allowed = set(getattr(type(model), "INFERENCE_SETTINGS", ()))
     info = ckpt.get("graf") or {}
     run_then, run_now = info.get("run") or {}, run_settings(cfg)
-    then = {"model": {k: v for k, v in saved.items() if k not in allowed},
-            **({g: run_then.get(g) for g in RESUME_FIXED} if run_then else {})}
-    now = {"model": {k: v for k, v in dict(model.hparams).items() if k not in allowed},
-           **({g: run_now.get(g) for g in RESUME_FIXED} if run_then else {})}
+    then = {
+        "model": {k: v for k, v in saved.items() if k not in allowed},
+        **({g: run_then.get(g) for g in RESUME_FIXED} if run_then else {}),
+    }
+    now = {
+        "model": {k: v for k, v in dict(model.hparams).items() if k not in allowed},
+        **({g: run_now.get(g) for g in RESUME_FIXED} if run_then else {}),
+    }
     diff = _dict_diff(then, now)
     if diff:
         raise CheckpointError(
             f"ckpt_path={path}: resuming with other settings than it was trained with: "
             + "; ".join(f"{k}: checkpoint {a!r}, this run {b!r}" for k, (a, b) in diff.items())
             + ". They change what is trained: resume with the checkpoint's settings (or start from its weights with "
-              "finetune.init_from=)")
+            "finetune.init_from=)"
+        )
     trained = info.get("scenes") or {}
     if trained and any(fp.get("digest") for fp in (v.get("fingerprint") or {} for v in trained.values())):
         other = [d.name for d, fp in zip(dm.sets, dm.fingerprints()) if find_scene(trained, d.name, fp) is None]
         if other:
-            raise CheckpointError(f"ckpt_path={path}: was trained on {', '.join(sorted(trained))}, not on the content "
-                                  f"of this run's scene(s) {', '.join(other)}: resume on the same data")
-    changed = {f"trainer.{k}": {"checkpoint": a, "run": b}
-               for k, (a, b) in _dict_diff((run_then.get("trainer") or {}), run_now["trainer"]).items()}
+            raise CheckpointError(
+                f"ckpt_path={path}: was trained on {', '.join(sorted(trained))}, not on the content "
+                f"of this run's scene(s) {', '.join(other)}: resume on the same data"
+            )
+    changed = {
+        f"trainer.{k}": {"checkpoint": a, "run": b}
+        for k, (a, b) in _dict_diff((run_then.get("trainer") or {}), run_now["trainer"]).items()
+    }
     if changed:
-        log.info("resuming %s with other trainer settings: %s", path,
-                 ", ".join(f"{k} {v['checkpoint']} -> {v['run']}" for k, v in changed.items()))
-    return {"checkpoint": str(path), "global_step": int(ckpt.get("global_step", 0)),
-            "checkpoint_settings": run_then or None, "changed": changed}
+        log.info(
+            "resuming %s with other trainer settings: %s",
+            path,
+            ", ".join(f"{k} {v['checkpoint']} -> {v['run']}" for k, v in changed.items()),
+        )
+    return {
+        "checkpoint": str(path),
+        "global_step": int(ckpt.get("global_step", 0)),
+        "checkpoint_settings": run_then or None,
+        "changed": changed,
+    }
+
 
 def _dict_diff(a, b, prefix: str = "") -> dict:
     """``{dotted key: (a value, b value)}`` where two plain configs differ."""
@@ -230,12 +292,14 @@ def _dict_diff(a, b, prefix: str = "") -> dict:
         return out
     return {} if a == b else {prefix[:-1]: (a, b)}
 
+
 def _choice(cfg: DictConfig, group: str) -> str:
     from hydra.core.hydra_config import HydraConfig
 
     if HydraConfig.initialized():
         return str(HydraConfig.get().runtime.choices.get(group))
     return "..."
+
 
 def finished_result(out: Path) -> dict | None:
     """The finished result in a job folder (``results.json``, or ``skipped.json``), or None."""
@@ -248,25 +312,29 @@ def finished_result(out: Path) -> dict | None:
                 log.warning("%s is unreadable: running the job again", f)
     return None
 
+
 def skip_reason(cfg: DictConfig) -> str | None:
     """Why a study job is not run (None: it is).  ``same_family_only``: a job whose test scenes are of no
-    training scene's layout family (conference_v1 -> office_v2).  ``finetune.base.band=scene`` (start from a model trained at
+    training scene's layout family (conference_v1 -> office_v2).  ``finetune.base.band=scene`` (start from a model
+    trained at
     the new scene's own band) differs from the run's band only for a scene with a fixed band (measured data:
     rfid_s23 at 915 MHz); for a simulated scene it would repeat the job with the run's band."""
     if cfg.get("same_family_only"):
         train = {family(str(c.get("name"))) for c in scene_configs(cfg.get("scene"))}
         test = {family(str(c.get("name"))) for c in scene_configs(cfg.get("eval_scene"))}
         if test and not test & train:
-            return (f"same_family_only: test scenes of family {', '.join(sorted(test))}, training scenes of "
-                    f"{', '.join(sorted(train))}")
+            return (
+                f"same_family_only: test scenes of family {', '.join(sorted(test))}, training scenes of "
+                f"{', '.join(sorted(train))}"
+            )
     base = (cfg.get("finetune") or {}).get("base") or {}
     if base.get("band") != "scene":
         return None
     scenes = scene_configs(cfg.get("scene"))
     if not any(s.get("fixed_band") for s in scenes):
-        return ("finetune.base.band=scene on a scene simulated at any band: the same job as the one with the "
-                "run's band")
+        return "finetune.base.band=scene on a scene simulated at any band: the same job as the one with the run's band"
     return None
+
 
 def resolve_base(cfg: DictConfig) -> DictConfig:
     """With ``finetune.base``: the base run's folder (``base.dir``, or ``base.dir/<band>`` when ``base.band``
@@ -292,6 +360,7 @@ def resolve_base(cfg: DictConfig) -> DictConfig:
             cfg.finetune.init_from = str(folder / "checkpoints" / "last.ckpt")
     return cfg
 
+
 def finetune_config(cfg: DictConfig) -> DictConfig:
     """The run's config with the fine-tuning steps and learning rate applied (``trainer.max_steps``,
     ``model.lr``); a zero-shot run (``finetune=none``) trains nothing, so neither applies."""
@@ -309,9 +378,23 @@ def finetune_config(cfg: DictConfig) -> DictConfig:
             cfg.model.lr = float(ft.lr)
     return cfg
 
+
 # command-line settings of a study job that describe the job itself, not the base model it starts from
-JOB_SPECIFIC = ("experiment", "model", "scene", "eval_scene", "eval_band", "band", "neighbors", "finetune", "hydra",
-                "skip_finished", "ckpt_path", "paths")
+JOB_SPECIFIC = (
+    "experiment",
+    "model",
+    "scene",
+    "eval_scene",
+    "eval_band",
+    "band",
+    "neighbors",
+    "finetune",
+    "hydra",
+    "skip_finished",
+    "ckpt_path",
+    "paths",
+)
+
 
 def job_overrides() -> list[str]:
     """The command-line settings of the running Hydra job that a base model shares (budgets, data_root,
@@ -327,6 +410,7 @@ def job_overrides() -> list[str]:
             out.append(o)
     return out
 
+
 def ensure_base(cfg: DictConfig) -> None:
     """Train ``finetune.init_from`` first when ``finetune.base`` says how and it is not finished: a graf-train
     run composed from the job's shared settings (:func:`job_overrides`) and ``finetune.base.overrides`` into
@@ -339,15 +423,22 @@ def ensure_base(cfg: DictConfig) -> None:
     overrides = job_overrides() + [str(o) for o in (base.get("overrides") or [])]
     if base.get("band_name"):
         overrides.append(f"band={base.band_name}")
-    overrides += ["finetune=none", "finetune.init_from=null", "finetune.base=null", f"paths.output_dir={folder}",
-                  "skip_finished=false"]
+    overrides += [
+        "finetune=none",
+        "finetune.init_from=null",
+        "finetune.base=null",
+        f"paths.output_dir={folder}",
+        "skip_finished=false",
+    ]
     record = folder / "base_overrides.json"
     if record.is_file():
         before = json.loads(record.read_text())
         if before != overrides:
-            raise ConfigError(f"{folder}: a base model trained with other settings is there ({' '.join(before)}); "
-                              f"this job needs {' '.join(overrides)}: remove that folder or use another "
-                              "hydra.sweep.dir")
+            raise ConfigError(
+                f"{folder}: a base model trained with other settings is there ({' '.join(before)}); "
+                f"this job needs {' '.join(overrides)}: remove that folder or use another "
+                "hydra.sweep.dir"
+            )
     if (folder / "results.json").is_file():
         check_base_checkpoint(folder)
         return
@@ -360,14 +451,19 @@ def ensure_base(cfg: DictConfig) -> None:
     base_cfg = compose(config_name="train", overrides=overrides + ([f"ckpt_path={last}"] if last.is_file() else []))
     train(base_cfg)
 
+
 def check_base_checkpoint(folder: Path) -> None:
     """A finished base model's ``checkpoints/last.ckpt`` must hold the step its ``results.json`` reports:
     otherwise every job fine-tuned from it starts from other weights than the ones the base was tested with."""
     want = json.loads((folder / "results.json").read_text()).get("global_step")
     if want is not None:
-        require_step(folder / "checkpoints" / "last.ckpt", int(want),
-                     f"{folder / 'results.json'} reports the base model trained to step {want}: the checkpoint is "
-                     f"stale (remove {folder} and run again)")
+        require_step(
+            folder / "checkpoints" / "last.ckpt",
+            int(want),
+            f"{folder / 'results.json'} reports the base model trained to step {want}: the checkpoint is "
+            f"stale (remove {folder} and run again)",
+        )
+
 
 def require_step(last: Path, want: int, why: str) -> None:
     """Refuse a ``last.ckpt`` (when there is one) that holds another step than ``want``, saying ``why``."""
@@ -376,6 +472,7 @@ def require_step(last: Path, want: int, why: str) -> None:
     step = int(read_checkpoint(last).get("global_step", -1))
     if step != want:
         raise CheckpointError(f"{last}: holds step {step}, but {why}")
+
 
 def load_weights(model, path) -> None:
     """Fine-tuning: copy a checkpoint's weights into ``model`` (strict), with a clear error when the file is
@@ -388,12 +485,15 @@ def load_weights(model, path) -> None:
         raise CheckpointError(
             f"finetune.init_from: {path} was trained with use_scene_index={saved['use_scene_index']} "
             f"({'4' if saved['use_scene_index'] else '3'}-D positions), but this run's model has "
-            f"use_scene_index={want}: set model.use_scene_index={saved['use_scene_index']}")
+            f"use_scene_index={want}: set model.use_scene_index={saved['use_scene_index']}"
+        )
     try:
         model.load_state_dict(ckpt["state_dict"], strict=True)
     except RuntimeError as exc:
         first = str(exc).splitlines()[0:3]
-        raise CheckpointError(f"finetune.init_from: {path} holds weights of another architecture than "
-                              f"{type(model).__name__} as configured: {' '.join(first)}") from None
+        raise CheckpointError(
+            f"finetune.init_from: {path} holds weights of another architecture than "
+            f"{type(model).__name__} as configured: {' '.join(first)}"
+        ) from None
     model.scene_table = {**dict((ckpt.get("graf") or {}).get("scenes") or {}), **getattr(model, "scene_table", {})}
     log.info("fine-tuning %s from the weights of %s", type(model).__name__, path)

@@ -81,7 +81,9 @@ class Bartlett:
         """Per-antenna channels ``[n, K]`` from path gains ``[n, P]`` (complex, 0 for invalid paths) and
         arrival directions ``[n, P, 3]`` in the gateway frame."""
         g = gains.to(torch.complex128) * pattern_gain(u_local, pattern).to(torch.float64)
-        phase = torch.exp(1j * self.k * torch.einsum("npc,kc->npk", u_local.to(torch.float64), self.pos.to(u_local.device)))
+        phase = torch.exp(
+            1j * self.k * torch.einsum("npc,kc->npk", u_local.to(torch.float64), self.pos.to(u_local.device))
+        )
         return torch.einsum("np,npk->nk", g, phase).to(torch.complex64)
 
     def amplitude(self, h: torch.Tensor) -> torch.Tensor:

@@ -36,6 +36,8 @@ def import_sionna_rt():
     try:
         import sionna.rt as rt
     except ImportError as exc:
-        raise ImportError("graf-simulate needs Sionna RT: install the project with its 'sim' extra "
-                          "(pip install -e '.[sim]', done by scripts/setup.sh)") from exc
+        raise ImportError(
+            "graf-simulate needs Sionna RT: install the project with its 'sim' extra "
+            "(pip install -e '.[sim]', done by scripts/setup.sh)"
+        ) from exc
     return rt

@@ -39,16 +39,26 @@ from graf.io import atomic_write_json, atomic_write_npz
 
 log = logging.getLogger(__name__)
 FORMAT_VERSION = 1
-ANGLE_CONVENTION = ("row r = elevation r+1 deg, column c = azimuth c+1 deg; direction (cos e cos a, cos e sin a, "
-                    "sin e) in the gateway frame (array in z=0, facing +z); rows cover the front hemisphere")
+ANGLE_CONVENTION = (
+    "row r = elevation r+1 deg, column c = azimuth c+1 deg; direction (cos e cos a, cos e sin a, "
+    "sin e) in the gateway frame (array in z=0, facing +z); rows cover the front hemisphere"
+)
 
 
 def fingerprint(config: dict) -> str:
     return hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def generate(scene, band: Band, data_root: str | Path, num_tx: int | None = None, chunk_size: int = 256,
-             overwrite: bool = False, device: str = "cpu", progress: bool = True) -> dict:
+def generate(
+    scene,
+    band: Band,
+    data_root: str | Path,
+    num_tx: int | None = None,
+    chunk_size: int = 256,
+    overwrite: bool = False,
+    device: str = "cpu",
+    progress: bool = True,
+) -> dict:
     """Trace every transmitter position of ``scene`` at ``band`` and write the dataset file.
 
     Returns a summary: path, n, seconds, spectra per second (of the spectra made in this call)."""
@@ -62,8 +72,13 @@ def generate(scene, band: Band, data_root: str | Path, num_tx: int | None = None
     positions = scene.positions(num_tx)
     n = len(positions)
     antennas = scene.antenna_positions(band)
-    config = {"scene": scene.config(), "band": {"name": band.name, "frequency_hz": band.frequency_hz},
-              "num_tx": n, "chunk_size": int(chunk_size), "format_version": FORMAT_VERSION}
+    config = {
+        "scene": scene.config(),
+        "band": {"name": band.name, "frequency_hz": band.frequency_hz},
+        "num_tx": n,
+        "chunk_size": int(chunk_size),
+        "format_version": FORMAT_VERSION,
+    }
     fp = fingerprint(config)
     if path.is_file() and not overwrite:
         log.info("%s exists; nothing to do (overwrite=true makes it again)", path)
@@ -76,8 +91,11 @@ def generate(scene, band: Band, data_root: str | Path, num_tx: int | None = None
     if manifest.is_file():
         old = json.loads(manifest.read_text())
         if old.get("fingerprint") != fp:
-            raise DataFormatError(parts, "holds chunks of a different configuration; run with sim.overwrite=true "
-                                         "to start again (or restore the configuration that made them)")
+            raise DataFormatError(
+                parts,
+                "holds chunks of a different configuration; run with sim.overwrite=true "
+                "to start again (or restore the configuration that made them)",
+            )
     else:
         atomic_write_json(manifest, {"fingerprint": fp, "config": config})
 
@@ -86,16 +104,26 @@ def generate(scene, band: Band, data_root: str | Path, num_tx: int | None = None
     done_before = sum(e - s for i, s, e in chunks if (i, s, e) not in todo)
     tracer = None
     made, t_trace = 0, 0.0
-    bar = tqdm(total=n, initial=done_before, unit="spectra", desc=f"{scene.name} {band.name}", disable=not progress,
-               dynamic_ncols=True)
+    bar = tqdm(
+        total=n,
+        initial=done_before,
+        unit="spectra",
+        desc=f"{scene.name} {band.name}",
+        disable=not progress,
+        dynamic_ncols=True,
+    )
     if todo:
         tracer = scene.tracer(band)
         bartlett = scene.bartlett(band, device=device)
         for i, s, e in todo:
             t0 = time.perf_counter()
             h, spectra, counts = scene.spectra(tracer, bartlett, positions[s:e])
-            atomic_write_npz(parts / f"chunk_{i:05d}.npz", spectra=to_uint8(spectra),
-                             channels=h.cpu().numpy().astype(np.complex64), num_paths=counts.astype(np.int32))
+            atomic_write_npz(
+                parts / f"chunk_{i:05d}.npz",
+                spectra=to_uint8(spectra),
+                channels=h.cpu().numpy().astype(np.complex64),
+                num_paths=counts.astype(np.int32),
+            )
             t_trace += time.perf_counter() - t0
             made += e - s
             bar.update(e - s)
@@ -109,9 +137,16 @@ def generate(scene, band: Band, data_root: str | Path, num_tx: int | None = None
     _assemble(path, parts, chunks, scene, band, positions, antennas, config, materials)
     shutil.rmtree(parts, ignore_errors=True)
     seconds = time.perf_counter() - started
-    return {"path": str(path), "n": n, "made": made, "seconds": round(seconds, 3),
-            "spectra_per_second": round(made / seconds, 2) if made else None,
-            "trace_seconds": round(t_trace, 3), "skipped": False, "materials": materials}
+    return {
+        "path": str(path),
+        "n": n,
+        "made": made,
+        "seconds": round(seconds, 3),
+        "spectra_per_second": round(made / seconds, 2) if made else None,
+        "trace_seconds": round(t_trace, 3),
+        "skipped": False,
+        "materials": materials,
+    }
 
 
 def _assemble(path: Path, parts: Path, chunks, scene, band: Band, positions, antennas, config, materials) -> None:
@@ -129,8 +164,15 @@ def _assemble(path: Path, parts: Path, chunks, scene, band: Band, positions, ant
     tmp = path.with_name(f".{path.name}.tmp")
     with h5py.File(tmp, "w", track_order=False) as f:
         kw = dict(track_times=False)
-        f.create_dataset("spectra", data=spectra, chunks=(min(64, n), *SPECTRUM_SHAPE), compression="gzip",
-                         compression_opts=4, shuffle=True, **kw)
+        f.create_dataset(
+            "spectra",
+            data=spectra,
+            chunks=(min(64, n), *SPECTRUM_SHAPE),
+            compression="gzip",
+            compression_opts=4,
+            shuffle=True,
+            **kw,
+        )
         f.create_dataset("channels", data=channels, **kw)
         f.create_dataset("positions", data=positions.astype(np.float64), **kw)
         f.create_dataset("ids", data=np.arange(1, n + 1, dtype=np.int64), **kw)
@@ -189,8 +231,11 @@ def read_dataset(path: str | Path, name: str | None = None) -> SpectrumSet:
             frequency_hz=float(a["frequency_hz"]),
             source=str(path),
             split_source="seeded split stored in the dataset file",
-            meta={"bounds": np.asarray(a["bounds"], float).tolist(), "config": json.loads(a["config"]),
-                  "num_paths": f["num_paths"][()] if "num_paths" in f else None},
+            meta={
+                "bounds": np.asarray(a["bounds"], float).tolist(),
+                "config": json.loads(a["config"]),
+                "num_paths": f["num_paths"][()] if "num_paths" in f else None,
+            },
         )
 
 
@@ -200,5 +245,13 @@ def export_nerf2(dataset_path: str | Path, out_dir: str | Path) -> Path:
     from graf.data.nerf2_format import write_nerf2_folder
 
     d = read_dataset(dataset_path)
-    return write_nerf2_folder(out_dir, d.spectra, d.positions, d.ids, d.gateway_position, d.gateway_orientation,
-                              train_ids=d.ids[d.train_idx], test_ids=d.ids[d.test_idx])
+    return write_nerf2_folder(
+        out_dir,
+        d.spectra,
+        d.positions,
+        d.ids,
+        d.gateway_position,
+        d.gateway_orientation,
+        train_ids=d.ids[d.train_idx],
+        test_ids=d.ids[d.test_idx],
+    )

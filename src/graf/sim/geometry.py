@@ -12,8 +12,23 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-_BOX_FACES = np.array([[0, 2, 3], [0, 3, 1], [4, 5, 7], [4, 7, 6], [0, 1, 5], [0, 5, 4],
-                       [2, 6, 7], [2, 7, 3], [0, 4, 6], [0, 6, 2], [1, 3, 7], [1, 7, 5]], dtype=np.uint32)
+_BOX_FACES = np.array(
+    [
+        [0, 2, 3],
+        [0, 3, 1],
+        [4, 5, 7],
+        [4, 7, 6],
+        [0, 1, 5],
+        [0, 5, 4],
+        [2, 6, 7],
+        [2, 7, 3],
+        [0, 4, 6],
+        [0, 6, 2],
+        [1, 3, 7],
+        [1, 7, 5],
+    ],
+    dtype=np.uint32,
+)
 _QUAD_FACES = np.array([[0, 1, 2], [0, 2, 3]], dtype=np.uint32)
 
 
@@ -64,7 +79,8 @@ def _quad(name, corners, material, thickness) -> Surface:
 
 
 def build_geometry(room: dict | None = None, ground: dict | None = None, objects: dict | None = None) -> SceneGeometry:
-    """Neither ``room`` nor ``ground``: free space with only the objects.  ``room``: {size: [X, Y, Z], walls, floor, ceiling: ITU types, wall_thickness, floor_thickness,
+    """Neither ``room`` nor ``ground``: free space with only the objects.  ``room``: {size: [X, Y, Z], walls, "
+    "floor, ceiling: ITU types, wall_thickness, floor_thickness,
     ceiling_thickness}, spanning [0, X] x [0, Y] x [0, Z].  ``ground``: {size: [X, Y], material,
     thickness} at z = 0 (open scenes, height from ``ground.height``).  ``objects``: name -> {material,
     center, size, yaw (deg), thickness}; a null entry is a removed object (layout variants)."""
@@ -76,10 +92,18 @@ def build_geometry(room: dict | None = None, ground: dict | None = None, objects
         wt = float(room.get("wall_thickness", 0.2))
         w = room.get("walls", "concrete")
         geo.surfaces += [
-            _quad("floor", [[0, 0, 0], [X, 0, 0], [X, Y, 0], [0, Y, 0]], room.get("floor", "concrete"),
-                  room.get("floor_thickness", 0.2)),
-            _quad("ceiling", [[0, 0, Z], [0, Y, Z], [X, Y, Z], [X, 0, Z]], room.get("ceiling", "ceiling_board"),
-                  room.get("ceiling_thickness", 0.05)),
+            _quad(
+                "floor",
+                [[0, 0, 0], [X, 0, 0], [X, Y, 0], [0, Y, 0]],
+                room.get("floor", "concrete"),
+                room.get("floor_thickness", 0.2),
+            ),
+            _quad(
+                "ceiling",
+                [[0, 0, Z], [0, Y, Z], [X, Y, Z], [X, 0, Z]],
+                room.get("ceiling", "ceiling_board"),
+                room.get("ceiling_thickness", 0.05),
+            ),
             _quad("wall_x0", [[0, 0, 0], [0, Y, 0], [0, Y, Z], [0, 0, Z]], w, wt),
             _quad("wall_x1", [[X, 0, 0], [X, 0, Z], [X, Y, Z], [X, Y, 0]], w, wt),
             _quad("wall_y0", [[0, 0, 0], [0, 0, Z], [X, 0, Z], [X, 0, 0]], w, wt),
@@ -88,8 +112,14 @@ def build_geometry(room: dict | None = None, ground: dict | None = None, objects
         geo.bounds = np.array([[0, 0, 0], [X, Y, Z]], float)
     elif ground is not None:
         X, Y = (float(v) for v in ground["size"])
-        geo.surfaces.append(_quad("ground", [[0, 0, 0], [X, 0, 0], [X, Y, 0], [0, Y, 0]],
-                                  ground.get("material", "medium_dry_ground"), ground.get("thickness", 1.0)))
+        geo.surfaces.append(
+            _quad(
+                "ground",
+                [[0, 0, 0], [X, 0, 0], [X, Y, 0], [0, Y, 0]],
+                ground.get("material", "medium_dry_ground"),
+                ground.get("thickness", 1.0),
+            )
+        )
         geo.bounds = np.array([[0, 0, 0], [X, Y, float(ground.get("height", 10.0))]], float)
     # with neither: free space holding only the objects (physics tests); bounds from the objects below
     for name, spec in sorted((objects or {}).items()):

@@ -22,5 +22,10 @@ def itu_parameters(itu_type: str, frequency_hz: float) -> dict:
     else:
         (lo, hi), (a, b, c, d) = min(ranges.items(), key=lambda kv: min(abs(f - kv[0][0]), abs(f - kv[0][1])))
         extrapolated = True
-    return {"itu_type": itu_type, "relative_permittivity": a * f ** b, "conductivity": c * f ** d,
-            "itu_range_ghz": [lo, hi], "extrapolated": extrapolated}
+    return {
+        "itu_type": itu_type,
+        "relative_permittivity": a * f**b,
+        "conductivity": c * f**d,
+        "itu_range_ghz": [lo, hi],
+        "extrapolated": extrapolated,
+    }

@@ -21,49 +21,75 @@ from graf.sim.geometry import SceneGeometry, build_geometry, sample_positions
 
 class SimulatedScene:
     """Args:
-        name: scene name (also the dataset folder under ``<data_root>/sim``).
-        room / ground: the enclosure (see :func:`graf.sim.geometry.build_geometry`).
-        objects: name -> {material, center, size, yaw, thickness}; null removes an inherited object.
-        gateway: {position, normal (the array faces it), x_axis (azimuth 0)}.
-        transmitters: {count, min, max, clearance, seed, train_fraction, split_seed}.
-        array: {rows, cols, pitch_wavelengths, pattern (iso | front | cos), hemisphere}.
-        tracing: Sionna RT PathSolver settings (max_depth, refraction, diffraction, samples_per_src, ...)
-            plus sources_per_call.
-        description: free text for people.
-        num_tx: read the limited dataset ``<band>-n<num_tx>.h5`` (made by ``graf-simulate sim.num_tx=N``)
-            instead of the full one; never chosen silently.
+    name: scene name (also the dataset folder under ``<data_root>/sim``).
+    room / ground: the enclosure (see :func:`graf.sim.geometry.build_geometry`).
+    objects: name -> {material, center, size, yaw, thickness}; null removes an inherited object.
+    gateway: {position, normal (the array faces it), x_axis (azimuth 0)}.
+    transmitters: {count, min, max, clearance, seed, train_fraction, split_seed}.
+    array: {rows, cols, pitch_wavelengths, pattern (iso | front | cos), hemisphere}.
+    tracing: Sionna RT PathSolver settings (max_depth, refraction, diffraction, samples_per_src, ...)
+        plus sources_per_call.
+    description: free text for people.
+    num_tx: read the limited dataset ``<band>-n<num_tx>.h5`` (made by ``graf-simulate sim.num_tx=N``)
+        instead of the full one; never chosen silently.
     """
 
     kind = "simulated"
 
-    def __init__(self, name: str, gateway: dict, transmitters: dict, tracing: dict, array: dict,
-                 room: dict | None = None, ground: dict | None = None, objects: dict | None = None,
-                 description: str = "", num_tx: int | None = None, band: str | None = None,
-                 fixed_band: bool = False):
+    def __init__(
+        self,
+        name: str,
+        gateway: dict,
+        transmitters: dict,
+        tracing: dict,
+        array: dict,
+        room: dict | None = None,
+        ground: dict | None = None,
+        objects: dict | None = None,
+        description: str = "",
+        num_tx: int | None = None,
+        band: str | None = None,
+        fixed_band: bool = False,
+    ):
         self.name = name
-        self.band, self.fixed_band = band, bool(fixed_band)  # the run's band choice (graf.pipeline.config.scene_band_config)
+        self.band, self.fixed_band = (
+            band,
+            bool(fixed_band),
+        )  # the run's band choice (graf.pipeline.config.scene_band_config)
         self.num_tx = None if num_tx is None else int(num_tx)
         self.room, self.ground, self.objects = room, ground, objects or {}
         self.gateway, self.transmitters = dict(gateway), dict(transmitters)
         self.tracing, self.array = dict(tracing), dict(array)
         self.description = description
         if self.array.get("pattern", "cos") not in PATTERNS:
-            raise ValueError(f"scene {name}: array.pattern must be one of {PATTERNS}, got {self.array.get('pattern')!r}")
+            raise ValueError(
+                f"scene {name}: array.pattern must be one of {PATTERNS}, got {self.array.get('pattern')!r}"
+            )
         self.geometry: SceneGeometry = build_geometry(room, ground, self.objects)
         self.rotation = rotation_from_axes(gateway["normal"], gateway["x_axis"])
 
     # ------------------------------------------------------------------ generating config
     def config(self) -> dict:
         """The full generating configuration (written into the dataset)."""
-        return copy.deepcopy({"name": self.name, "room": self.room, "ground": self.ground,
-                              "objects": {k: v for k, v in self.objects.items() if v is not None},
-                              "gateway": self.gateway, "transmitters": self.transmitters,
-                              "tracing": self.tracing, "array": self.array, "description": self.description})
+        return copy.deepcopy(
+            {
+                "name": self.name,
+                "room": self.room,
+                "ground": self.ground,
+                "objects": {k: v for k, v in self.objects.items() if v is not None},
+                "gateway": self.gateway,
+                "transmitters": self.transmitters,
+                "tracing": self.tracing,
+                "array": self.array,
+                "description": self.description,
+            }
+        )
 
     def positions(self, limit: int | None = None) -> np.ndarray:
         t = self.transmitters
-        pos = sample_positions(self.geometry, int(t["count"]), t["min"], t["max"], int(t.get("seed", 0)),
-                               float(t.get("clearance", 0.05)))
+        pos = sample_positions(
+            self.geometry, int(t["count"]), t["min"], t["max"], int(t.get("seed", 0)), float(t.get("clearance", 0.05))
+        )
         return pos if limit is None else pos[: int(limit)]
 
     def split(self, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -78,8 +104,9 @@ class SimulatedScene:
         from graf.sim.array import array_positions
 
         a = self.array
-        return array_positions(band.wavelength, int(a.get("rows", 4)), int(a.get("cols", 4)),
-                               float(a.get("pitch_wavelengths", 0.5)))
+        return array_positions(
+            band.wavelength, int(a.get("rows", 4)), int(a.get("cols", 4)), float(a.get("pitch_wavelengths", 0.5))
+        )
 
     def bartlett(self, band: Band, device="cpu"):
         """The array's Bartlett beamformer at ``band``."""
@@ -92,8 +119,14 @@ class SimulatedScene:
         from graf.sim.tracer import SionnaTracer
 
         tracing = {**self.tracing, **tracing_overrides}
-        return SionnaTracer(self.geometry, band.frequency_hz, self.gateway["position"], self.rotation, tracing,
-                            int(tracing.get("sources_per_call", 256)))
+        return SionnaTracer(
+            self.geometry,
+            band.frequency_hz,
+            self.gateway["position"],
+            self.rotation,
+            tracing,
+            int(tracing.get("sources_per_call", 256)),
+        )
 
     def spectra(self, tracer, bartlett, positions):
         """Trace ``positions``; returns (channels [n, K], float spectra [n, 90, 360], paths per position [n])."""
@@ -121,10 +154,17 @@ class SimulatedScene:
 
             import torch
 
-            logging.getLogger(__name__).info("simulating %s at %s (%s positions) into %s", self.name, band.name,
-                                             self.num_tx or "all", path)
-            generate(self, band, data_root, num_tx=self.num_tx, progress=False,
-                     device="cuda" if torch.cuda.is_available() else "cpu")
+            logging.getLogger(__name__).info(
+                "simulating %s at %s (%s positions) into %s", self.name, band.name, self.num_tx or "all", path
+            )
+            generate(
+                self,
+                band,
+                data_root,
+                num_tx=self.num_tx,
+                progress=False,
+                device="cuda" if torch.cuda.is_available() else "cpu",
+            )
         return path
 
     def load(self, data_root: str | Path | None, band: Band, num_tx: int | None = None) -> SpectrumSet:
@@ -138,8 +178,14 @@ class SimulatedScene:
             # a limited run (sim.num_tx=N) is used only when asked for (scene.<name>.num_tx=N), never silently
             limited = sorted(path.parent.glob(f"{band.name}-n*.h5")) if num_tx is None else []
             found = [int(p.stem.rsplit("-n", 1)[1]) for p in limited if p.stem.rsplit("-n", 1)[1].isdigit()]
-            raise DataFormatError(path, f"no dataset for scene {self.name} at band {band.name}; make it with "
-                                        f"`graf-simulate scene={self.name} band={band.name} data_root={data_root}`"
-                                  + (f", or use a limited one that is there with scene.{self.name}.num_tx=N (N in {found})"
-                                     if found else ""))
+            raise DataFormatError(
+                path,
+                f"no dataset for scene {self.name} at band {band.name}; make it with "
+                f"`graf-simulate scene={self.name} band={band.name} data_root={data_root}`"
+                + (
+                    f", or use a limited one that is there with scene.{self.name}.num_tx=N (N in {found})"
+                    if found
+                    else ""
+                ),
+            )
         return read_dataset(path, name=self.name)

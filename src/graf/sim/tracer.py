@@ -20,15 +20,32 @@ from graf.sim.materials import itu_parameters
 
 log = logging.getLogger(__name__)
 
-TRACING_KEYS = ("max_depth", "los", "specular_reflection", "diffuse_reflection", "refraction", "diffraction",
-                "edge_diffraction", "samples_per_src", "max_num_paths_per_src", "seed")
+TRACING_KEYS = (
+    "max_depth",
+    "los",
+    "specular_reflection",
+    "diffuse_reflection",
+    "refraction",
+    "diffraction",
+    "edge_diffraction",
+    "samples_per_src",
+    "max_num_paths_per_src",
+    "seed",
+)
 
 
 class SionnaTracer:
     """Builds the Sionna scene once; :meth:`trace` returns path gains and gateway-frame directions."""
 
-    def __init__(self, geometry: SceneGeometry, frequency_hz: float, gateway_position, gateway_rotation,
-                 tracing: dict, sources_per_call: int = 256):
+    def __init__(
+        self,
+        geometry: SceneGeometry,
+        frequency_hz: float,
+        gateway_position,
+        gateway_rotation,
+        tracing: dict,
+        sources_per_call: int = 256,
+    ):
         rt = import_sionna_rt()
         import mitsuba as mi
 
@@ -45,8 +62,12 @@ class SionnaTracer:
             if key not in self.materials:
                 p = itu_parameters(s.material, frequency_hz)
                 name = f"{s.material}_{len(self.materials)}"
-                mat = rt.RadioMaterial(name=name, thickness=s.thickness,
-                                       relative_permittivity=p["relative_permittivity"], conductivity=p["conductivity"])
+                mat = rt.RadioMaterial(
+                    name=name,
+                    thickness=s.thickness,
+                    relative_permittivity=p["relative_permittivity"],
+                    conductivity=p["conductivity"],
+                )
                 self.materials[key] = {"material": mat, **p, "thickness": s.thickness}
             mesh = mi.Mesh(s.name, len(s.vertices), len(s.faces), has_vertex_normals=False, has_vertex_texcoords=False)
             params = mi.traverse(mesh)
@@ -84,7 +105,7 @@ class SionnaTracer:
         in the gateway frame, and the number of valid paths per position ``[n]``."""
         gains, dirs, counts = [], [], []
         for start in range(0, len(positions), self.sources_per_call):
-            chunk = positions[start:start + self.sources_per_call]
+            chunk = positions[start : start + self.sources_per_call]
             self._set_sources(chunk)
             paths = self.solver(self.scene, synthetic_array=True, **self.tracing)
             a, _ = paths.cir(normalize_delays=False, out_type="numpy")  # [rx, rx_ant, tx, tx_ant, P, 1]

@@ -32,9 +32,11 @@ def check_objective_names(names: list[str]) -> None:
         base, _, agg = str(n).partition("@")
         ok = (base.startswith("val/") and base[4:] in METRIC_NAMES and agg in ("", "mean")) or (str(n) in COSTS)
         if not ok:
-            raise ConfigError(f"optimized_metric={n}: a search may optimise val/<{'|'.join(METRIC_NAMES)}>, "
-                              f"val/<metric>@mean (over the run's test scenes) or {', '.join(COSTS)}; nothing is "
-                              "chosen on the test split")
+            raise ConfigError(
+                f"optimized_metric={n}: a search may optimise val/<{'|'.join(METRIC_NAMES)}>, "
+                f"val/<metric>@mean (over the run's test scenes) or {', '.join(COSTS)}; nothing is "
+                "chosen on the test split"
+            )
 
 
 def _evaluation_metrics(metrics: dict, objects: dict) -> list[dict]:
@@ -68,8 +70,10 @@ def inference_seconds_per_spectrum(model, dm, batches: int = COST_BATCHES) -> fl
             if i > 0:
                 times.append((time.perf_counter() - t0) / int(batch["tgt_pos"].shape[0]))
     if not times:
-        raise ConfigError("cost/infer_s_per_spectrum needs at least 2 validation batches (one to warm up); "
-                          "lower data.batch_size or raise data.val_fraction")
+        raise ConfigError(
+            "cost/infer_s_per_spectrum needs at least 2 validation batches (one to warm up); "
+            "lower data.batch_size or raise data.val_fraction"
+        )
     return float(statistics.median(times))
 
 
@@ -83,8 +87,7 @@ def objective_values(names: list[str], metrics: dict, objects: dict) -> list[flo
         if n in COSTS:
             model, evs = objects.get("model"), objects.get("evaluations") or []
             dm = evs[0]["datamodule"] if evs else objects.get("datamodule")
-            out.append(inference_seconds_per_spectrum(model, dm) if model is not None and dm is not None
-                       else math.nan)
+            out.append(inference_seconds_per_spectrum(model, dm) if model is not None and dm is not None else math.nan)
         elif agg == "mean":
             vals = [m.get(base) for m in _evaluation_metrics(metrics, objects)]
             vals = [float(v) if v is not None else math.nan for v in vals]

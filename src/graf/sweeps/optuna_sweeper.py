@@ -51,8 +51,16 @@ from graf.sweeps.search_space import SearchSpace, SearchSpaceError, parse_search
 log = logging.getLogger("graf")
 
 OWNER, ERROR, INTERRUPTED, REQUEUED, RESUME, DUPLICATE, SURPLUS, OUTPUT, WALL = (
-    "graf.owner", "graf.error", "graf.interrupted", "graf.requeued_from", "graf.resume_from", "graf.duplicate_of",
-    "graf.surplus", "graf.output_dir", "graf.wall_s")
+    "graf.owner",
+    "graf.error",
+    "graf.interrupted",
+    "graf.requeued_from",
+    "graf.resume_from",
+    "graf.duplicate_of",
+    "graf.surplus",
+    "graf.output_dir",
+    "graf.wall_s",
+)
 NOT_COUNTED = (INTERRUPTED, SURPLUS, DUPLICATE)  # FAIL trials that are not the configuration's failure
 POLL_S = 2.0
 
@@ -113,12 +121,18 @@ def storage_lock(lock_path: Path | None):
 
 
 def _sqlite_path(url: str) -> Path | None:
-    return Path(url[len("sqlite:///"):]) if url.startswith("sqlite:///") else None
+    return Path(url[len("sqlite:///") :]) if url.startswith("sqlite:///") else None
 
 
 # ----------------------------------------------------------------------------------------------------------
-def make_sampler(name: str, space: SearchSpace, n_objectives: int, seed: int,
-                 population_size: int | None = None, grid_seed: int | None = None) -> optuna.samplers.BaseSampler:
+def make_sampler(
+    name: str,
+    space: SearchSpace,
+    n_objectives: int,
+    seed: int,
+    population_size: int | None = None,
+    grid_seed: int | None = None,
+) -> optuna.samplers.BaseSampler:
     """``seed`` seeds a sampler of this process (varied per run and worker); a grid is shuffled by ``grid_seed``
     instead, the same in every process and run of a study: a trial stores its point as an index into the
     shuffled grid, so another shuffle (a resumed run, a second worker) would read those indices as other points,
@@ -130,8 +144,10 @@ def make_sampler(name: str, space: SearchSpace, n_objectives: int, seed: int,
         return optuna.samplers.TPESampler(seed=seed, multivariate=True)
     if name == "grid":
         if not space.all_categorical:
-            raise SearchSpaceError("sampler grid needs every parameter to be a choice(...): "
-                                   f"{', '.join(k for k, d in space.distributions.items() if not hasattr(d, 'choices'))}")
+            raise SearchSpaceError(
+                "sampler grid needs every parameter to be a choice(...): "
+                f"{', '.join(k for k, d in space.distributions.items() if not hasattr(d, 'choices'))}"
+            )
         return _Grid(space.grid(), seed=seed if grid_seed is None else grid_seed)
     if name == "nsga2":
         if population_size is not None and int(population_size) < 2:
@@ -180,15 +196,33 @@ def _grammar(v) -> str:
 class OptunaSweep:
     """One process's part in a study (see the module doc)."""
 
-    def __init__(self, *, sampler: str = "auto", seed: int = 0, direction: Any = "maximize",
-                 storage: str | None = None, study_name: str | None = None, n_trials: int = 20,
-                 max_failures: int = 5, n_jobs: int = 1, threads_per_job: int | None = None,
-                 pruner: dict | None = None, params: dict | None = None, test_best: bool = True,
-                 population_size: int | None = None,
-                 test_overrides: list | None = None, plots: bool = True, worker_rank: int = 0):
+    def __init__(
+        self,
+        *,
+        sampler: str = "auto",
+        seed: int = 0,
+        direction: Any = "maximize",
+        storage: str | None = None,
+        study_name: str | None = None,
+        n_trials: int = 20,
+        max_failures: int = 5,
+        n_jobs: int = 1,
+        threads_per_job: int | None = None,
+        pruner: dict | None = None,
+        params: dict | None = None,
+        test_best: bool = True,
+        population_size: int | None = None,
+        test_overrides: list | None = None,
+        plots: bool = True,
+        worker_rank: int = 0,
+    ):
         self.sampler_name, self.seed = sampler, int(seed)
-        self.directions = [str(d) for d in (direction if isinstance(direction, (list, tuple)) or
-                                            OmegaConf.is_list(direction) else [direction])]
+        self.directions = [
+            str(d)
+            for d in (
+                direction if isinstance(direction, (list, tuple)) or OmegaConf.is_list(direction) else [direction]
+            )
+        ]
         for d in self.directions:
             if d not in ("maximize", "minimize"):
                 raise SearchSpaceError(f"hydra.sweeper.direction: {d!r} is not maximize or minimize")
@@ -209,12 +243,14 @@ class OptunaSweep:
         from hydra.core.plugins import Plugins
 
         self.hydra_context, self.config = hydra_context, config
-        self.launcher = Plugins.instance().instantiate_launcher(hydra_context=hydra_context,
-                                                                task_function=task_function, config=config)
+        self.launcher = Plugins.instance().instantiate_launcher(
+            hydra_context=hydra_context, task_function=task_function, config=config
+        )
 
     def _compose(self, overrides: list[str]) -> DictConfig:
-        return self.hydra_context.config_loader.load_sweep_config(master_config=self.config,
-                                                                   sweep_overrides=list(overrides))
+        return self.hydra_context.config_loader.load_sweep_config(
+            master_config=self.config, sweep_overrides=list(overrides)
+        )
 
     def _launch(self, overrides: list[str], job_idx: int):
         return self.launcher.launch([overrides], initial_job_idx=job_idx)[0]
@@ -234,8 +270,11 @@ class OptunaSweep:
             if key.startswith("+"):
                 continue
             if OmegaConf.select(cfg, plain, default="__absent__") == "__absent__":
-                log.info("search space: %s is not in this run's config (model %s): left out", key,
-                         cfg.get("model", {}).get("_target_"))
+                log.info(
+                    "search space: %s is not in this run's config (model %s): left out",
+                    key,
+                    cfg.get("model", {}).get("_target_"),
+                )
                 del space.distributions[key]
         if not space.distributions:
             raise SearchSpaceError("no parameter of the search space is in this run's config")
@@ -245,8 +284,10 @@ class OptunaSweep:
         names = self.config.get("optimized_metric")
         names = [names] if isinstance(names, str) else list(names or [])
         if len(names) != len(self.directions):
-            raise SearchSpaceError(f"optimized_metric {names} has {len(names)} value(s) but hydra.sweeper.direction "
-                                   f"has {len(self.directions)}: give one direction per objective")
+            raise SearchSpaceError(
+                f"optimized_metric {names} has {len(names)} value(s) but hydra.sweeper.direction "
+                f"has {len(self.directions)}: give one direction per objective"
+            )
         from graf.sweeps.objectives import check_objective_names
 
         check_objective_names(names)
@@ -267,22 +308,49 @@ class OptunaSweep:
         db = _sqlite_path(url)
         lock = db.with_name(db.name + ".lock") if db is not None else None
         n_trials = self.n_trials
-        if (self.sampler_name in ("grid",) or (self.sampler_name == "auto" and len(names) == 1
-                                                and space.all_categorical)) and space.grid_size() < n_trials:
+        if (
+            self.sampler_name in ("grid",)
+            or (self.sampler_name == "auto" and len(names) == 1 and space.all_categorical)
+        ) and space.grid_size() < n_trials:
             log.info("the grid has %d points: n_trials %d -> %d", space.grid_size(), n_trials, space.grid_size())
             n_trials = space.grid_size()
         with storage_lock(lock):
-            study = optuna.create_study(storage=url, study_name=name, directions=self.directions,
-                                        load_if_exists=True, pruner=make_pruner(self.pruner_conf))
+            study = optuna.create_study(
+                storage=url,
+                study_name=name,
+                directions=self.directions,
+                load_if_exists=True,
+                pruner=make_pruner(self.pruner_conf),
+            )
             self._check_same_search(study, space, names)
-            study.sampler = make_sampler(self.sampler_name, space, len(names),
-                                         self.seed + len(study.trials) + 7919 * self.worker_rank,
-                                         self.population_size, grid_seed=self.seed)
-        log.info("study %s in %s: %d trial(s) stored of n_trials=%d; objective %s (%s); threads per trial %d",
-                 name, url, len(study.trials), n_trials, names, self.directions, self.threads())
+            study.sampler = make_sampler(
+                self.sampler_name,
+                space,
+                len(names),
+                self.seed + len(study.trials) + 7919 * self.worker_rank,
+                self.population_size,
+                grid_seed=self.seed,
+            )
+        log.info(
+            "study %s in %s: %d trial(s) stored of n_trials=%d; objective %s (%s); threads per trial %d",
+            name,
+            url,
+            len(study.trials),
+            n_trials,
+            names,
+            self.directions,
+            self.threads(),
+        )
         workers = self._start_workers(sweep_dir, url, name) if self.worker_rank == 0 and self.n_jobs > 1 else []
-        ctx = {"url": url, "name": name, "sweep_dir": sweep_dir, "lock": lock, "space": space,
-               "n_trials": n_trials, "names": names}
+        ctx = {
+            "url": url,
+            "name": name,
+            "sweep_dir": sweep_dir,
+            "lock": lock,
+            "space": space,
+            "n_trials": n_trials,
+            "names": names,
+        }
         returns, error = [], None
         try:
             while True:
@@ -318,24 +386,50 @@ class OptunaSweep:
         now = json.loads(json.dumps(described))
         if before is None:
             study.set_user_attr("graf.search", described)
-        elif before["space"]["fixed"] != now["space"]["fixed"] and {**before, "space": None} == {**now, "space": None} \
-                and before["space"]["params"] == now["space"]["params"]:
-            log.warning("study %s: its earlier trials ran with the settings %s, this run's are %s: the trials may not "
-                        "be comparable", study.study_name, before["space"]["fixed"], now["space"]["fixed"])
+        elif (
+            before["space"]["fixed"] != now["space"]["fixed"]
+            and {**before, "space": None} == {**now, "space": None}
+            and before["space"]["params"] == now["space"]["params"]
+        ):
+            log.warning(
+                "study %s: its earlier trials ran with the settings %s, this run's are %s: the trials may not "
+                "be comparable",
+                study.study_name,
+                before["space"]["fixed"],
+                now["space"]["fixed"],
+            )
         elif before != now:
-            raise SweepError(f"study {study.study_name} in this storage was run with another search ({before}); "
-                             f"this command's is {described}: use another hydra.sweeper.study_name or sweep dir")
+            raise SweepError(
+                f"study {study.study_name} in this storage was run with another search ({before}); "
+                f"this command's is {described}: use another hydra.sweeper.study_name or sweep dir"
+            )
 
     def _start_workers(self, sweep_dir: Path, url: str, name: str) -> list[subprocess.Popen]:
         """``n_jobs - 1`` more processes of the same command on the same storage (rank 1..n-1)."""
         procs = []
         env = dict(os.environ, OMP_NUM_THREADS=str(self.threads()), MKL_NUM_THREADS=str(self.threads()))
-        argv = [a for a in sys.argv[1:] if not a.startswith(("hydra.sweep.dir=", "hydra.sweeper.worker_rank=",
-                                                             "hydra.sweeper.storage=", "hydra.sweeper.study_name="))]
+        argv = [
+            a
+            for a in sys.argv[1:]
+            if not a.startswith(
+                (
+                    "hydra.sweep.dir=",
+                    "hydra.sweeper.worker_rank=",
+                    "hydra.sweeper.storage=",
+                    "hydra.sweeper.study_name=",
+                )
+            )
+        ]
         for rank in range(1, self.n_jobs):
-            cmd = [sys.executable, sys.argv[0], *argv, f"hydra.sweep.dir={_quote(str(sweep_dir))}",
-                   f"hydra.sweeper.storage={_quote(url)}", f"hydra.sweeper.study_name={_quote(name)}",
-                   f"hydra.sweeper.worker_rank={rank}"]
+            cmd = [
+                sys.executable,
+                sys.argv[0],
+                *argv,
+                f"hydra.sweep.dir={_quote(str(sweep_dir))}",
+                f"hydra.sweeper.storage={_quote(url)}",
+                f"hydra.sweeper.study_name={_quote(name)}",
+                f"hydra.sweeper.worker_rank={rank}",
+            ]
             f = open(sweep_dir / f"worker_{rank}.log", "ab")
             procs.append(subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, env=env))
             log.info("worker %d started (pid %d): log %s", rank, procs[-1].pid, f.name)
@@ -367,8 +461,11 @@ class OptunaSweep:
         if ckpt is not None and ckpt.is_file():
             attrs[RESUME] = str(ckpt)
         study.enqueue_trial(trial.params, user_attrs=attrs)
-        log.warning("trial %d was interrupted: stored as failed, its parameters queued again%s", trial.number,
-                    f" (resuming from {ckpt})" if RESUME in attrs else "")
+        log.warning(
+            "trial %d was interrupted: stored as failed, its parameters queued again%s",
+            trial.number,
+            f" (resuming from {ckpt})" if RESUME in attrs else "",
+        )
 
     def _next(self, study, ctx):
         """Under the storage lock: recover interrupted trials, then either ``"done"``, ``"wait"`` (others
@@ -382,24 +479,35 @@ class OptunaSweep:
             if len(done) >= ctx["n_trials"]:
                 return "done"
             if len(failures) >= self.max_failures:
-                return SweepError(f"{len(failures)} trials failed (hydra.sweeper.max_failures={self.max_failures}); "
-                                  f"last: trial {failures[-1].number}: {failures[-1].user_attrs.get(ERROR)}")
+                return SweepError(
+                    f"{len(failures)} trials failed (hydra.sweeper.max_failures={self.max_failures}); "
+                    f"last: trial {failures[-1].number}: {failures[-1].user_attrs.get(ERROR)}"
+                )
             if len(done) + len(running) >= ctx["n_trials"]:
                 return "wait"
             if isinstance(study.sampler, _Grid) and not any(t.state == TrialState.WAITING for t in trials):
-                visited = {tuple(sorted(t.params.items())) for t in trials
-                           if t.state != TrialState.WAITING and SURPLUS not in t.user_attrs}
+                visited = {
+                    tuple(sorted(t.params.items()))
+                    for t in trials
+                    if t.state != TrialState.WAITING and SURPLUS not in t.user_attrs
+                }
                 if len(visited) >= ctx["space"].grid_size():
                     if running:
                         return "wait"
-                    log.warning("the grid's %d points are all tried (%d finished, %d failed): the search ends",
-                                ctx["space"].grid_size(), len(done), len(failures))
+                    log.warning(
+                        "the grid's %d points are all tried (%d finished, %d failed): the search ends",
+                        ctx["space"].grid_size(),
+                        len(done),
+                        len(failures),
+                    )
                     return "done"
             trial = study.ask(ctx["space"].distributions)
             trial.set_user_attr(OWNER, this_owner())
-            earlier = [t for t in study.get_trials(deepcopy=False)
-                       if t.number < trial.number and t.state in (TrialState.COMPLETE, TrialState.PRUNED,
-                                                                   TrialState.RUNNING)]
+            earlier = [
+                t
+                for t in study.get_trials(deepcopy=False)
+                if t.number < trial.number and t.state in (TrialState.COMPLETE, TrialState.PRUNED, TrialState.RUNNING)
+            ]
             if len(earlier) >= ctx["n_trials"]:
                 trial.set_user_attr(SURPLUS, True)
                 study.tell(trial, state=TrialState.FAIL)
@@ -409,10 +517,16 @@ class OptunaSweep:
     def _duplicate(self, study, trial) -> FrozenTrial | None:
         """A finished or running trial (not this one) with the same parameters, once it has finished."""
         while True:
-            same = [t for t in study.get_trials(deepcopy=False)
-                    if t.number != trial.number and t.params == trial.params
-                    and (t.state in (TrialState.COMPLETE, TrialState.PRUNED) or
-                         (t.state == TrialState.RUNNING and OWNER in t.user_attrs))]
+            same = [
+                t
+                for t in study.get_trials(deepcopy=False)
+                if t.number != trial.number
+                and t.params == trial.params
+                and (
+                    t.state in (TrialState.COMPLETE, TrialState.PRUNED)
+                    or (t.state == TrialState.RUNNING and OWNER in t.user_attrs)
+                )
+            ]
             if not same:
                 return None
             done = [t for t in same if t.state != TrialState.RUNNING]
@@ -428,8 +542,12 @@ class OptunaSweep:
                 study.tell(trial, dup.values)
             else:
                 study.tell(trial, state=TrialState.PRUNED)
-            log.info("trial %d: the parameters of trial %d (%s): its outcome taken, nothing trained", trial.number,
-                     dup.number, dup.state.name)
+            log.info(
+                "trial %d: the parameters of trial %d (%s): its outcome taken, nothing trained",
+                trial.number,
+                dup.number,
+                dup.state.name,
+            )
             return None
         space: SearchSpace = ctx["space"]
         overrides = space.overrides(trial.params)
@@ -437,12 +555,19 @@ class OptunaSweep:
         if resume and Path(resume).is_file():
             overrides.append(f"ckpt_path={_quote(resume)}")
         prune = len(self.directions) == 1 and str(self.pruner_conf.get("name", "none")) != "none"
-        trial_conf = {"storage": ctx["url"], "study_name": ctx["name"], "trial_id": trial._trial_id,
-                      "number": trial.number, "monitor": self.pruner_conf.get("monitor", "val/psnr") if prune else None,
-                      "pruner": {k: v for k, v in self.pruner_conf.items() if k != "monitor"}}
-        overrides += [f"{self._key('optuna_trial')}={_grammar(trial_conf)}",
-                      f"{self._key('torch_threads')}={self.threads()}"]
-        log.info("trial %d: %s", trial.number, " ".join(space.overrides(trial.params)[len(space.fixed):]))
+        trial_conf = {
+            "storage": ctx["url"],
+            "study_name": ctx["name"],
+            "trial_id": trial._trial_id,
+            "number": trial.number,
+            "monitor": self.pruner_conf.get("monitor", "val/psnr") if prune else None,
+            "pruner": {k: v for k, v in self.pruner_conf.items() if k != "monitor"},
+        }
+        overrides += [
+            f"{self._key('optuna_trial')}={_grammar(trial_conf)}",
+            f"{self._key('torch_threads')}={self.threads()}",
+        ]
+        log.info("trial %d: %s", trial.number, " ".join(space.overrides(trial.params)[len(space.fixed) :]))
         t0 = time.perf_counter()
         ret = self._launch(overrides, trial.number)
         wall = round(time.perf_counter() - t0, 3)
@@ -461,8 +586,9 @@ class OptunaSweep:
             if len(values) != len(self.directions) or not all(math.isfinite(v) for v in values):
                 trial.set_user_attr(ERROR, f"objective {ctx['names']} returned {values}")
                 study.tell(trial, state=TrialState.FAIL)
-                log.warning("trial %d failed: its objective is %s (stored as failed; the study goes on)",
-                            trial.number, values)
+                log.warning(
+                    "trial %d failed: its objective is %s (stored as failed; the study goes on)", trial.number, values
+                )
             else:
                 study.tell(trial, values)
                 log.info("trial %d: %s = %s (%.1f s)", trial.number, ctx["names"], values, wall)
@@ -472,15 +598,26 @@ class OptunaSweep:
                 study.tell(trial, state=TrialState.PRUNED)
                 log.info("trial %d pruned: %s", trial.number, exc)
             elif is_preempted(exc):
-                self._requeue(study, trial, str(ret.hydra_cfg.hydra.runtime.output_dir)
-                              if getattr(ret, "hydra_cfg", None) is not None else None)
-                raise SweepPreempted(f"trial {trial.number} was pre-empted ({exc}); its parameters are queued again: "
-                                     "run the same command to resume the search")
+                self._requeue(
+                    study,
+                    trial,
+                    str(ret.hydra_cfg.hydra.runtime.output_dir)
+                    if getattr(ret, "hydra_cfg", None) is not None
+                    else None,
+                )
+                raise SweepPreempted(
+                    f"trial {trial.number} was pre-empted ({exc}); its parameters are queued again: "
+                    "run the same command to resume the search"
+                )
             else:
                 trial.set_user_attr(ERROR, f"{type(exc).__name__}: {exc}"[:2000])
                 study.tell(trial, state=TrialState.FAIL)
-                log.warning("trial %d failed: %s: %s (stored as failed; the study goes on)", trial.number,
-                            type(exc).__name__, exc)
+                log.warning(
+                    "trial %d failed: %s: %s (stored as failed; the study goes on)",
+                    trial.number,
+                    type(exc).__name__,
+                    exc,
+                )
         return ret
 
     def _key(self, key: str) -> str:
@@ -506,26 +643,33 @@ class OptunaSweep:
                 before["metrics@mean"] = means  # a record from before the means were written: from its evaluations
                 atomic_write_json(record, before)
             return
-        overrides = space.overrides(chosen.params) + list(self.test_overrides) + ["hydra.sweep.subdir=best",
-                                                                                    "validate=true"]
+        overrides = (
+            space.overrides(chosen.params) + list(self.test_overrides) + ["hydra.sweep.subdir=best", "validate=true"]
+        )
         ckpt = Path(chosen.user_attrs.get(OUTPUT, "")) / "checkpoints" / "last.ckpt"
         if chosen.user_attrs.get(OUTPUT) and ckpt.is_file():
             overrides.append(f"ckpt_path={_quote(str(ckpt))}")  # its final weights: resumed at the last step
         overrides.append(f"{self._key('torch_threads')}={self.threads()}")
         log.info("testing the chosen configuration (trial %d) once: %s", chosen.number, " ".join(overrides))
-        ret = self._launch(overrides, 10 ** 6)
+        ret = self._launch(overrides, 10**6)
         from hydra.core.utils import JobStatus
 
-        result = {"trial": chosen.number, "params": chosen.params, "objectives": ctx["names"],
-                  "values": chosen.values, "overrides": overrides,
-                  "checkpoint": str(ckpt) if ckpt.is_file() else None}
+        result = {
+            "trial": chosen.number,
+            "params": chosen.params,
+            "objectives": ctx["names"],
+            "values": chosen.values,
+            "overrides": overrides,
+            "checkpoint": str(ckpt) if ckpt.is_file() else None,
+        }
         if ret.status == JobStatus.COMPLETED:
             res = Path(str(ret.hydra_cfg.hydra.runtime.output_dir)) / "results.json"
             if res.is_file():
                 r = json.loads(res.read_text())
                 result["metrics"] = r.get("metrics")
-                result["evaluations"] = [{"eval_scene": e["eval_scene"], "metrics": e["metrics"]}
-                                         for e in r.get("evaluations", [])]
+                result["evaluations"] = [
+                    {"eval_scene": e["eval_scene"], "metrics": e["metrics"]} for e in r.get("evaluations", [])
+                ]
                 result["results"] = str(res)
                 if means := metrics_mean(result["evaluations"]):
                     result["metrics@mean"] = means
@@ -535,7 +679,12 @@ class OptunaSweep:
         record.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_json(record, result)
         shown = result.get("metrics@mean") or result.get("metrics") or {}
-        log.info("chosen configuration: trial %d, %s; objective %s; validation PSNR %s, test PSNR %s%s", chosen.number,
-                 chosen.params, chosen.values, shown.get("val/psnr"), shown.get("test/psnr"),
-                 " (means over the evaluated scenes)" if "metrics@mean" in result else "")
-
+        log.info(
+            "chosen configuration: trial %d, %s; objective %s; validation PSNR %s, test PSNR %s%s",
+            chosen.number,
+            chosen.params,
+            chosen.values,
+            shown.get("val/psnr"),
+            shown.get("test/psnr"),
+            " (means over the evaluated scenes)" if "metrics@mean" in result else "",
+        )

@@ -12,8 +12,9 @@ from graf.sweeps.search_space import SearchSpaceError
 def make_pruner(conf: dict) -> optuna.pruners.BasePruner:
     name = str(conf.get("name") or "none").lower()
     if name == "median":
-        return optuna.pruners.MedianPruner(n_startup_trials=int(conf.get("n_startup_trials", 3)),
-                                           n_warmup_steps=int(conf.get("n_warmup_steps", 0)))
+        return optuna.pruners.MedianPruner(
+            n_startup_trials=int(conf.get("n_startup_trials", 3)), n_warmup_steps=int(conf.get("n_warmup_steps", 0))
+        )
     if name == "hyperband":
         return optuna.pruners.HyperbandPruner()
     if name == "none":

@@ -4,12 +4,15 @@ A small Lightning callback (Lightning 2.6; Optuna's own integration lives in the
 ``optuna-integration`` package, not installed here): after each validation during training it reports
 ``monitor`` at the global step to the trial (``trial.report``), and raises :class:`optuna.TrialPruned`
 when the study's pruner says so; never at the validation that ends training (``max_steps`` reached:
-pruning then would discard a finished trial and save nothing).  Lightning tears the fit down and re-raises it; Hydra's launcher returns
+pruning then would discard a finished trial and save nothing).  Lightning tears the fit down and re-raises it; Hydra's
+launcher returns
 it as the job's failure, and the sweeper stores the trial as PRUNED (with its reported values).
 
 The ``callbacks`` group makes it (``callbacks.optuna_pruning: {_target_: graf.sweeps.pruning.pruning_callback,
-conf: ${optuna_trial}}``; nothing for a run that is no trial).  The trial is reopened from the study's storage in the job (``optuna_trial: {storage, study_name,
-trial_id, monitor, pruner}``, set by the sweeper, with the sweeper's pruner settings), so it works in-process and in a launcher's separate processes.
+conf: ${optuna_trial}}``; nothing for a run that is no trial).  The trial is reopened from the study's storage in the
+job (``optuna_trial: {storage, study_name,
+trial_id, monitor, pruner}``, set by the sweeper, with the sweeper's pruner settings), so it works in-process and in a
+launcher's separate processes.
 Validation during training must be on (``trainer.limit_val_batches`` > 0, ``trainer.val_check_interval``):
 the searches in ``conf/hparams_search`` turn it on.
 """
@@ -39,8 +42,9 @@ class OptunaPruning(Callback):
         value = trainer.callback_metrics.get(self.monitor)
         if value is None:
             if not self._warned:
-                log.warning("pruning: %s was not logged by the validation during training; nothing reported",
-                            self.monitor)
+                log.warning(
+                    "pruning: %s was not logged by the validation during training; nothing reported", self.monitor
+                )
                 self._warned = True
             return
         value, step = float(value), int(trainer.global_step)

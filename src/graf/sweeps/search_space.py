@@ -24,12 +24,13 @@ class SearchSpaceError(ValueError):
 @dataclass
 class SearchSpace:
     distributions: dict[str, BaseDistribution] = field(default_factory=dict)
-    fixed: list[str] = field(default_factory=list)   # overrides every trial gets
+    fixed: list[str] = field(default_factory=list)  # overrides every trial gets
 
     @property
     def all_categorical(self) -> bool:
-        return bool(self.distributions) and all(isinstance(d, CategoricalDistribution)
-                                                for d in self.distributions.values())
+        return bool(self.distributions) and all(
+            isinstance(d, CategoricalDistribution) for d in self.distributions.values()
+        )
 
     def grid(self) -> dict[str, list]:
         return {k: list(d.choices) for k, d in self.distributions.items()}  # type: ignore[attr-defined]

@@ -5,9 +5,8 @@
 Settings (``hydra.sweeper.*``): see :class:`GrafOptunaSweeperConf`; behaviour: :mod:`graf.sweeps.optuna_sweeper`.
 """
 
-
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional
+from typing import Any
 
 from hydra.core.config_store import ConfigStore
 from hydra.plugins.sweeper import Sweeper
@@ -15,31 +14,33 @@ from hydra.plugins.sweeper import Sweeper
 
 @dataclass
 class PrunerConf:
-    name: str = "median"            # median | hyperband | none
-    monitor: str = "val/psnr"       # the validation metric logged during training that is reported
-    n_startup_trials: int = 3       # median: no pruning before this many trials have finished
-    n_warmup_steps: int = 0         # median: no pruning before this global step
+    name: str = "median"  # median | hyperband | none
+    monitor: str = "val/psnr"  # the validation metric logged during training that is reported
+    n_startup_trials: int = 3  # median: no pruning before this many trials have finished
+    n_warmup_steps: int = 0  # median: no pruning before this global step
 
 
 @dataclass
 class GrafOptunaSweeperConf:
     _target_: str = "hydra_plugins.graf_optuna_sweeper.graf_optuna_sweeper.GrafOptunaSweeper"
-    sampler: str = "auto"           # auto (grid if all params are choices, nsga2 for 2+ objectives, else tpe) | tpe | grid | nsga2 | random
+    sampler: str = (
+        "auto"  # auto (grid if all params are choices, nsga2 for 2+ objectives, else tpe) | tpe | grid | nsga2 | random
+    )
     seed: int = 0
-    population_size: Optional[int] = None  # nsga2: trials per generation; null: Optuna's 50
-    direction: Any = "maximize"     # or a list, one per objective (optimized_metric a list)
-    storage: Optional[str] = None   # SQLAlchemy URL; null: sqlite:///<sweep dir>/optuna.db
-    study_name: Optional[str] = None  # null: the task name
-    n_trials: int = 20              # finished trials (complete or pruned) the study ends with, over all runs
-    max_failures: int = 5           # failed trials (raised, NaN) tolerated before the sweep stops
-    n_jobs: int = 1                 # processes running trials at once on this machine (same storage)
-    threads_per_job: Optional[int] = None  # torch threads per trial; null: cores // n_jobs
+    population_size: int | None = None  # nsga2: trials per generation; null: Optuna's 50
+    direction: Any = "maximize"  # or a list, one per objective (optimized_metric a list)
+    storage: str | None = None  # SQLAlchemy URL; null: sqlite:///<sweep dir>/optuna.db
+    study_name: str | None = None  # null: the task name
+    n_trials: int = 20  # finished trials (complete or pruned) the study ends with, over all runs
+    max_failures: int = 5  # failed trials (raised, NaN) tolerated before the sweep stops
+    n_jobs: int = 1  # processes running trials at once on this machine (same storage)
+    threads_per_job: int | None = None  # torch threads per trial; null: cores // n_jobs
     pruner: PrunerConf = field(default_factory=PrunerConf)
-    params: Dict[str, str] = field(default_factory=dict)  # the search space: key -> interval/range/choice
-    test_best: bool = True          # test the chosen configuration once, after the search (best/)
-    test_overrides: List[str] = field(default_factory=lambda: ["test=true"])
+    params: dict[str, str] = field(default_factory=dict)  # the search space: key -> interval/range/choice
+    test_best: bool = True  # test the chosen configuration once, after the search (best/)
+    test_overrides: list[str] = field(default_factory=lambda: ["test=true"])
     plots: bool = True
-    worker_rank: int = 0            # set by the sweeper for the processes n_jobs starts
+    worker_rank: int = 0  # set by the sweeper for the processes n_jobs starts
 
 
 ConfigStore.instance().store(group="hydra/sweeper", name="graf_optuna", node=GrafOptunaSweeperConf, provider="graf")
@@ -51,12 +52,13 @@ class GrafOptunaSweeper(Sweeper):
 
         from graf.sweeps.optuna_sweeper import OptunaSweep
 
-        kwargs = {k: OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else v
-                  for k, v in kwargs.items()}
+        kwargs = {
+            k: OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else v for k, v in kwargs.items()
+        }
         self.sweep_impl = OptunaSweep(**kwargs)
 
     def setup(self, *, hydra_context, task_function, config) -> None:
         self.sweep_impl.setup(hydra_context=hydra_context, task_function=task_function, config=config)
 
-    def sweep(self, arguments: List[str]) -> Any:
+    def sweep(self, arguments: list[str]) -> Any:
         return self.sweep_impl.sweep(arguments)

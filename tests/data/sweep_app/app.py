@@ -1,8 +1,10 @@
 """A tiny Hydra app for the Optuna sweeper's tests (tests/test_optuna_sweeper.py): no torch, a trial takes
 milliseconds.  Each trial writes ``started_x<x>_<pid>`` and, when it ends normally, ``finished_x<x>`` into
-``marks`` (the configurations actually trained); ``slow_at`` (or $SWEEP_APP_SLOW_AT) sleeps (to be killed), ``raise_at`` raises,
+``marks`` (the configurations actually trained); ``slow_at`` (or $SWEEP_APP_SLOW_AT) sleeps (to be killed),
+``raise_at`` raises,
 ``nan_at`` returns NaN, ``preempt_at`` stops the first trial with that x as a pre-empted graf-train does (an
-exception with ``exit_code`` 143).  ``lightning=true``: a trial trains a tiny Lightning model with validation every 2 steps
+exception with ``exit_code`` 143).  ``lightning=true``: a trial trains a tiny Lightning model with validation every 2
+steps
 and graf's pruning callback; the first trial to run logs val/psnr 10, every later one -10 (so a median
 pruner prunes them)."""
 
@@ -68,9 +70,18 @@ def lightning_trial(cfg: DictConfig, marks: Path) -> float:
             return torch.optim.SGD(self.parameters(), lr=0.01)
 
     data = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.ones(8, 1)), batch_size=2)
-    trainer = L.Trainer(max_steps=6, val_check_interval=2, check_val_every_n_epoch=None, limit_val_batches=1,
-                        callbacks=[pruning_callback(cfg.optuna_trial)], logger=False, enable_checkpointing=False,
-                        enable_progress_bar=False, enable_model_summary=False, accelerator="cpu")
+    trainer = L.Trainer(
+        max_steps=6,
+        val_check_interval=2,
+        check_val_every_n_epoch=None,
+        limit_val_batches=1,
+        callbacks=[pruning_callback(cfg.optuna_trial)],
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        accelerator="cpu",
+    )
     trainer.fit(Tiny(), data, data)
     with open(marks / f"finished_x{int(cfg.x)}", "a") as f:
         f.write(f"{os.getpid()}\n")

@@ -20,7 +20,6 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-
 KERNELS = ("auto", "sdpa", "math")
 MATH_SCORES_PER_PIECE = 1 << 18  # the math kernel's score tensor per piece (1 MB in fp32: stays in cache)
 
@@ -31,7 +30,7 @@ def math_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, mask: torc
     (GRaF's ray transformer: 10 heads of 8; measured by ``graf-bench`` and scripts/attention_kernels.py)."""
     B, H, Nq, Dh = q.shape
     Nk = k.shape[-2]
-    scale = Dh ** -0.5
+    scale = Dh**-0.5
     per = max(1, MATH_SCORES_PER_PIECE // max(1, H * Nq * Nk))
     # torch.split, not slicing: a slice's backward fills a zero tensor of the whole input per piece
     masks = [None] * -(-B // per) if mask is None else mask.expand(B, *mask.shape[1:]).split(per)
@@ -45,8 +44,9 @@ def math_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, mask: torc
 
 
 class MultiHeadAttention(nn.Module):
-    def __init__(self, d_model: int, num_heads: int = 1, head_dim: int | None = None, dropout: float = 0.0,
-                 kernel: str = "sdpa"):
+    def __init__(
+        self, d_model: int, num_heads: int = 1, head_dim: int | None = None, dropout: float = 0.0, kernel: str = "sdpa"
+    ):
         super().__init__()
         if kernel not in KERNELS:
             raise ValueError(f"attention kernel must be one of {KERNELS}, got {kernel!r}")
@@ -68,8 +68,14 @@ class MultiHeadAttention(nn.Module):
             return not (self.dropout and self.training)
         # auto: explicit matmuls on CPU for many short sequences of narrow heads, where SDPA's fused kernel
         # is slow (per-sequence overhead); SDPA everywhere else (GPUs, long query axes, dropout)
-        return (self.kernel == "auto" and q.device.type == "cpu" and q.shape[-1] <= 16 and q.shape[-2] <= 256
-                and q.shape[0] > 1 and not (self.dropout and self.training))
+        return (
+            self.kernel == "auto"
+            and q.device.type == "cpu"
+            and q.shape[-1] <= 16
+            and q.shape[-2] <= 256
+            and q.shape[0] > 1
+            and not (self.dropout and self.training)
+        )
 
     def forward(self, x: torch.Tensor, context: torch.Tensor, key_mask: torch.Tensor | None = None) -> torch.Tensor:
         q, k, v = self._split(self.q(x)), self._split(self.k(context)), self._split(self.v(context))
@@ -81,13 +87,22 @@ class MultiHeadAttention(nn.Module):
         if self._use_math(q):
             y = math_attention(q, k, v, mask)
         else:
-            y = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=self.dropout if self.training else 0.0)
+            y = F.scaled_dot_product_attention(
+                q, k, v, attn_mask=mask, dropout_p=self.dropout if self.training else 0.0
+            )
         return self.out(y.transpose(1, 2).flatten(-2))
 
 
 class _PostNormBlock(nn.Module):
-    def __init__(self, d_model: int, num_heads: int, head_dim: int | None, ffn_dim: int, dropout: float = 0.0,
-                 kernel: str = "sdpa"):
+    def __init__(
+        self,
+        d_model: int,
+        num_heads: int,
+        head_dim: int | None,
+        ffn_dim: int,
+        dropout: float = 0.0,
+        kernel: str = "sdpa",
+    ):
         super().__init__()
         self.attn = MultiHeadAttention(d_model, num_heads, head_dim, dropout, kernel)
         self.norm1 = nn.LayerNorm(d_model)
@@ -102,8 +117,15 @@ class _PostNormBlock(nn.Module):
 class CrossAttentionBlock(_PostNormBlock):
     """Queries attend to a context (default: one head of width ``d_model``)."""
 
-    def __init__(self, d_model: int = 16, num_heads: int = 1, head_dim: int | None = None, ffn_dim: int = 64,
-                 dropout: float = 0.0, kernel: str = "sdpa"):
+    def __init__(
+        self,
+        d_model: int = 16,
+        num_heads: int = 1,
+        head_dim: int | None = None,
+        ffn_dim: int = 64,
+        dropout: float = 0.0,
+        kernel: str = "sdpa",
+    ):
         super().__init__(d_model, num_heads, head_dim, ffn_dim, dropout, kernel)
 
     def forward(self, x: torch.Tensor, context: torch.Tensor, key_mask: torch.Tensor | None = None) -> torch.Tensor:
@@ -113,8 +135,15 @@ class CrossAttentionBlock(_PostNormBlock):
 class SelfAttentionBlock(_PostNormBlock):
     """Tokens attend to each other (default: 10 heads of 8 on width 16)."""
 
-    def __init__(self, d_model: int = 16, num_heads: int = 10, head_dim: int | None = 8, ffn_dim: int = 64,
-                 dropout: float = 0.0, kernel: str = "sdpa"):
+    def __init__(
+        self,
+        d_model: int = 16,
+        num_heads: int = 10,
+        head_dim: int | None = 8,
+        ffn_dim: int = 64,
+        dropout: float = 0.0,
+        kernel: str = "sdpa",
+    ):
         super().__init__(d_model, num_heads, head_dim, ffn_dim, dropout, kernel)
 
     def forward(self, x: torch.Tensor, key_mask: torch.Tensor | None = None) -> torch.Tensor:

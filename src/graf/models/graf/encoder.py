@@ -13,7 +13,7 @@ per group (32 groups from 64 channels up, 8 groups of 2 at 16 channels).
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
@@ -45,15 +45,24 @@ class BasicBlock(nn.Module):
 class ResNetEncoder(nn.Module):
     """ResNet-18 (2 BasicBlocks per stage) with GroupNorm; ``out_dim == widths[-1]``."""
 
-    def __init__(self, widths: Sequence[int] = (64, 128, 256, 512), in_channels: int = 1, downsample: int = 1,
-                 blocks_per_stage: int = 2):
+    def __init__(
+        self,
+        widths: Sequence[int] = (64, 128, 256, 512),
+        in_channels: int = 1,
+        downsample: int = 1,
+        blocks_per_stage: int = 2,
+    ):
         super().__init__()
         widths = [int(w) for w in widths]
         if not widths or downsample < 1:
             raise ValueError(f"need at least one stage and downsample >= 1, got {widths}, {downsample}")
         self.in_channels, self.downsample, self.out_dim = int(in_channels), int(downsample), widths[-1]
-        self.stem = nn.Sequential(nn.Conv2d(self.in_channels, widths[0], 7, 2, 3, bias=False),
-                                  group_norm(widths[0]), nn.ReLU(inplace=True), nn.MaxPool2d(3, 2, 1))
+        self.stem = nn.Sequential(
+            nn.Conv2d(self.in_channels, widths[0], 7, 2, 3, bias=False),
+            group_norm(widths[0]),
+            nn.ReLU(inplace=True),
+            nn.MaxPool2d(3, 2, 1),
+        )
         stages, cin = [], widths[0]
         for i, w in enumerate(widths):
             blocks = [BasicBlock(cin, w, 1 if i == 0 else 2)]

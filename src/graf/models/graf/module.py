@@ -25,7 +25,8 @@ point of ``|.|`` and keeps a zero gradient; ``re`` alone reaches every amplitude
 expressed in the item's *gateway frame* (origin at the receiving array, its axes;
 :func:`graf.geometry.encoding.to_gateway_frame`) in units of ``length_unit`` metres (4 m by default), so one
 unit is the same length in every scene a model is trained or tested on; offsets ``P_l - P`` are rotated into
-the same axes.  ``use_scene_index`` appends the scene index as a fourth coordinate of every absolute position (3-D PE: 63
+the same axes.  ``use_scene_index`` appends the scene index as a fourth coordinate of every absolute position (3-D PE:
+63
 dims, 4-D: 84 dims); offsets stay 3-D.
 
 Training: ``rays_per_step`` random pixels per step, split evenly across the batch's targets (drawn
@@ -39,20 +40,19 @@ from __future__ import annotations
 
 import hashlib
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from graf.geometry.encoding import PositionalEncoding, sinusoidal_encoding, to_gateway_axes, to_gateway_frame
+from graf.geometry.grid import N_AZIMUTH, N_ELEVATION, N_RAYS, local_directions
+from graf.geometry.rays import box_segments, fp32, random_pixels, segment_samples
 from graf.models.base import SpectrumModule, adam_exponential_decay
 from graf.models.graf.attention import CrossAttentionBlock, SelfAttentionBlock
 from graf.models.graf.encoder import ResNetEncoder
 from graf.models.graf.ray_features import RayNeighbourTokens, pad_wrap, pixel_window, sample_wrap
-from graf.geometry.encoding import PositionalEncoding, sinusoidal_encoding, to_gateway_axes, to_gateway_frame
-from graf.geometry.grid import local_directions
-from graf.geometry.grid import N_AZIMUTH, N_ELEVATION, N_RAYS
-from graf.geometry.rays import box_segments, fp32, random_pixels, segment_samples
 from graf.models.knn.weights import barycentric_weights, idw_weights
 
 WEIGHTINGS = ("idw", "barycentric")
@@ -77,7 +77,6 @@ SCENE_TABLE_VOXELS = 2_000_000  # scenes with more voxels per spectrum compute t
 SCENE_TABLE_CHUNK = 65_536  # voxels per piece while building a scene's table
 
 
-
 def _mlp(d_in: int, hidden: int, d_out: int) -> nn.Sequential:
     return nn.Sequential(nn.Linear(d_in, hidden), nn.ReLU(), nn.Linear(hidden, d_out))
 
@@ -85,11 +84,13 @@ def _mlp(d_in: int, hidden: int, d_out: int) -> nn.Sequential:
 class GRaFModule(SpectrumModule):
     INFERENCE_SETTINGS = ("chunk_rays",)  # graf-eval may change these on a trained checkpoint
     LAYOUT = 3
-    LAYOUT_CHANGES = {2: "positions are now metres in the gateway frame (layout 1 normalised them by each scene's "
-                         "box), ray directions are encoded, and voxels are encoded by their distance in wavelengths "
-                         "(layout 1 had a learned voxel-index table sized by max_samples)",
-                      3: "each ray's voxels now run from its own entry to its own exit of the scene box (layout 2 "
-                         "cut every ray at the box's farthest corner), so the same weights see other voxels"}
+    LAYOUT_CHANGES = {
+        2: "positions are now metres in the gateway frame (layout 1 normalised them by each scene's "
+        "box), ray directions are encoded, and voxels are encoded by their distance in wavelengths "
+        "(layout 1 had a learned voxel-index table sized by max_samples)",
+        3: "each ray's voxels now run from its own entry to its own exit of the scene box (layout 2 "
+        "cut every ray at the box's farthest corner), so the same weights see other voxels",
+    }
     """Args (all in ``conf/model/graf.yaml``):
         encoder_widths / encoder_downsample: ResNet-18 stage widths; average pooling of the spectra first.
         d_model: token / voxel latent width (16).
@@ -108,23 +109,50 @@ class GRaFModule(SpectrumModule):
         use_scene_index: 4-D positions (x, y, z, scene index) for cross-scene training.
     """
 
-    def __init__(self, encoder_widths: Sequence[int] = (64, 128, 256, 512), encoder_downsample: int = 1,
-                 d_model: int = 16, scene_blocks: int = 2, ray_blocks: int = 2, ray_heads: int = 10,
-                 ray_head_dim: int = 8, ffn_dim: int = 64, mlp_dim: int = 64, pe_freqs: int = 10,
-                 max_samples: int = 128, rays_per_step: int = 5120, chunk_rays: int = 4096, lr: float = 5e-4,
-                 lr_decay: float = 0.1, decay_steps: int = 300_000, residual: bool = False,
-                 weighting: str = "idw", use_scene_index: bool = False, loss: str = "mse", length_unit: float = 4.0,
-                 voxel_wavelengths: float = 1.0, ray_window: int = 0, attention: str = "auto",
-                 neighbour_features: str = "pooled", ray_feature_dim: int = 8, pixel_window: int = 1):
+    def __init__(
+        self,
+        encoder_widths: Sequence[int] = (64, 128, 256, 512),
+        encoder_downsample: int = 1,
+        d_model: int = 16,
+        scene_blocks: int = 2,
+        ray_blocks: int = 2,
+        ray_heads: int = 10,
+        ray_head_dim: int = 8,
+        ffn_dim: int = 64,
+        mlp_dim: int = 64,
+        pe_freqs: int = 10,
+        max_samples: int = 128,
+        rays_per_step: int = 5120,
+        chunk_rays: int = 4096,
+        lr: float = 5e-4,
+        lr_decay: float = 0.1,
+        decay_steps: int = 300_000,
+        residual: bool = False,
+        weighting: str = "idw",
+        use_scene_index: bool = False,
+        loss: str = "mse",
+        length_unit: float = 4.0,
+        voxel_wavelengths: float = 1.0,
+        ray_window: int = 0,
+        attention: str = "auto",
+        neighbour_features: str = "pooled",
+        ray_feature_dim: int = 8,
+        pixel_window: int = 1,
+    ):
         super().__init__()
         if neighbour_features not in NEIGHBOUR_FEATURES:
-            raise ValueError(f"model.neighbour_features must be one of {NEIGHBOUR_FEATURES}, got {neighbour_features!r}")
+            raise ValueError(
+                f"model.neighbour_features must be one of {NEIGHBOUR_FEATURES}, got {neighbour_features!r}"
+            )
         if ray_feature_dim < 1 or pixel_window < 0:
-            raise ValueError(f"model.ray_feature_dim must be >= 1 and model.pixel_window >= 0, got {ray_feature_dim}, "
-                             f"{pixel_window}")
+            raise ValueError(
+                f"model.ray_feature_dim must be >= 1 and model.pixel_window >= 0, got {ray_feature_dim}, {pixel_window}"
+            )
         if neighbour_features in KNN_BASED and residual:
-            raise ValueError(f"model.neighbour_features={neighbour_features} already adds its own per-ray KNN base: "
-                             "model.residual must be false")
+            raise ValueError(
+                f"model.neighbour_features={neighbour_features} already adds its own per-ray KNN base: "
+                "model.residual must be false"
+            )
         if weighting not in WEIGHTINGS:
             raise ValueError(f"model.weighting must be one of {WEIGHTINGS}, got {weighting!r}")
         if loss not in LOSSES:
@@ -132,7 +160,9 @@ class GRaFModule(SpectrumModule):
         if min(d_model, scene_blocks, ray_heads, ray_head_dim, max_samples, rays_per_step, chunk_rays) < 1:
             raise ValueError("GRaF sizes must be positive")
         if d_model % 2:
-            raise ValueError(f"model.d_model must be even (the voxel distance encoding is sin/cos pairs), got {d_model}")
+            raise ValueError(
+                f"model.d_model must be even (the voxel distance encoding is sin/cos pairs), got {d_model}"
+            )
         if not length_unit > 0:
             raise ValueError(f"model.length_unit must be > 0 (metres), got {length_unit}")
         if not voxel_wavelengths > 0:
@@ -169,15 +199,18 @@ class GRaFModule(SpectrumModule):
         self.query_voxel = nn.Linear(pe_abs, d)
         self.query_direction = nn.Linear(self.pe.out_dim(3), d, bias=False)
         self.query_target = nn.Linear(pe_abs, d, bias=False)
-        self.scene_blocks = nn.ModuleList(CrossAttentionBlock(d, 1, d, ffn_dim, kernel=attention) for _ in range(scene_blocks))
+        self.scene_blocks = nn.ModuleList(
+            CrossAttentionBlock(d, 1, d, ffn_dim, kernel=attention) for _ in range(scene_blocks)
+        )
         self.mlp2 = _mlp(d, mlp_dim, d)
         # each voxel's place on the ray: a learned projection of a sinusoidal code of its distance from the
         # gateway in wavelengths (the same meaning in every scene and band, at any sample count)
         self.voxel_distance = nn.Linear(d, d)
-        self.ray_blocks = nn.ModuleList(SelfAttentionBlock(d, ray_heads, ray_head_dim, ffn_dim, kernel=attention)
-                                        for _ in range(ray_blocks))
+        self.ray_blocks = nn.ModuleList(
+            SelfAttentionBlock(d, ray_heads, ray_head_dim, ffn_dim, kernel=attention) for _ in range(ray_blocks)
+        )
         if neighbour_features == "ray_weights":  # the ray tracer's state -> a query over the L per-ray tokens
-            self.weight_query = nn.Linear(d, d)   # whose scores correct the convex weights (zero at init)
+            self.weight_query = nn.Linear(d, d)  # whose scores correct the convex weights (zero at init)
             nn.init.zeros_(self.weight_query.weight)
             nn.init.zeros_(self.weight_query.bias)
         else:
@@ -222,16 +255,27 @@ class GRaFModule(SpectrumModule):
         geo = (batch["gw_pos"][b], batch["gw_rot"][b], batch["bounds"][b])
         wl = float(batch["wavelength"][b])
         dev = self.ray_dirs.device
-        key = (tuple(torch.cat([g.detach().double().flatten().cpu() for g in geo]).tolist()), wl,
-               self.sample_spacing, self.max_samples, str(dev))
+        key = (
+            tuple(torch.cat([g.detach().double().flatten().cpu() for g in geo]).tolist()),
+            wl,
+            self.sample_spacing,
+            self.max_samples,
+            str(dev),
+        )
         table = self._ray_tables.get(key)
         if table is None:
             t_in, t_out = box_segments(*(g.detach().cpu() for g in geo), local_directions(dtype=torch.float64))
             samples, step = segment_samples(t_in, t_out, self.sample_spacing * wl, self.max_samples)
             needed = torch.ceil((t_out - t_in) / (self.sample_spacing * wl) - 1e-6).clamp_min(1).long()
-            table = {"t_in": t_in.float().to(dev), "step": step.float().to(dev), "samples": samples.to(dev),
-                     "order": torch.argsort(samples, stable=True).to(dev), "needed": needed,
-                     "offsets": (torch.cumsum(samples, 0) - samples).to(dev), "voxels": int(samples.sum())}
+            table = {
+                "t_in": t_in.float().to(dev),
+                "step": step.float().to(dev),
+                "samples": samples.to(dev),
+                "order": torch.argsort(samples, stable=True).to(dev),
+                "needed": needed,
+                "offsets": (torch.cumsum(samples, 0) - samples).to(dev),
+                "voxels": int(samples.sum()),
+            }
             self._ray_tables[key] = table
         return table
 
@@ -250,12 +294,18 @@ class GRaFModule(SpectrumModule):
         t = self.ray_table(geometry, 0)
         wl = float(geometry["wavelength"][0])
         capped = t["needed"] > t["samples"].cpu()
-        return {"samples_per_ray": int(t["samples"].max()), "mean_samples_per_ray": float(t["samples"].float().mean()),
-                "voxels_per_spectrum": t["voxels"], "sample_spacing_m": float(t["step"].max()),
-                "sample_spacing_wavelengths": float(t["step"].max()) / wl,
-                "nominal_spacing_wavelengths": self.sample_spacing, "capped": bool(capped.any()),
-                "capped_rays": int(capped.sum()), "uncapped_samples": int(t["needed"].max()),
-                "sampling": "ray-box: each ray from its entry to its exit of the scene box"}
+        return {
+            "samples_per_ray": int(t["samples"].max()),
+            "mean_samples_per_ray": float(t["samples"].float().mean()),
+            "voxels_per_spectrum": t["voxels"],
+            "sample_spacing_m": float(t["step"].max()),
+            "sample_spacing_wavelengths": float(t["step"].max()) / wl,
+            "nominal_spacing_wavelengths": self.sample_spacing,
+            "capped": bool(capped.any()),
+            "capped_rays": int(capped.sum()),
+            "uncapped_samples": int(t["needed"].max()),
+            "sampling": "ray-box: each ray from its entry to its exit of the scene box",
+        }
 
     # ------------------------------------------------------------------ evaluation caches
     def _weights_stamp(self, *modules: nn.Module) -> tuple:
@@ -329,11 +379,15 @@ class GRaFModule(SpectrumModule):
         offset = src_pos - tgt_pos[:, None, :]
         pe_off = self.pe(to_gateway_axes(offset, batch["gw_rot"].float()) / self.length_unit)
         dist_wl = torch.linalg.vector_norm(offset, dim=-1, keepdim=True) / batch["wavelength"].float()[:, None, None]
-        ctx = {"ray_maps": ray_maps, "src": spectra.masked_fill(~mask[..., None, None], 0.0),
-               "geo": self.ray_tokens.geometry(torch.cat([pe_off, torch.log1p(dist_wl)], dim=-1))}
+        ctx = {
+            "ray_maps": ray_maps,
+            "src": spectra.masked_fill(~mask[..., None, None], 0.0),
+            "geo": self.ray_tokens.geometry(torch.cat([pe_off, torch.log1p(dist_wl)], dim=-1)),
+        }
         if self.neighbour_features in KNN_BASED:
             ctx["idw_logits"] = torch.log(idw_weights(batch["tgt_pos"], batch["src_pos"], mask).float()).masked_fill(
-                ~mask, float("-inf"))
+                ~mask, float("-inf")
+            )
         return ctx
 
     def prepare(self, batch: dict) -> dict:
@@ -361,8 +415,15 @@ class GRaFModule(SpectrumModule):
         return ctx
 
     # ------------------------------------------------------------------ rays
-    def _voxel_inputs(self, pix: torch.Tensor, t_in: torch.Tensor, step: torch.Tensor, wl: torch.Tensor,
-                      scene_index: torch.Tensor, S: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def _voxel_inputs(
+        self,
+        pix: torch.Tensor,
+        t_in: torch.Tensor,
+        step: torch.Tensor,
+        wl: torch.Tensor,
+        scene_index: torch.Tensor,
+        S: int,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """``(query [n, S, d], distance code [n, S, d])`` of the voxels of ``n`` rays with ``S`` voxels each:
         ``Linear(PE(voxel)) + Linear(PE(direction))`` and ``Linear(sinusoidal(distance / wavelength))``."""
         with fp32(pix.device):  # geometry in fp32 also under autocast: PE phases reach 2^9 pi x
@@ -377,15 +438,21 @@ class GRaFModule(SpectrumModule):
     def _scene_voxels(self, table: dict, wl: float, scene_index: int, device) -> tuple[torch.Tensor, torch.Tensor]:
         """``_voxel_inputs`` of every voxel of a scene's spectrum, flat ``[V, d]`` (pixel-major, offsets in the
         table): computed once per scene and weights at evaluation (the gateway does not move)."""
+
         def compute():
             qs, cs = [], []
             for S in torch.unique(table["samples"]).tolist():
                 sel = (table["samples"] == S).nonzero().flatten()
                 for part in sel.split(max(1, SCENE_TABLE_CHUNK // S)):
                     n = part.numel()
-                    q, c = self._voxel_inputs(part, table["t_in"][part], table["step"][part],
-                                              torch.full((n,), wl, device=device),
-                                              torch.full((n,), scene_index, device=device, dtype=torch.long), S)
+                    q, c = self._voxel_inputs(
+                        part,
+                        table["t_in"][part],
+                        table["step"][part],
+                        torch.full((n,), wl, device=device),
+                        torch.full((n,), scene_index, device=device, dtype=torch.long),
+                        S,
+                    )
                     qs.append((part, q)), cs.append(c)
             qf = torch.empty(table["voxels"], self.d_model, device=device, dtype=qs[0][1].dtype)
             cf = torch.empty(table["voxels"], self.d_model, device=device, dtype=cs[0].dtype)
@@ -393,8 +460,14 @@ class GRaFModule(SpectrumModule):
                 idx = (table["offsets"][part][:, None] + torch.arange(q.shape[1], device=device)).flatten()
                 qf[idx], cf[idx] = q.flatten(0, 1), c.flatten(0, 1)
             return qf, cf
+
         stamp = self._weights_stamp(self.query_voxel, self.query_direction, self.voxel_distance)
-        key = (id(table), scene_index, wl, torch.get_autocast_dtype(device.type) if torch.is_autocast_enabled(device.type) else None)
+        key = (
+            id(table),
+            scene_index,
+            wl,
+            torch.get_autocast_dtype(device.type) if torch.is_autocast_enabled(device.type) else None,
+        )
         return self._cached("voxels", stamp, key, compute)
 
     def _ray_transformer(self, v: torch.Tensor) -> torch.Tensor:
@@ -407,8 +480,8 @@ class GRaFModule(SpectrumModule):
                 v = blk(v)
             else:
                 k = S // W
-                head = blk(v[:, :k * W].reshape(n * k, W, d)).view(n, k * W, d)
-                v = head if k * W == S else torch.cat([head, blk(v[:, k * W:])], dim=1)
+                head = blk(v[:, : k * W].reshape(n * k, W, d)).view(n, k * W, d)
+                v = head if k * W == S else torch.cat([head, blk(v[:, k * W :])], dim=1)
         return v
 
     def _render_group(self, ctx: dict, bi: torch.Tensor, pix: torch.Tensor, S: int) -> torch.Tensor:
@@ -416,7 +489,11 @@ class GRaFModule(SpectrumModule):
         n = pix.shape[0]
         tables = ctx["tables"]
         one_item = bool((bi == bi[0]).all())
-        if one_item and not (self.training or torch.is_grad_enabled()) and tables[int(bi[0])]["voxels"] <= SCENE_TABLE_VOXELS:
+        if (
+            one_item
+            and not (self.training or torch.is_grad_enabled())
+            and tables[int(bi[0])]["voxels"] <= SCENE_TABLE_VOXELS
+        ):
             b = int(bi[0])
             t = tables[b]
             qf, cf = self._scene_voxels(t, float(ctx["wavelength"][b]), int(ctx["scene_index"][b]), pix.device)
@@ -442,7 +519,7 @@ class GRaFModule(SpectrumModule):
         elif one_item:  # every voxel of the group attends to the same target's neighbours: one long query axis
             b = int(bi[0])
             x = q.reshape(1, n * S, self.d_model)
-            ctx_tokens, km = ctx["tokens"][b:b + 1], None if key_mask is None else key_mask[b:b + 1]
+            ctx_tokens, km = ctx["tokens"][b : b + 1], None if key_mask is None else key_mask[b : b + 1]
         else:  # each ray's voxels attend to its own target's neighbours
             x, ctx_tokens, km = q, ctx["tokens"][bi], None if key_mask is None else key_mask[bi]
         for blk in self.scene_blocks:
@@ -489,7 +566,7 @@ class GRaFModule(SpectrumModule):
         B = ctx["mask"].shape[0]
         order = torch.stack([t["order"] for t in ctx["tables"]])  # [B, P]
         per = max(1, self.chunk_rays // B)
-        out = torch.cat([self.render(ctx, order[:, s:s + per]) for s in range(0, N_RAYS, per)], dim=1)
+        out = torch.cat([self.render(ctx, order[:, s : s + per]) for s in range(0, N_RAYS, per)], dim=1)
         spectra = torch.empty_like(out)
         spectra.scatter_(1, order, out)
         return spectra.view(B, N_ELEVATION, N_AZIMUTH).float()

@@ -41,7 +41,9 @@ def upsample_wrap(maps: torch.Tensor) -> torch.Tensor:
 def _centre_coords(h: int, w: int, device) -> tuple:
     """Bilinear corners and weights of every elevation row (in a map of ``h`` rows, clamped) and azimuth
     column (in a map of ``w`` columns padded by one wrapped column each side) at the pixel centres."""
-    y = ((torch.arange(N_ELEVATION, device=device, dtype=torch.float32) + 0.5) * (h / N_ELEVATION) - 0.5).clamp(0, h - 1)
+    y = ((torch.arange(N_ELEVATION, device=device, dtype=torch.float32) + 0.5) * (h / N_ELEVATION) - 0.5).clamp(
+        0, h - 1
+    )
     x = (torch.arange(N_AZIMUTH, device=device, dtype=torch.float32) + 0.5) * (w / N_AZIMUTH) - 0.5 + 1.0
     y0 = y.floor().long().clamp(0, h - 1)
     x0 = x.floor().long()
@@ -107,8 +109,9 @@ class RayNeighbourTokens(nn.Module):
         """``[B, L, geometry_dim]`` -> the geometry's part of the first layer ``[B, L, hidden]``."""
         return self.geo_in(geo)
 
-    def forward(self, feats: torch.Tensor, window: torch.Tensor, geo_part: torch.Tensor) -> tuple[torch.Tensor,
-                                                                                                   torch.Tensor]:
+    def forward(
+        self, feats: torch.Tensor, window: torch.Tensor, geo_part: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """``feats [n, L, k]``, ``window [n, L, K]``, ``geo_part [n, L, hidden]`` -> ``(tokens [n, L, d],
         weight logits [n, L])``."""
         h = F.relu(self.ray_in(torch.cat([feats, window], dim=-1)) + geo_part)

@@ -11,8 +11,9 @@ import torch
 from scipy.optimize import nnls
 
 
-def idw_weights(target: torch.Tensor, nbr: torch.Tensor, mask: torch.Tensor, power: float = 1.0,
-                eps: float = 1e-9) -> torch.Tensor:
+def idw_weights(
+    target: torch.Tensor, nbr: torch.Tensor, mask: torch.Tensor, power: float = 1.0, eps: float = 1e-9
+) -> torch.Tensor:
     """Inverse-distance weights w_i ~ 1 / d_i^power.
 
     Neighbours at distance < ``eps`` (co-located with the target) take all the weight, shared equally.
@@ -25,8 +26,9 @@ def idw_weights(target: torch.Tensor, nbr: torch.Tensor, mask: torch.Tensor, pow
     return (w / w.sum(dim=1, keepdim=True)).to(nbr.dtype)
 
 
-def barycentric_weights(target: torch.Tensor, nbr: torch.Tensor, mask: torch.Tensor,
-                        ridge: float = 1e-3, sum_weight: float = 1e3) -> torch.Tensor:
+def barycentric_weights(
+    target: torch.Tensor, nbr: torch.Tensor, mask: torch.Tensor, ridge: float = 1e-3, sum_weight: float = 1e3
+) -> torch.Tensor:
     """Barycentric weights of the interpolation theorem (seed A.1, ASSUMPTION 2).
 
     Solves, per target, the non-negative least-squares problem

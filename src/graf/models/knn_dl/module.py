@@ -44,38 +44,53 @@ ray), L2 loss; Adam with an exponential learning-rate decay by ``lr_decay`` over
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
 
-from graf.models.base import SpectrumModule, adam_exponential_decay
 from graf.geometry.encoding import normalize_offsets
 from graf.geometry.grid import N_AZIMUTH, N_ELEVATION
+from graf.models.base import SpectrumModule, adam_exponential_decay
 from graf.models.knn.weights import idw_weights
 from graf.models.knn_dl.weightnet import WeightNet, upsample_maps
 
 
 class KNNDLModule(SpectrumModule):
     """Args (all in ``conf/model/knn_dl.yaml``):
-        map_size: coarse weight-map grid (h, w); h divides 90, w divides 360.
-        hidden / decoder_hidden: widths of the per-neighbour MLP and of the per-cell decoder.
-        pe_freqs / dir_freqs: positional-encoding bands of the offset and of the ray direction.
-        max_rank: scale of the rank and neighbour-count features (the largest L expected).
-        signed_scale: bound of the signed, zero-sum weight correction (0: convex weights only).
-        idw_power: the IDW bias is log(1 / d^idw_power).
-        lr / lr_decay / decay_steps: Adam; the lr is multiplied by lr_decay over decay_steps steps.
+    map_size: coarse weight-map grid (h, w); h divides 90, w divides 360.
+    hidden / decoder_hidden: widths of the per-neighbour MLP and of the per-cell decoder.
+    pe_freqs / dir_freqs: positional-encoding bands of the offset and of the ray direction.
+    max_rank: scale of the rank and neighbour-count features (the largest L expected).
+    signed_scale: bound of the signed, zero-sum weight correction (0: convex weights only).
+    idw_power: the IDW bias is log(1 / d^idw_power).
+    lr / lr_decay / decay_steps: Adam; the lr is multiplied by lr_decay over decay_steps steps.
     """
 
-    def __init__(self, map_size: Sequence[int] = (18, 72), hidden: int = 64, decoder_hidden: int = 32,
-                 pe_freqs: int = 6, dir_freqs: int = 3, max_rank: int = 10, signed_scale: float = 0.5,
-                 idw_power: float = 1.0, lr: float = 1e-3, lr_decay: float = 0.1, decay_steps: int = 10_000):
+    def __init__(
+        self,
+        map_size: Sequence[int] = (18, 72),
+        hidden: int = 64,
+        decoder_hidden: int = 32,
+        pe_freqs: int = 6,
+        dir_freqs: int = 3,
+        max_rank: int = 10,
+        signed_scale: float = 0.5,
+        idw_power: float = 1.0,
+        lr: float = 1e-3,
+        lr_decay: float = 0.1,
+        decay_steps: int = 10_000,
+    ):
         super().__init__()
         map_size = [int(v) for v in map_size]  # plain ints in the checkpoint, not a ListConfig
         if len(map_size) != 2 or min(map_size) < 1 or N_ELEVATION % map_size[0] or N_AZIMUTH % map_size[1]:
             raise ValueError(f"model.map_size must be [h, w] with h dividing 90 and w dividing 360, got {map_size}")
-        for key, value in (("hidden", hidden), ("decoder_hidden", decoder_hidden), ("max_rank", max_rank),
-                           ("decay_steps", decay_steps)):
+        for key, value in (
+            ("hidden", hidden),
+            ("decoder_hidden", decoder_hidden),
+            ("max_rank", max_rank),
+            ("decay_steps", decay_steps),
+        ):
             if int(value) < 1:
                 raise ValueError(f"model.{key} must be >= 1, got {value}")
         for key, value in (("pe_freqs", pe_freqs), ("dir_freqs", dir_freqs)):
@@ -100,8 +115,15 @@ class KNNDLModule(SpectrumModule):
         mask = batch["src_mask"].bool()
         tgt, src = batch["tgt_pos"].float(), batch["src_pos"].float()
         offset = src - tgt[:, None, :]
-        maps = upsample_maps(self.net(normalize_offsets(offset, batch["bounds"].float()), offset,
-                                      batch["wavelength"].float(), mask, batch["gw_rot"].float()))
+        maps = upsample_maps(
+            self.net(
+                normalize_offsets(offset, batch["bounds"].float()),
+                offset,
+                batch["wavelength"].float(),
+                mask,
+                batch["gw_rot"].float(),
+            )
+        )
         bias = torch.log(idw_weights(tgt, src, mask, power=self.idw_power))  # -inf where the IDW weight is 0
         w = torch.softmax(bias[..., None, None] + maps[:, :, 0], dim=1)
         if self.signed_scale > 0:

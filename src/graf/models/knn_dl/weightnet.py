@@ -22,7 +22,7 @@ azimuth (azimuth 360 deg neighbours 1 deg) and edge-clamped in elevation.
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
@@ -54,7 +54,7 @@ def upsample_maps(maps: torch.Tensor) -> torch.Tensor:
     x = maps.reshape(-1, 1, h, w)
     x = torch.cat([x[..., -1:], x, x[..., :1]], dim=-1)
     x = F.interpolate(x, size=(N_ELEVATION, N_AZIMUTH + 2 * sx), mode="bilinear", align_corners=False)
-    return x[..., sx:sx + N_AZIMUTH].reshape(*lead, N_ELEVATION, N_AZIMUTH)
+    return x[..., sx : sx + N_AZIMUTH].reshape(*lead, N_ELEVATION, N_AZIMUTH)
 
 
 class WeightNet(nn.Module):
@@ -69,8 +69,15 @@ class WeightNet(nn.Module):
         max_rank: scale of the rank and neighbour-count features (the largest L expected).
     """
 
-    def __init__(self, map_size: Sequence[int] = (18, 72), hidden: int = 64, decoder_hidden: int = 32,
-                 pe_freqs: int = 6, dir_freqs: int = 3, max_rank: int = 10):
+    def __init__(
+        self,
+        map_size: Sequence[int] = (18, 72),
+        hidden: int = 64,
+        decoder_hidden: int = 32,
+        pe_freqs: int = 6,
+        dir_freqs: int = 3,
+        max_rank: int = 10,
+    ):
         super().__init__()
         self.map_size = (int(map_size[0]), int(map_size[1]))
         self.max_rank = float(max_rank)
@@ -84,8 +91,9 @@ class WeightNet(nn.Module):
         self.cell = nn.Linear(self.pe_dir.out_dim(3), decoder_hidden, bias=False)
         self.cosine = nn.Parameter(torch.zeros(decoder_hidden))
         nn.init.normal_(self.cosine, std=1.0 / math.sqrt(decoder_hidden))
-        self.decoder = nn.Sequential(nn.ReLU(), nn.Linear(decoder_hidden, decoder_hidden), nn.ReLU(),
-                                     nn.Linear(decoder_hidden, CHANNELS))
+        self.decoder = nn.Sequential(
+            nn.ReLU(), nn.Linear(decoder_hidden, decoder_hidden), nn.ReLU(), nn.Linear(decoder_hidden, CHANNELS)
+        )
         nn.init.zeros_(self.decoder[-1].weight)
         nn.init.zeros_(self.decoder[-1].bias)
         self.register_buffer("cell_dirs", cell_directions(self.map_size), persistent=False)
@@ -98,8 +106,14 @@ class WeightNet(nn.Module):
         scalars = torch.stack([torch.log1p(dist_wl), rank / self.max_rank, count / self.max_rank], dim=-1)
         return torch.cat([self.pe_offset(offset_norm), scalars], dim=-1)
 
-    def forward(self, offset_norm: torch.Tensor, offset_world: torch.Tensor, wavelength: torch.Tensor,
-                mask: torch.Tensor, gw_rot: torch.Tensor) -> torch.Tensor:
+    def forward(
+        self,
+        offset_norm: torch.Tensor,
+        offset_world: torch.Tensor,
+        wavelength: torch.Tensor,
+        mask: torch.Tensor,
+        gw_rot: torch.Tensor,
+    ) -> torch.Tensor:
         """Args: normalised offsets ``[B, L, 3]``, world offsets (m) ``[B, L, 3]``, wavelength (m) ``[B]``,
         mask ``[B, L]`` bool, gateway rotation (local -> world) ``[B, 3, 3]``."""
         B, L = mask.shape

@@ -33,17 +33,16 @@ per-scene: for another scene it is fine-tuned from weights trained elsewhere
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
 
-from graf.models.base import SpectrumModule
 from graf.geometry.grid import local_directions
 from graf.geometry.rays import fp32, num_samples, random_pixels, render_spectra, world_directions
+from graf.models.base import SpectrumModule
 from graf.models.nerf2.network import NeRF2Network
 from graf.models.nerf2.renderer import render_rays, sample_distances
-
 
 
 class NeRF2Module(SpectrumModule):
@@ -60,13 +59,33 @@ class NeRF2Module(SpectrumModule):
         lr / weight_decay: Adam.  t_max / eta_min: cosine learning-rate schedule (in optimiser steps).
     """
 
-    def __init__(self, depth: int = 8, width: int = 256, skips: Sequence[int] = (4,), pe_freqs: int = 10,
-                 near: float = 0.0, max_samples: int = 64, sample_spacing: float = 0.25, path_loss: float = 0.025,
-                 rays_per_step: int = 8192, chunk_rays: int = 4096, lr: float = 8e-4, weight_decay: float = 5e-5,
-                 t_max: int = 10_000, eta_min: float = 1e-6):
+    def __init__(
+        self,
+        depth: int = 8,
+        width: int = 256,
+        skips: Sequence[int] = (4,),
+        pe_freqs: int = 10,
+        near: float = 0.0,
+        max_samples: int = 64,
+        sample_spacing: float = 0.25,
+        path_loss: float = 0.025,
+        rays_per_step: int = 8192,
+        chunk_rays: int = 4096,
+        lr: float = 8e-4,
+        weight_decay: float = 5e-5,
+        t_max: int = 10_000,
+        eta_min: float = 1e-6,
+    ):
         super().__init__()
-        positive = {"max_samples": max_samples, "sample_spacing": sample_spacing, "path_loss": path_loss,
-                    "rays_per_step": rays_per_step, "chunk_rays": chunk_rays, "lr": lr, "t_max": t_max}
+        positive = {
+            "max_samples": max_samples,
+            "sample_spacing": sample_spacing,
+            "path_loss": path_loss,
+            "rays_per_step": rays_per_step,
+            "chunk_rays": chunk_rays,
+            "lr": lr,
+            "t_max": t_max,
+        }
         for key, value in positive.items():
             if not value > 0:
                 raise ValueError(f"model.{key} must be positive, got {value!r}")
@@ -97,11 +116,17 @@ class NeRF2Module(SpectrumModule):
         """Per-batch ray geometry: sample counts, distances ``t [B, S]``, gateway and transmitter."""
         far = batch["ray_length"].float()
         if bool((far <= self.near).any()):
-            raise ValueError(f"model.near ({self.near} m) must be below the scene's ray_length "
-                             f"({float(far.min()):.4g} m)")
+            raise ValueError(
+                f"model.near ({self.near} m) must be below the scene's ray_length ({float(far.min()):.4g} m)"
+            )
         samples = self.samples_per_ray(batch)
-        return {"samples": samples, "t": sample_distances(self.near, far, samples),
-                "gw_pos": batch["gw_pos"].float(), "gw_rot": batch["gw_rot"].float(), "tx": batch["tgt_pos"].float()}
+        return {
+            "samples": samples,
+            "t": sample_distances(self.near, far, samples),
+            "gw_pos": batch["gw_pos"].float(),
+            "gw_rot": batch["gw_rot"].float(),
+            "tx": batch["tgt_pos"].float(),
+        }
 
     def render(self, ctx: dict, pix: torch.Tensor) -> torch.Tensor:
         """Predicted amplitudes ``[B, R]`` of the pixels ``pix [B, R]`` (long, ``r * 360 + c``)."""

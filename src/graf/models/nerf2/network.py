@@ -17,7 +17,7 @@ weights keep NeRF2's layout, only the arithmetic is regrouped).
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
@@ -55,7 +55,8 @@ class NeRF2Network(nn.Module):
         pe_dim = self.pe.out_dim(3)
         self.attenuation = nn.ModuleList(
             [nn.Linear(pe_dim, width)]
-            + [nn.Linear(width + pe_dim if i - 1 in self.skips else width, width) for i in range(1, depth)])
+            + [nn.Linear(width + pe_dim if i - 1 in self.skips else width, width) for i in range(1, depth)]
+        )
         self.attenuation_out = nn.Linear(width, 2)
         self.feature = nn.Linear(width, width)
         self.signal = nn.ModuleList([nn.Linear(width + 2 * pe_dim, width), nn.Linear(width, width // 2)])
@@ -71,7 +72,7 @@ class NeRF2Network(nn.Module):
                 x = torch.cat([pe_pts, x], dim=-1)
         attenuation = self.attenuation_out(x)  # [..., S, 2]
         first = self.signal[0]
-        w_feat, w_ray = first.weight[:, :self.width], first.weight[:, self.width:]
+        w_feat, w_ray = first.weight[:, : self.width], first.weight[:, self.width :]
         per_ray = torch.cat([self.pe(view), self.pe(tx).expand(*view.shape[:-1], -1)], dim=-1)  # [..., 126]
         per_ray = F.linear(per_ray, w_ray, first.bias)  # [..., width]
         x = F.relu(F.linear(self.feature(x), w_feat) + per_ray.unsqueeze(-2), inplace=True)
