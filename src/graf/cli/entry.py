@@ -8,6 +8,7 @@ import sys
 
 from omegaconf import DictConfig
 
+from graf.console import filter_known_warnings
 from graf.errors import is_user_error, user_message
 from graf.pipeline.config import CONF_PATH
 
@@ -18,10 +19,12 @@ def cli_errors(main):
     """For a command's ``main`` (beneath ``@hydra.main``): a user error (:func:`is_user_error`) ends the command
     with its message alone on stderr and exit code 2, instead of a page of traceback; ``HYDRA_FULL_ERROR=1``
     shows the full traceback.  In a multirun the error is raised as usual, so the sweep records the failed
-    job and goes on with the others."""
+    job and goes on with the others.  The understood third-party warnings are filtered first
+    (:func:`graf.console.filter_known_warnings`)."""
 
     @functools.wraps(main)
     def wrapped(cfg: DictConfig, *args, **kwargs):
+        filter_known_warnings()
         try:
             return main(cfg, *args, **kwargs)
         except Exception as exc:

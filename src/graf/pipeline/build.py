@@ -14,6 +14,7 @@ import lightning as L
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from graf.console import is_terminal
 from graf.data.fingerprint import find_scene, next_index, register_scene
 from graf.errors import ConfigError
 from graf.models.base import read_checkpoint
@@ -244,7 +245,8 @@ def trainer_args(cfg: DictConfig) -> DictConfig:
 def evaluation_trainer(cfg: DictConfig, loggers=(), callbacks=()) -> L.Trainer:
     """The trainer of the final evaluations (validation and test of the final weights).  Both evaluate
     ``trainer.limit_test_batches`` of their split; validation during training (off by default) is the fit
-    trainer's business."""
+    trainer's business.  Their bars are drawn on a terminal only: elsewhere the table that ends the command says
+    what they found."""
     t = trainer_args(cfg)
     limit = t.get("limit_test_batches", 1.0)
     return L.Trainer(
@@ -253,7 +255,7 @@ def evaluation_trainer(cfg: DictConfig, loggers=(), callbacks=()) -> L.Trainer:
         precision=t.get("precision", "32-true"),
         logger=list(loggers) or False,
         callbacks=list(callbacks),
-        enable_progress_bar=bool(t.get("enable_progress_bar", True)),
+        enable_progress_bar=bool(t.get("enable_progress_bar", True)) and is_terminal(),
         enable_model_summary=False,
         enable_checkpointing=False,
         limit_val_batches=limit,

@@ -40,6 +40,7 @@ from graf.io import atomic_write_bytes, atomic_write_json
 from graf.pipeline.config import family, task_wrapper
 from graf.pipeline.table import read_run_result, to_csv
 from graf.pipeline.table import to_markdown as table_markdown
+from graf.plotting import SPECTRUM_CMAP, SPECTRUM_LABEL, shared_limits
 
 log = logging.getLogger("graf")
 
@@ -250,6 +251,8 @@ def matrix_figures(rows: list[dict], out: Path) -> dict:
     ev = sorted({r["eval_scene"] for r in rows})
     mats, written = {}, []
     for key, name, spec in METRICS:
+        # one colour scale for every method of the figure (they are compared), one colour bar
+        lo, hi = shared_limits([r.get(key) if r.get(key) is not None else np.nan for r in rows])
         fig, axes = plt.subplots(
             1,
             len(methods),
@@ -267,14 +270,16 @@ def matrix_figures(rows: list[dict], out: Path) -> dict:
                 i = 0 if baseline else tr.index(r["trained_on"])
                 M[i, ev.index(r["eval_scene"])] = r.get(key) if r.get(key) is not None else np.nan
             mats.setdefault(m, {})[name] = {"rows": ylabels, "cols": ev, "values": M.tolist()}
-            im = ax.imshow(M, cmap="viridis_r" if name in ("MSE", "LPIPS") else "viridis", aspect="auto")
+            im = ax.imshow(
+                M, cmap="viridis_r" if name in ("MSE", "LPIPS") else "viridis", aspect="auto", vmin=lo, vmax=hi
+            )
             for (i, j), v in np.ndenumerate(M):
                 if not np.isnan(v):
                     ax.text(j, i, spec.format(v), ha="center", va="center", fontsize=7, color="w")
             ax.set_xticks(range(len(ev)), ev, rotation=45, ha="right", fontsize=7)
             ax.set_yticks(range(len(ylabels)), ylabels, fontsize=7)
             ax.set_title(m, fontsize=9)
-            fig.colorbar(im, ax=ax, shrink=0.8)
+        fig.colorbar(im, ax=axes[0].tolist(), shrink=0.8, label=f"test {name} (one scale for every method)")
         fig.suptitle(f"test {name}: trained on (rows) x tested on (columns)")
         path = out / f"matrix_{name.lower()}.png"
         fig.savefig(path, dpi=110)
@@ -326,7 +331,8 @@ def band_figure(rows: list[dict], path: Path) -> dict:
     tb = sorted({r["train_band"] for r in rows if r["train_band"] not in ("-", "")}, key=_band_hz)
     eb = sorted({r["eval_band"] for r in rows}, key=_band_hz)
     fig, axes = plt.subplots(1, len(methods), figsize=(4.2 * len(methods), 3.6), squeeze=False, constrained_layout=True)
-    mats = {}
+    mats, im = {}, None
+    lo, hi = shared_limits([r.get("test/psnr") if r.get("test/psnr") is not None else np.nan for r in rows])
     for ax, m in zip(axes[0], methods):
         rs = [r for r in rows if r["method"] == m]
         ylabels = tb if any(r["train_band"] not in ("-", "") for r in rs) else ["(no training)"]
@@ -335,7 +341,7 @@ def band_figure(rows: list[dict], path: Path) -> dict:
             i = ylabels.index(r["train_band"]) if r["train_band"] in ylabels else 0
             M[i, eb.index(r["eval_band"])] = r.get("test/psnr") if r.get("test/psnr") is not None else np.nan
         mats[m] = {"rows": ylabels, "cols": eb, "psnr": M.tolist()}
-        ax.imshow(M, cmap="viridis", aspect="auto")
+        im = ax.imshow(M, cmap="viridis", aspect="auto", vmin=lo, vmax=hi)
         for (i, j), v in np.ndenumerate(M):
             if not np.isnan(v):
                 ax.text(j, i, f"{v:.2f}", ha="center", va="center", fontsize=8, color="w")
@@ -344,6 +350,8 @@ def band_figure(rows: list[dict], path: Path) -> dict:
         ax.set_xlabel("test band")
         ax.set_ylabel("train band")
         ax.set_title(f"{m}: test PSNR (dB)", fontsize=9)
+    if im is not None:
+        fig.colorbar(im, ax=axes[0].tolist(), shrink=0.8, label="test PSNR (dB), one scale for every method")
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return mats
@@ -381,15 +389,20 @@ def spectra_grids(rows: list[dict], runs: Path, out: Path, axes: list[str]) -> l
             len(data) + 1, n, figsize=(3.6 * n, 1.25 * (len(data) + 1) + 0.6), squeeze=False, constrained_layout=True
         )
         for j in range(n):
-            axs[0, j].imshow(first["target"][j], origin="lower", aspect="auto", cmap="magma", vmin=0, vmax=255)
+            axs[0, j].imshow(
+                first["target"][j] / 255.0, origin="lower", aspect="auto", cmap=SPECTRUM_CMAP, vmin=0, vmax=1
+            )
             axs[0, j].set_title(f"id {int(first['ids'][j])}: true", fontsize=8)
             for i, (m, d) in enumerate(data.items(), start=1):
                 p, t = d["pred"][j].astype(float) / 255, d["target"][j].astype(float) / 255
                 psnr = 10 * np.log10(1.0 / max(float(np.mean((p - t) ** 2)), 1e-10))
-                axs[i, j].imshow(d["pred"][j], origin="lower", aspect="auto", cmap="magma", vmin=0, vmax=255)
+                axs[i, j].imshow(
+                    d["pred"][j] / 255.0, origin="lower", aspect="auto", cmap=SPECTRUM_CMAP, vmin=0, vmax=1
+                )
                 axs[i, j].set_title(f"{m}: {psnr:.1f} dB", fontsize=7)
         for a in axs.flat:
             a.set_xticks([]), a.set_yticks([])
+        fig.colorbar(axs[0, 0].images[0], ax=axs.ravel().tolist(), shrink=0.9, label=SPECTRUM_LABEL)
         fig.suptitle(f"{scene} ({band}): true (top) and predicted spectra, the same test positions")
         path = out / f"spectra_{scene}{'_' + band.replace(' ', '') if 'eval_band' in axes else ''}.png"
         fig.savefig(path, dpi=100)

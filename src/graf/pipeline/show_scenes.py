@@ -21,7 +21,7 @@ from omegaconf import DictConfig  # noqa: E402
 
 from graf.io import atomic_write_json  # noqa: E402
 from graf.pipeline.config import output_dir, task_wrapper
-from graf.plotting import save_figure  # noqa: E402
+from graf.plotting import SPECTRUM_CMAP, SPECTRUM_LABEL, save_figure  # noqa: E402
 
 
 @task_wrapper
@@ -65,11 +65,13 @@ def show(cfg: DictConfig) -> dict:
                 aspect="auto",
                 vmin=0,
                 vmax=1,
-                cmap="magma",
+                cmap=SPECTRUM_CMAP,
             )
             p = d.positions[i]
             ax.set_title(f"{name} id {int(d.ids[i])} ({p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}) m", fontsize=7)
             ax.set_xticks([]), ax.set_yticks([])
+    if rows:
+        fig.colorbar(axes[0, 0].images[0], ax=axes.ravel().tolist(), shrink=0.9, label=SPECTRUM_LABEL)
     fig.suptitle(f"Simulated spectra at {band.name} (azimuth 1-360 deg across, elevation 1-90 deg up)")
     out = output_dir(cfg)
     save_figure(fig, out / "scenes.png", dpi=70)

@@ -209,7 +209,6 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -
     if cfg.get("regime"):
         results["regime"] = str(cfg.regime)
     atomic_write_json(out / "results.json", results)
-    log.info("results: %s", out / "results.json")
     print(format_metrics_table(rows))
     if "evaluations" in results:  # say which test scenes the model was trained on
         print(
@@ -220,6 +219,9 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -
         )
     if cfg.get("regime"):
         print(f"regime: {cfg.regime}")
+    print(f"results: {out / 'results.json'}")
+    if results.get("figure"):
+        print(f"figure: {out / results['figure']}")
     return metrics
 
 
