@@ -33,7 +33,39 @@ def fmt(v, f: str) -> str:
     return "-" if v is None else f.format(v)
 
 
-def matrix(report: dict) -> str:
+def reliance_matrix(rows: list[dict]) -> str:
+    """Test reliance (dB) per trained-on x tested-on cell, from the rows (methods that measured it)."""
+    rel = [r for r in rows if r.get("test/reliance_db") is not None and r.get("steps") != "0"]
+    if not rel:
+        return ""
+    cols = sorted({r["eval_scene"] for r in rel})
+    body = []
+    for (method, trained), rs in sorted(_group(rel, ("method", "trained_on")).items()):
+        cell = {r["eval_scene"]: r["test/reliance_db"] for r in rs}
+        body.append([method, trained, *[fmt(cell.get(c), "{:.2f}") for c in cols]])
+    return "**reliance dB** (rows: trained on; columns: tested on)\n\n" + md(["method", "trained on", *cols], body)
+
+
+def _group(rows: list[dict], keys: tuple[str, ...]) -> dict:
+    out = defaultdict(list)
+    for r in rows:
+        out[tuple(r[k] for k in keys)].append(r)
+    return out
+
+
+def per_pair(rows: list[dict]) -> str:
+    """Test PSNR per (trained on -> tested on) pair and L, for every method, from the rows."""
+    rs = [r for r in rows if r.get("L") not in (None, "", "-") and not r.get("within_scene")]
+    ls = sorted({int(r["L"]) for r in rs})
+    body = []
+    for (scene, method, trained), g in sorted(_group(rs, ("eval_scene", "method", "trained_on")).items()):
+        by_l = {int(r["L"]): r.get("test/psnr") for r in g}
+        body.append([scene, method, trained, *[fmt(by_l.get(x), "{:.2f}") for x in ls]])
+    header = ["tested on", "method", "trained on", *[f"L = {x}" for x in ls]]
+    return "**PSNR per pair** (zero-shot, each test layout)\n\n" + md(header, body)
+
+
+def matrix(report: dict, rows: list[dict] | None = None) -> str:
     out = []
     for _, name, f in METRICS:
         cols = None
@@ -44,6 +76,8 @@ def matrix(report: dict) -> str:
             for r, vals in zip(m["rows"], m["values"]):
                 body.append([method, r, *[fmt(v, f) for v in vals]])
         out.append(f"**{name}** (rows: trained on; columns: tested on)\n\n" + md(["method", "trained on", *cols], body))
+    if rows and reliance_matrix(rows):
+        out.append(reliance_matrix(rows))
     return "\n\n".join(out)
 
 
@@ -112,9 +146,10 @@ def main() -> None:
     report = json.loads((folder / "report.json").read_text())
     rows = json.loads((folder / "rows.json").read_text())["rows"]
     if "matrix" in report:
-        print(matrix(report))
+        print(matrix(report, rows))
     if "vs_L" in report:
         print(vs_l(report, rows))
+        print(per_pair(rows))
     if "vs_fraction" in report:
         print(unseen(rows))
     if "band_matrix" in report:
