@@ -132,7 +132,7 @@ def search(name: str) -> str:
         ms = [e["metrics"] if m == res["method"] else e["baselines"][m]["metrics"] for e in evals]
         mean = {k: sum(x[k] for x in ms) / len(ms) for k in ms[0] if all(x.get(k) is not None for x in ms)}
         rows.append([f"**mean of {len(ms)}**", m, *_figures(mean)])
-    chosen = " ".join(f"`{k}={v}`" for k, v in best["params"].items())
+    chosen = " ".join(f"`{k}={_param(str(v))}`" for k, v in best["params"].items())
     out.append(
         f"Chosen on validation: trial {best['trial']}, {chosen}; tested once (`best/`):\n\n"
         + _md(["test scene", "method", "PSNR", "SSIM", "LPIPS", "reliance dB", "val PSNR"], rows)
