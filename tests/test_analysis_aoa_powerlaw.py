@@ -1,0 +1,72 @@
+"""The building blocks of issue 24's case studies: the power-law fit of the interpolation theorem and the
+angle-of-arrival estimator, on cases whose answer is known."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from graf.analysis.aoa import angular_error, arrival_direction, direction_to_angles, peak_direction
+from graf.analysis.powerlaw import fit_power_law
+from graf.sim.array import Bartlett, array_positions
+
+
+def test_the_power_law_fit_recovers_a_known_exponent_and_its_interval_covers_it():
+    rng = np.random.default_rng(0)
+    x = np.geomspace(0.01, 1.0, 200)
+    y = 3.0 * x**2 * np.exp(0.2 * rng.standard_normal(x.size))  # multiplicative noise: Gaussian on log axes
+    fit = fit_power_law(x, y)
+    assert abs(fit.slope - 2.0) < 0.05 and fit.ci[0] < 2.0 < fit.ci[1]
+    assert abs(10**fit.intercept - 3.0) < 0.3 and fit.n == 200 and fit.r2 > 0.95
+    assert fit.ci[1] - fit.ci[0] < 0.1
+    exact = fit_power_law(x, 0.5 * x**1.5)
+    assert exact.slope == pytest.approx(1.5, abs=1e-9) and exact(0.3) == pytest.approx(0.5 * 0.3**1.5)
+
+
+def test_the_power_law_fit_leaves_out_zeros_and_refuses_too_few_points():
+    fit = fit_power_law([0.1, 0.2, 0.0, 0.4, 0.8], [0.01, 0.04, 0.0, 0.16, 0.64])  # a zero error has no log
+    assert fit.n == 4 and fit.slope == pytest.approx(2.0)
+    with pytest.raises(ValueError, match="at least 3"):
+        fit_power_law([0.1, 0.2, 0.0], [1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match="all x are equal"):
+        fit_power_law([0.1, 0.1, 0.1], [1.0, 2.0, 3.0])
+
+
+def _free_space_spectrum(el: float, az: float, wavelength: float = 0.125) -> np.ndarray:
+    """The Bartlett spectrum of one plane wave (free space, line of sight only) from (el, az)."""
+    bart = Bartlett(array_positions(wavelength), wavelength)
+    e, a = math.radians(el), math.radians(az)
+    u = torch.tensor([[[math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)]]], dtype=torch.float64)
+    h = bart.channels(torch.ones(1, 1, dtype=torch.complex64), u, pattern="cos")
+    return bart.spectra(h)[0].numpy()
+
+
+@pytest.mark.parametrize(("el", "az"), [(35.0, 120.0), (62.3, 359.6), (20.0, 0.7), (48.5, 210.25)])
+def test_the_aoa_of_a_line_of_sight_path_in_free_space_is_found_within_one_degree(el, az):
+    est_el, est_az = peak_direction(_free_space_spectrum(el, az))
+    assert angular_error(est_el, est_az, el, az) < 1.0  # off-grid angles and the azimuth seam included
+
+
+def test_the_geometric_angle_of_arrival_follows_the_grid_convention():
+    rot = np.eye(3)  # gateway frame = world frame
+    el, az = arrival_direction([[1.0, 1.0, math.sqrt(2.0)], [-1.0, 0.0, 0.0], [0.0, -2.0, 2.0]], [0.0, 0.0, 0.0], rot)
+    assert el == pytest.approx([45.0, 0.0, 45.0]) and az == pytest.approx([45.0, 180.0, 270.0])
+    # a transmitter behind the array plane is seen at its mirror image (a planar array cannot tell them apart)
+    e2, a2 = direction_to_angles([0.0, 1.0, -1.0])
+    assert float(e2) == pytest.approx(45.0) and float(a2) == pytest.approx(90.0)
+    with pytest.raises(ValueError, match="gateway's own position"):
+        arrival_direction([[0.0, 0.0, 0.0]], [0.0, 0.0, 0.0], rot)
+
+
+def test_the_peak_estimator_refuses_a_wrong_shape_or_nan():
+    with pytest.raises(ValueError, match=r"\[90, 360\]"):
+        peak_direction(np.zeros((90, 180)))
+    bad = np.zeros((90, 360))
+    bad[3, 4] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        peak_direction(bad)
+    flat = np.zeros((90, 360))  # all zero: the first pixel, not refined
+    assert peak_direction(flat) == (1.0, 1.0)
