@@ -70,3 +70,43 @@ def test_the_peak_estimator_refuses_a_wrong_shape_or_nan():
         peak_direction(bad)
     flat = np.zeros((90, 360))  # all zero: the first pixel, not refined
     assert peak_direction(flat) == (1.0, 1.0)
+
+
+def _smooth_field(pos: np.ndarray, pixels: int = 40, seed: int = 1) -> np.ndarray:
+    """A field whose every pixel is a quadratic of the position: second derivatives 2 c_p along every axis."""
+    rng = np.random.default_rng(seed)
+    a, b, c = rng.random(pixels), rng.standard_normal((3, pixels)), 0.5 + rng.random(pixels)
+    return a + pos @ b + (pos**2).sum(axis=1, keepdims=True) * c
+
+
+def test_barycentric_interpolation_error_grows_as_dp_squared_and_idw_as_dp():
+    from graf.analysis.interpolation import interpolation_errors
+
+    rng = np.random.default_rng(0)
+    dp, err = {"barycentric": [], "idw": []}, {"barycentric": [], "idw": []}
+    for spacing in (0.02, 0.05, 0.1, 0.2, 0.4):  # jittered grids ever coarser: dP spans more than a decade
+        g = np.stack(np.meshgrid(*[np.arange(6)] * 3, indexing="ij"), -1).reshape(-1, 3).astype(float)
+        pos = (g + 0.3 * rng.standard_normal(g.shape)) * spacing
+        inner = np.flatnonzero(np.all((g > 0) & (g < 5), axis=1))  # targets inside the cloud
+        for w in dp:
+            r = interpolation_errors(pos, _smooth_field(pos), L=12, weighting=w, targets=inner)
+            dp[w].append(r["dp_max"])
+            err[w].append(r["rmse"])
+    bary = fit_power_law(np.concatenate(dp["barycentric"]), np.concatenate(err["barycentric"]))
+    # IDW does not reproduce a linear field: its error is first order while dP is small (the three finest grids;
+    # on the coarser ones the quadratic term catches up)
+    idw = fit_power_law(np.concatenate(dp["idw"][:3]), np.concatenate(err["idw"][:3]))
+    assert 1.8 < bary.slope < 2.2 and bary.ci[0] < 2.0 < bary.ci[1], bary
+    assert 0.8 < idw.slope < 1.2, idw
+
+
+def test_the_curvature_of_a_quadratic_field_is_its_second_derivative():
+    from graf.analysis.interpolation import curvature
+
+    rng = np.random.default_rng(1)  # _smooth_field's draws for seed 1: a, b, then c
+    rng.random(40), rng.standard_normal((3, 40))
+    c = 0.5 + rng.random(40)
+    k = curvature(lambda p: _smooth_field(p), [0.3, -0.2, 0.1], h=1e-3)
+    assert k == pytest.approx(float(np.sqrt(np.mean((2 * c) ** 2))), rel=1e-4)
+    with pytest.raises(ValueError, match="step"):
+        curvature(lambda p: _smooth_field(p), [0, 0, 0], h=0.0)
