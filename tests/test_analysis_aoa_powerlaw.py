@@ -110,3 +110,40 @@ def test_the_curvature_of_a_quadratic_field_is_its_second_derivative():
     assert k == pytest.approx(float(np.sqrt(np.mean((2 * c) ** 2))), rel=1e-4)
     with pytest.raises(ValueError, match="step"):
         curvature(lambda p: _smooth_field(p), [0, 0, 0], h=0.0)
+
+
+def _wave_field(pos: np.ndarray, k: float = 50.0, pixels: int = 30, seed: int = 2) -> np.ndarray:
+    """A field that is smooth below 1/k metres and decorrelates above (plane waves of wavenumber k, as a
+    2.4 GHz spectrum decorrelates within centimetres)."""
+    rng = np.random.default_rng(seed)
+    dirs = rng.standard_normal((pixels, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    return 0.5 + 0.5 * np.cos(k * pos @ dirs.T + rng.uniform(0, 2 * np.pi, pixels))
+
+
+def test_fine_scale_clusters_find_the_quadratic_regime_and_where_it_ends():
+    from graf.analysis.interpolation import cluster_errors, local_slopes, quadratic_up_to
+
+    anchors = np.random.default_rng(3).uniform(-1, 1, (12, 3))
+    scales = np.geomspace(1e-3, 1.0, 7)  # (below a millimetre the barycentric ridge term's tiny bias shows)
+    smooth = cluster_errors(_smooth_field, anchors, scales)
+    assert np.allclose(smooth["dp_max"], smooth["scale"])
+    _, slopes = local_slopes(smooth["scale"], smooth["rmse_barycentric"])
+    assert np.all(np.abs(slopes - 2.0) < 0.15)  # the quadratic field: slope 2 at every scale
+    assert quadratic_up_to(smooth["scale"], smooth["rmse_barycentric"]) == pytest.approx(1.0)
+    _, idw = local_slopes(smooth["scale"], smooth["rmse_idw"])
+    assert 0.6 < np.median(idw[:4]) < 1.4  # IDW does not reproduce the linear part: first order
+    wave = cluster_errors(_wave_field, anchors, scales)
+    up_to = quadratic_up_to(wave["scale"], wave["rmse_barycentric"])
+    assert up_to is not None and 1e-3 <= up_to <= 0.1  # quadratic below ~1/k = 0.02 m, not beyond
+    _, ws = local_slopes(wave["scale"], wave["rmse_barycentric"])
+    assert ws[0] > 1.8 and ws[-1] < 0.5  # decorrelated at the largest scales
+
+
+def test_the_curvature_map_is_the_curvature_at_every_point():
+    from graf.analysis.interpolation import curvature, curvature_map
+
+    pts = np.random.default_rng(4).uniform(-1, 1, (5, 3))
+    k = curvature_map(_wave_field, pts, h=1e-3)
+    assert k.shape == (5,)
+    assert k == pytest.approx([curvature(_wave_field, p, 1e-3) for p in pts], rel=1e-9)
