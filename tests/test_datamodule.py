@@ -125,3 +125,13 @@ def test_batches_carry_each_items_scene_geometry(make_scene):
     assert (dm.row_scene[idx] == dm.row_scene[rows][:, None])[mask].all()
     with pytest.raises(AttributeError, match="2 scenes"):
         _ = dm.data
+
+
+def test_the_measured_spacing_is_the_median_nearest_neighbour_distance_and_grows_as_the_survey_thins():
+    full, thin = _dm(), _dm(measured_fraction=0.2, measured_seed=0)
+    full.setup("fit"), thin.setup("fit")
+    pos = full.positions[full.measured_rows].double()
+    d = torch.cdist(pos, pos) + torch.diag(torch.full((len(pos),), float("inf"), dtype=torch.float64))
+    assert full.measured_spacing() == pytest.approx(float(d.min(dim=1).values.median()))
+    assert thin.measured_spacing() > full.measured_spacing()
+    assert full.split_summary()["measured_spacing_m"] == full.measured_spacing()

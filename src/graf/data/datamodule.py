@@ -536,6 +536,20 @@ class SpectrumDataModule(L.LightningDataModule):
     def test_dataloader(self) -> DataLoader:
         return self._eval_loader(self.eval_split)
 
+    def measured_spacing(self) -> float | None:
+        """Median nearest-neighbour distance (m) among the measured training positions of each scene (the
+        density of the survey the methods see; all training positions when no fraction is set), the median
+        over scenes; None when a scene has fewer than two."""
+        out = []
+        for k in range(len(self.sets)):
+            rows = self.measured_rows[self.row_scene[self.measured_rows] == k]
+            if len(rows) < 2:
+                return None
+            d = torch.cdist(self.positions[rows].double(), self.positions[rows].double())
+            d.fill_diagonal_(float("inf"))
+            out.append(float(d.min(dim=1).values.median()))
+        return float(np.median(out)) if out else None
+
     def split_summary(self) -> dict:
         """What results.json records about the splits."""
         return {
@@ -549,6 +563,8 @@ class SpectrumDataModule(L.LightningDataModule):
             "measured_fraction": self.measured_fraction,
             "measured_seed": self.measured_seed,
             "n_measured": int(len(self.measured_rows)),
+            # the survey's density: median distance from each measured position to its nearest other (m)
+            "measured_spacing_m": self.measured_spacing(),
             "test_pool": self.test_pool,
             "measured_ids": (
                 [int(i) for i in self.ids[self.measured_rows]]
