@@ -72,6 +72,11 @@ def _ft_label(ft: dict | None) -> str:
     return f"f{round(100 * float(ft.get('fraction') or 1.0)):02d}"
 
 
+def _measured(result: dict) -> float | None:
+    f = (result.get("splits") or {}).get("measured_fraction")
+    return None if f is None else float(f)
+
+
 def _ft_fraction(label: str) -> float | None:
     if label == "zero-shot":
         return 0.0
@@ -110,9 +115,12 @@ def rows_of(result: dict, job: str) -> list[dict]:
         "job": job,
         "trained_on": "+".join(trained),
         "train_band": " + ".join(_band(h) for h in train_hz),
-        "finetune": _ft_label(ft),
+        # a fine-tuning run's fraction, or a from-scratch run's on a measured fraction (the density study)
+        "finetune": _ft_label(ft) if ft or _measured(result) is None else f"f{round(100 * _measured(result)):02d}",
         "test_pool": (ft or {}).get("test_pool", ""),
         "L": (cfg.get("neighbors") or {}).get("L"),
+        # the survey's density: median nearest-neighbour distance of the measured training positions (m)
+        "spacing_m": (result.get("splits") or {}).get("measured_spacing_m"),
     }
     evals = result.get("evaluations") or [
         {
@@ -309,6 +317,28 @@ def curve(rows: list[dict], axis: str, same_family: bool) -> dict:
     return {m: dict(sorted(v.items(), key=lambda kv: _sort_key(kv[0]))) for m, v in out.items()}
 
 
+PSNR_TARGETS = (16.0, 18.0, 20.0, 22.0, 25.0)  # dB: "how densely must I measure for X dB?"
+
+
+def spacing_for(points: dict, targets=PSNR_TARGETS) -> dict:
+    """``{target dB: the largest survey spacing (m) at which the test PSNR reaches it}`` from a method's
+    ``{spacing: {"PSNR": ...}}``, interpolated linearly in log spacing between measured points (None when no
+    measured spacing reaches the target)."""
+    xs = sorted((float(x), p["PSNR"]) for x, p in points.items() if p.get("PSNR") is not None)
+    out = {}
+    for t in targets:
+        best = None
+        for (x0, y0), (x1, y1) in zip(xs, xs[1:]):
+            if y0 >= t > y1:  # crosses downward between x0 and x1
+                f = (y0 - t) / (y0 - y1)
+                best = float(10 ** (math.log10(x0) + f * (math.log10(x1) - math.log10(x0))))
+        ok = [x for x, y in xs if y >= t]
+        if ok and (best is None or max(ok) > best):
+            best = max(ok)
+        out[f"{t:g}"] = best
+    return out
+
+
 def curve_figure(data: dict, xlabel: str, path: Path, title: str) -> None:
     plt = _plt()
     fig, axes = plt.subplots(1, len(METRICS), figsize=(16, 3.4), constrained_layout=True)
@@ -441,6 +471,22 @@ def make_report(runs: Path, out: Path) -> dict:
                 f"{key[0]}: metric vs fine-tuned fraction (models trained at {key[1]})",
             )
             summary["vs_fraction"][f"{key[0]} | trained at {key[1]}"] = data
+            summary["figures"].append(name)
+    if (
+        "finetune" in axes
+        and any(r.get("spacing_m") for r in rows)
+        and not any(r["within_scene"] is False for r in rows)
+    ):
+        # a density study (methods trained on thinned surveys of the scene they are tested on): metric vs spacing
+        summary["vs_spacing"], summary["spacing_for_psnr"] = {}, {}
+        for scene in sorted({r["eval_scene"] for r in rows}):
+            sub = [{**r, "spacing": round(float(r["spacing_m"]), 5)} for r in rows if r["eval_scene"] == scene]
+            data = curve([r for r in sub if r["spacing_m"]], "spacing", False)
+            name = f"vs_spacing_{scene}.png"
+            curve_figure(data, "survey spacing: median nearest-neighbour distance (m)", out / name,
+                         f"{scene}: metric vs the survey's spacing")  # fmt: skip
+            summary["vs_spacing"][scene] = data
+            summary["spacing_for_psnr"][scene] = {m: spacing_for(pts, PSNR_TARGETS) for m, pts in data.items()}
             summary["figures"].append(name)
     if "eval_band" in axes and "train_band" in axes and "eval_scene" not in axes and "finetune" not in axes:
         # a band x band matrix of one layout (bands); not when the band changes with the test scene
