@@ -129,6 +129,20 @@ def test_a_preempted_point_resumes_from_its_own_checkpoint_and_its_seconds_count
     assert not (folder / "preempted.json").exists() and len(json.loads((folder / PREEMPTED_RUNS).read_text())) == 1
 
 
+def test_a_preempted_point_moved_to_another_folder_resumes_from_its_own_checkpoint(tmp_path):
+    """A curve run in one folder and published, stopped, into sweeps/: preempted.json names the old path."""
+    from graf.pipeline.curves import _preempted_runs, _resume_preempted
+
+    prev, folder = tmp_path / "published" / "step_1000", tmp_path / "published" / "step_3000"
+    (folder / "checkpoints").mkdir(parents=True)
+    ckpt = folder / "checkpoints" / "last.ckpt"
+    ckpt.write_bytes(b"state at step 2100")
+    old = tmp_path / "elsewhere" / "step_3000" / "checkpoints" / "last.ckpt"  # where it was saved; gone now
+    (folder / "preempted.json").write_text(json.dumps({"global_step": 2100, "checkpoint": str(old), "fit_s": 1700.0}))
+    assert _resume_preempted(folder, prev) == ckpt
+    assert [r["checkpoint"] for r in _preempted_runs(folder)] == [str(ckpt)]
+
+
 def test_a_killed_point_resumes_from_its_periodic_checkpoint_and_its_saved_seconds_count(tmp_path):
     """A run killed outright (SIGKILL: no preempted.json) left a periodic last.ckpt: the point resumes from it, not
     from the previous point, and the seconds its saved steps cost (AttemptClock's record) count in fit_s."""

@@ -126,13 +126,16 @@ def _resume_preempted(folder: Path, prev: Path | None) -> Path | None:
     f = folder / "preempted.json"
     if f.exists():
         record = json.loads(f.read_text())
-        ckpt = record.get("checkpoint")
-        if ckpt and Path(ckpt).exists():
+        ckpt = _recorded_checkpoint(folder, record.get("checkpoint"))
+        if ckpt is not None:
+            record["checkpoint"] = str(ckpt)
             atomic_write_json(folder / PREEMPTED_RUNS, [*_preempted_runs(folder), record])
             f.unlink()
             log.info("%s: resuming its pre-empted run from step %s (%s)", folder, record.get("global_step"), ckpt)
             return Path(ckpt)
-        log.warning("%s: the pre-empted run left no checkpoint (%s); starting the point again", folder, ckpt)
+        log.warning(
+            "%s: the pre-empted run left no checkpoint (%s); starting the point again", folder, record.get("checkpoint")
+        )
         f.unlink()
     killed = _killed_attempt(folder)
     if killed is not None:
@@ -149,6 +152,19 @@ def _resume_preempted(folder: Path, prev: Path | None) -> Path | None:
         log.info("%s: resuming a killed run from its checkpoint at step %d", folder, killed["global_step"])
         return Path(killed["checkpoint"])
     return None if prev is None else prev / "checkpoints" / "last.ckpt"
+
+
+def _recorded_checkpoint(folder: Path, recorded: str | None) -> Path | None:
+    """The checkpoint a ``preempted.json`` names, or the file of that name in the point's own ``checkpoints/`` when
+    the point's folder has moved since (a curve run in one folder and published, resumable, into ``sweeps/``).
+    None if neither exists."""
+    if not recorded:
+        return None
+    path = Path(recorded)
+    if path.exists():
+        return path
+    moved = folder / "checkpoints" / path.name
+    return moved if moved.exists() else None
 
 
 def _killed_attempt(folder: Path) -> dict | None:
