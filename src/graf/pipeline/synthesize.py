@@ -51,6 +51,25 @@ def _model_choice() -> str:
     return str(HydraConfig.get().runtime.choices.get("model")) if HydraConfig.initialized() else "..."
 
 
+def load_model(model_cfg: DictConfig, ckpt_path: str | None, what: str | None = None):
+    """The model of ``model_cfg`` (its ``_target_``), with the weights of ``ckpt_path`` (checked against the class
+    first); without a checkpoint only a method with nothing to train (KNN) is accepted."""
+    model_cls = hydra.utils.get_class(model_cfg._target_)
+    if ckpt_path:
+        from graf.models.base import check_checkpoint, read_checkpoint
+
+        check_checkpoint(read_checkpoint(ckpt_path), model_cls, ckpt_path)
+        return model_cls.load_from_checkpoint(ckpt_path, map_location="cpu")
+    model = hydra.utils.instantiate(model_cfg)
+    if getattr(model, "has_trainable_parameters", False):
+        raise ConfigError(
+            f"{model_cls.__name__} ({what or f'model={_model_choice()}'}) is a trained model: give its checkpoint "
+            "with ckpt_path=<run>/checkpoints/last.ckpt (only a method with nothing to train, model=knn, "
+            "runs without one)"
+        )
+    return model
+
+
 @task_wrapper
 def run(cfg: DictConfig) -> dict:
     from graf.data.nerf2_format import write_nerf2_folder
@@ -61,20 +80,8 @@ def run(cfg: DictConfig) -> dict:
     single_scene_config(cfg, "graf-synthesize")
     bands, _, neighbors, dm = build_datamodule(cfg)
     band = bands[0]
-    model_cls = hydra.utils.get_class(cfg.model._target_)
-    if cfg.get("ckpt_path"):
-        from graf.models.base import check_checkpoint, read_checkpoint
-
-        check_checkpoint(read_checkpoint(cfg.ckpt_path), model_cls, cfg.ckpt_path)
-        model = model_cls.load_from_checkpoint(cfg.ckpt_path, map_location="cpu")
-    else:
-        model = hydra.utils.instantiate(cfg.model)
-        if getattr(model, "has_trainable_parameters", False):
-            raise ConfigError(
-                f"{model_cls.__name__} (model={_model_choice()}) is a trained model: give its checkpoint with "
-                "ckpt_path=<run>/checkpoints/last.ckpt (only a method with nothing to train, model=knn, "
-                "runs without one)"
-            )
+    model = load_model(cfg.model, cfg.get("ckpt_path"))
+    model_cls = type(model)
     t0 = time.perf_counter()
     spectra = synthesize(model, dm, positions)
     t_pred = time.perf_counter() - t0

@@ -1,0 +1,20 @@
+"""graf-localize: a localization model trained from random initialisation and pre-trained on each method's
+synthesized spectra, against the number of measured spectra.  The work is :func:`graf.pipeline.localize.run`."""
+
+from __future__ import annotations
+
+import hydra
+from omegaconf import DictConfig
+
+from graf.cli.entry import CONF_PATH, cli_errors
+from graf.pipeline.localize import run
+
+
+@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="localize")
+@cli_errors
+def main(cfg: DictConfig) -> None:
+    run(cfg)
+
+
+if __name__ == "__main__":
+    main()
