@@ -73,6 +73,35 @@ def test_killed_run_resumes_without_losing_or_duplicating_spectra(reference, tmp
     assert not parts.exists()
 
 
+@pytest.mark.slow  # two ray-tracing processes and three short ones: about a minute on the 2-core CI machine
+def test_two_shard_processes_make_the_single_process_file(reference, tmp_path):
+    """Shards 0 and 1 of 2 as two concurrent processes sharing data_root: the last to finish assembles a file
+    equal, byte for byte, to one process's; a merge with a shard missing names the missing chunks."""
+    procs = [
+        _run(tmp_path, tmp_path / f"shard{i}", extra=[f"sim.shard.index={i}", "sim.shard.count=2"]) for i in (0, 1)
+    ]
+    for p in procs:
+        out, _ = p.communicate(timeout=600)
+        assert p.returncode == 0, out[-3000:]
+    results = [json.loads((tmp_path / f"shard{i}" / "results.json").read_text()) for i in (0, 1)]
+    assert [r["made"] for r in results] == [48, 48] and [r["shard_positions"] for r in results] == [[0, 48], [48, 96]]
+    assert sum(r["assembled"] for r in results) == 1  # exactly one shard wrote the file
+    assert _h5(tmp_path).read_bytes() == _h5(reference).read_bytes()
+    assert not _h5(tmp_path).with_name("2.4ghz-n96.h5.parts").exists()
+
+    other = tmp_path / "missing"
+    p = _run(other, other / "shard1", extra=["sim.shard.index=1", "sim.shard.count=2"])
+    out, _ = p.communicate(timeout=600)
+    assert p.returncode == 0 and "6 chunks of other shards still missing" in out, out[-3000:]
+    assert not _h5(other).exists()
+    p = _run(other, other / "merge", extra=["sim.merge=true"])
+    out, _ = p.communicate(timeout=600)
+    assert p.returncode != 0 and "6 of 12 chunks are missing (first: chunk_00000, positions 0-7)" in out, out[-3000:]
+    p = _run(other, other / "shard9", extra=["sim.shard.index=2", "sim.shard.count=2"])
+    out, _ = p.communicate(timeout=600)
+    assert p.returncode != 0 and "sim.shard: index 2 of count 2" in out, out[-3000:]
+
+
 def test_dataset_contents_and_nerf2_export_round_trip(reference):
     d = read_dataset(_h5(reference))
     assert tuple(d.spectra.shape) == (96, 90, 360) and d.n_train + d.n_test == 96

@@ -1,8 +1,11 @@
 """graf-simulate: ray-trace a scene's transmitter positions at a band into a dataset file.
 
     graf-simulate scene=conference_v1 band=2.4ghz [sim.num_tx=64] [sim.export=nerf2] data_root=DIR
+    graf-simulate -m scene=conference_v1 sim.shard.count=4 'sim.shard.index=range(4)'    # in shards (any launcher)
+    graf-simulate scene=conference_v1 sim.merge=true                                     # assemble explicitly
 
-Resumable: kill it and run the same command again.  Writes results.json (spectra per second, file).
+Resumable (each shard on its own): kill it and run the same command again.  Writes results.json (spectra per
+second, file, shard).
 """
 
 from __future__ import annotations
@@ -49,8 +52,10 @@ def simulate(cfg: DictConfig) -> dict:
         overwrite=bool(sim.overwrite),
         device=device,
         progress=bool(sim.progress),
+        shard=(int(sim.shard.index), int(sim.shard.count)),
+        merge_only=bool(sim.merge),
     )
-    if sim.export == "nerf2":
+    if sim.export == "nerf2" and (summary.get("assembled") or summary.get("skipped")):
         folder = export_nerf2(summary["path"], summary["path"].replace(".h5", "_nerf2"))
         summary["nerf2_folder"] = str(folder)
     results = {
@@ -64,8 +69,14 @@ def simulate(cfg: DictConfig) -> dict:
     }
     atomic_write_json(output_dir(cfg) / "results.json", results)
     rate = summary.get("spectra_per_second")
-    print(
-        f"{scene.name} {band.name}: {summary['n']} spectra in {summary['path']}"
-        + (f"; made {summary['made']} at {rate:.1f} spectra/s" if rate else " (already there)")
-    )
+    made = f"; made {summary['made']} at {rate:.1f} spectra/s" if rate else ""
+    if summary.get("skipped") or summary.get("assembled"):
+        print(f"{scene.name} {band.name}: {summary['n']} spectra in {summary['path']}" + (made or " (already there)"))
+    else:  # a shard whose file waits for the others
+        lo, hi = summary["shard_positions"] or (0, 0)
+        print(
+            f"{scene.name} {band.name}: shard {summary['shard'][0]} of {summary['shard'][1]} (positions {lo}-{hi - 1})"
+            f" done{made}; {summary['missing_chunks']} chunks of other shards still missing: the last shard to "
+            "finish assembles the file (or sim.merge=true)"
+        )
     return results

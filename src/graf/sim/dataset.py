@@ -18,6 +18,13 @@ Generation writes chunks of ``chunk_size`` spectra as separate files (atomically
 ``<file>.parts/``; a killed run, started again with the same command, skips finished chunks, so no
 spectrum is lost or made twice.  When every chunk is there, the HDF5 file is assembled in a temporary
 file and renamed into place.  A changed configuration is refused (the parts carry its fingerprint).
+
+**Shards.**  ``shard=(i, n)`` traces only the i-th of n contiguous ranges of chunks (so of transmitter
+positions), one process or machine per shard sharing ``data_root``; each shard is resumable on its own.  The
+shard that finds every chunk there when it ends assembles the file (under an exclusive lock, so two shards
+finishing together do not both write it); ``merge_only=True`` assembles it explicitly (after a shard was killed
+while assembling, say) and names the missing chunks if there are any.  The chunks, and so the file, are the
+same as a single process's: the merged file equals it byte for byte.
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ import torch
 
 from graf.bands import Band
 from graf.data.spectrum_set import DataFormatError, SpectrumSet, warn_flat_spectra
+from graf.errors import ConfigError
 from graf.geometry.grid import SPECTRUM_SHAPE
 from graf.io import atomic_write_json, atomic_write_npz
 
@@ -58,10 +66,14 @@ def generate(
     overwrite: bool = False,
     device: str = "cpu",
     progress: bool = True,
+    shard: tuple[int, int] = (0, 1),
+    merge_only: bool = False,
 ) -> dict:
-    """Trace every transmitter position of ``scene`` at ``band`` and write the dataset file.
+    """Trace every transmitter position of ``scene`` at ``band`` (or shard ``i`` of ``n``: see the module doc) and
+    write the dataset file.
 
-    Returns a summary: path, n, seconds, spectra per second (of the spectra made in this call)."""
+    Returns a summary: path, n, seconds, spectra per second (of the spectra made in this call), whether the file
+    was assembled, and the chunks still missing (other shards')."""
     from tqdm.auto import tqdm
 
     from graf.sim.array import to_uint8
@@ -80,6 +92,14 @@ def generate(
         "format_version": FORMAT_VERSION,
     }
     fp = fingerprint(config)
+    index, count = (int(v) for v in shard)
+    if count < 1 or not 0 <= index < count:
+        raise ConfigError(f"sim.shard: index {index} of count {count}; need count >= 1 and 0 <= index < count")
+    if overwrite and (count > 1 or merge_only):
+        raise ConfigError(
+            "sim.overwrite with shards or a merge would delete other shards' chunks: remove the file and its "
+            f"{parts.name} folder once, then run the shards"
+        )
     if path.is_file() and not overwrite:
         log.info("%s exists; nothing to do (overwrite=true makes it again)", path)
         return {"path": str(path), "n": n, "made": 0, "seconds": 0.0, "spectra_per_second": None, "skipped": True}
@@ -100,12 +120,13 @@ def generate(
         atomic_write_json(manifest, {"fingerprint": fp, "config": config})
 
     chunks = [(i, s, min(s + chunk_size, n)) for i, s in enumerate(range(0, n, chunk_size))]
-    todo = [c for c in chunks if not (parts / f"chunk_{c[0]:05d}.npz").is_file()]
-    done_before = sum(e - s for i, s, e in chunks if (i, s, e) not in todo)
+    mine = [] if merge_only else chunks[index * len(chunks) // count : (index + 1) * len(chunks) // count]
+    todo = [c for c in mine if not (parts / f"chunk_{c[0]:05d}.npz").is_file()]
+    done_before = sum(e - s for i, s, e in mine if (i, s, e) not in todo)
     tracer = None
     made, t_trace = 0, 0.0
     bar = tqdm(
-        total=n,
+        total=sum(e - s for _, s, e in mine),
         initial=done_before,
         unit="spectra",
         desc=f"{scene.name} {band.name}",
@@ -134,8 +155,18 @@ def generate(
         m = json.loads(manifest.read_text())
         m["materials"] = materials
         atomic_write_json(manifest, m)
-    _assemble(path, parts, chunks, scene, band, positions, antennas, config, materials)
-    shutil.rmtree(parts, ignore_errors=True)
+    missing = [i for i, _, _ in chunks if not (parts / f"chunk_{i:05d}.npz").is_file()]
+    if merge_only and missing:
+        raise DataFormatError(
+            parts,
+            f"{len(missing)} of {len(chunks)} chunks are missing (first: chunk_{missing[0]:05d}, positions "
+            f"{missing[0] * chunk_size}-{min((missing[0] + 1) * chunk_size, n) - 1}): run their shards first",
+        )
+    assembled = False
+    if not missing and _lock(parts, force=merge_only):
+        _assemble(path, parts, chunks, scene, band, positions, antennas, config, materials)
+        shutil.rmtree(parts, ignore_errors=True)
+        assembled = True
     seconds = time.perf_counter() - started
     return {
         "path": str(path),
@@ -146,7 +177,27 @@ def generate(
         "trace_seconds": round(t_trace, 3),
         "skipped": False,
         "materials": materials,
+        "shard": [index, count],
+        "shard_positions": [mine[0][1], mine[-1][2]] if mine else None,
+        "assembled": assembled,
+        "missing_chunks": len(missing),
     }
+
+
+def _lock(parts: Path, force: bool = False) -> bool:
+    """Take the right to assemble (an exclusive lock file in the parts folder): False if another shard holds it.
+    ``force`` (an explicit merge) takes it whatever a killed shard left."""
+    import os
+
+    lock = parts / "assemble.lock"
+    if force:
+        lock.unlink(missing_ok=True)
+    try:
+        os.close(os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+    except FileExistsError:
+        log.info("%s: another shard is assembling the file", parts)
+        return False
+    return True
 
 
 def _assemble(path: Path, parts: Path, chunks, scene, band: Band, positions, antennas, config, materials) -> None:
