@@ -12,5 +12,5 @@ fi
 .venv/bin/python -m pip install --quiet --disable-pip-version-check --upgrade pip
 # torch==2.13.0 is pinned in pyproject.toml: a CPU build this machine keeps on disk (a looser range pulls
 # a multi-GB CUDA build).  On a GPU machine, install the CUDA build of torch 2.13.0 first.
-.venv/bin/python -m pip install --quiet --disable-pip-version-check -e ".[dev,sim]"
+.venv/bin/python -m pip install --quiet --disable-pip-version-check -e ".[dev,sim,cluster]"
 .venv/bin/python -m graf.metrics.lpips_weights

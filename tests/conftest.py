@@ -100,3 +100,17 @@ def small_room_root(tmp_path_factory):
     GlobalHydra.instance().clear()
     simulate(cfg)
     return root
+
+
+@pytest.fixture(scope="session")
+def postgres():
+    """A PostgreSQL server of the tests' own (tests/postgres.py); skipped, with the reason, where it cannot start."""
+    from tests.postgres import PostgresServer
+
+    server = PostgresServer()
+    reason = server.start()
+    if reason is not None:
+        server.stop()
+        pytest.skip(reason)
+    yield server
+    server.stop()

@@ -38,6 +38,11 @@ KNOWN_WARNINGS: tuple[tuple[str, str], ...] = (
         "ModelCheckpoint's best-k bookkeeping, which it says is not reloaded, is not used (save_top_k=1 on last)",
     ),
     (
+        r"(Argument ``heartbeat_interval`` is an|.*fail_stale_trials is) experimental",
+        "Optuna marks RDBStorage's heartbeats experimental (since 2.9, unchanged through 5.0); a study shared "
+        "on PostgreSQL uses them to find dead workers (graf.sweeps.optuna_sweeper.make_storage), as the issue asks",
+    ),
+    (
         r"The number of training batches \(\d+\) is smaller than the logging interval",
         "a short run (a smoke test, a two-step test) logs less often than log_every_n_steps asks; the final "
         "figures come from the evaluation after training, not from the training log",

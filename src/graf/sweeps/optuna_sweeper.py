@@ -15,6 +15,12 @@ and told one at a time (ask-and-tell), so that every outcome is stored as it hap
   takes that trial's outcome (``graf.duplicate_of``).  Several processes may share one storage (``n_jobs``
   starts them; or start the same command several times): a file lock next to an SQLite storage serialises
   the bookkeeping, and a trial asked beyond ``n_trials`` is dropped (``graf.surplus``).
+- **a study shared across machines** (a PostgreSQL or other RDB URL in ``hydra.sweeper.storage``): the owner
+  check cannot tell a dead worker on another machine from a live one, so such storages use Optuna's own
+  mechanism instead: each worker records a heartbeat for its running trial every ``heartbeat.interval`` seconds,
+  a trial silent for ``heartbeat.grace_period`` is failed by the next worker that looks
+  (``optuna.storages.fail_stale_trials``) and queued again by ``RetryHeartbeatStaleTrialCallback`` (up to
+  ``heartbeat.max_retry`` times; its failure is not counted against ``max_failures``).
 - **samplers**: TPE (default), grid (every parameter categorical; ``sampler: grid``, or ``auto``), NSGA-II
   (``auto`` with two or more objectives), random; seeded with ``seed`` plus the number of trials already
   stored plus the worker's rank, so a resumed or parallel sweep does not replay the same proposals.
@@ -124,6 +130,73 @@ def _sqlite_path(url: str) -> Path | None:
     return Path(url[len("sqlite:///") :]) if url.startswith("sqlite:///") else None
 
 
+def make_storage(url: str, heartbeat: dict | None):
+    """The study's storage: the URL itself for SQLite (the owner check finds dead workers), an ``RDBStorage``
+    with Optuna's heartbeats and retry callback for any other database."""
+    if url.startswith("sqlite") or not heartbeat:
+        return url
+    import sqlalchemy.exc
+    from optuna.storages import RDBStorage, RetryHeartbeatStaleTrialCallback
+
+    interval, grace = int(heartbeat.get("interval", 10)), heartbeat.get("grace_period")
+    for attempt in range(5):
+        try:
+            return RDBStorage(
+                url,
+                heartbeat_interval=interval,
+                grace_period=None if grace is None else int(grace),
+                heartbeat_stale_trial_callback=RetryHeartbeatStaleTrialCallback(
+                    max_retry=heartbeat.get("max_retry", 3)
+                ),
+            )
+        except (sqlalchemy.exc.IntegrityError, sqlalchemy.exc.ProgrammingError) as exc:
+            # workers starting together on an empty database race to create Optuna's tables (one wins, the
+            # others' CREATE fails): the schema is there a moment later, so connect again
+            if attempt == 4:
+                raise
+            log.info("the storage's schema is being created by another worker (%s): retrying", type(exc).__name__)
+            time.sleep(0.5 + attempt)
+
+
+def heartbeat_enabled(study) -> bool:
+    from optuna.storages._heartbeat import is_heartbeat_enabled
+
+    return is_heartbeat_enabled(study._storage)
+
+
+@contextlib.contextmanager
+def heartbeats(study, trial):
+    """Record ``trial``'s heartbeat every interval while the block runs (a thread of this worker), when the
+    study's storage has heartbeats: the same records ``study.optimize`` makes, for this ask-and-tell loop."""
+    if not heartbeat_enabled(study):
+        yield
+        return
+    import threading
+
+    storage, stop = study._storage, threading.Event()
+    interval = storage.get_heartbeat_interval()
+
+    def beat() -> None:
+        while True:
+            with contextlib.suppress(Exception):  # a dropped connection: the next beat tries again
+                storage.record_heartbeat(trial._trial_id)
+            if stop.wait(interval):
+                return
+
+    t = threading.Thread(target=beat, name=f"heartbeat-trial-{trial.number}", daemon=True)
+    t.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        t.join()
+
+
+def retried(trials: list[FrozenTrial]) -> set[int]:
+    """The numbers of trials failed by their heartbeat and queued again (Optuna's retry history)."""
+    return {n for t in trials for n in t.system_attrs.get("retry_history", [])}
+
+
 # ----------------------------------------------------------------------------------------------------------
 def make_sampler(
     name: str,
@@ -167,7 +240,14 @@ class _Grid(optuna.samplers.GridSampler):
 
 
 def counted_failures(trials: list[FrozenTrial]) -> list[FrozenTrial]:
-    return [t for t in trials if t.state == TrialState.FAIL and not any(k in t.user_attrs for k in NOT_COUNTED)]
+    """Failed trials that count against ``max_failures``: not those interrupted, surplus or duplicate, nor those
+    failed by a stale heartbeat and queued again (their worker died, the configuration did not fail)."""
+    again = retried(trials)
+    return [
+        t
+        for t in trials
+        if t.state == TrialState.FAIL and not any(k in t.user_attrs for k in NOT_COUNTED) and t.number not in again
+    ]
 
 
 def finished(trials: list[FrozenTrial]) -> list[FrozenTrial]:
@@ -209,6 +289,7 @@ class OptunaSweep:
         n_jobs: int = 1,
         threads_per_job: int | None = None,
         pruner: dict | None = None,
+        heartbeat: dict | None = None,
         params: dict | None = None,
         test_best: bool = True,
         population_size: int | None = None,
@@ -230,6 +311,7 @@ class OptunaSweep:
         self.n_trials, self.max_failures = int(n_trials), int(max_failures)
         self.n_jobs, self.threads_per_job = max(1, int(n_jobs)), threads_per_job
         self.pruner_conf = dict(pruner or {})
+        self.heartbeat = dict(heartbeat) if heartbeat is not None else {"interval": 10, "grace_period": 60}
         self.params = dict(params or {})
         self.test_best, self.test_overrides = bool(test_best), list(test_overrides or ["test=true"])
         self.plots, self.worker_rank = bool(plots), int(worker_rank)
@@ -316,7 +398,7 @@ class OptunaSweep:
             n_trials = space.grid_size()
         with storage_lock(lock):
             study = optuna.create_study(
-                storage=url,
+                storage=make_storage(url, self.heartbeat),
                 study_name=name,
                 directions=self.directions,
                 load_if_exists=True,
@@ -436,6 +518,20 @@ class OptunaSweep:
         return procs
 
     def _recover_interrupted(self, study, ctx) -> None:
+        if heartbeat_enabled(study):  # a shared RDB storage: Optuna's heartbeats find dead workers on any machine
+            from optuna.storages import fail_stale_trials
+
+            before = {t.number for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))}
+            fail_stale_trials(study)
+            trials = study.get_trials(deepcopy=False)
+            for n in sorted(before & retried(trials)):
+                log.warning(
+                    "trial %d: its worker %s sent no heartbeat for %s s: failed and queued again by Optuna",
+                    n,
+                    trials[n].user_attrs.get(OWNER),
+                    self.heartbeat.get("grace_period") or 2 * int(self.heartbeat.get("interval", 10)),
+                )
+            return
         for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
             owner = t.user_attrs.get(OWNER)
             alive = owner_alive(owner)
@@ -502,6 +598,8 @@ class OptunaSweep:
                     )
                     return "done"
             trial = study.ask(ctx["space"].distributions)
+            if heartbeat_enabled(study):  # a trial with no heartbeat at all is never found stale: beat once now
+                study._storage.record_heartbeat(trial._trial_id)
             trial.set_user_attr(OWNER, this_owner())
             earlier = [
                 t
@@ -569,7 +667,8 @@ class OptunaSweep:
         ]
         log.info("trial %d: %s", trial.number, " ".join(space.overrides(trial.params)[len(space.fixed) :]))
         t0 = time.perf_counter()
-        ret = self._launch(overrides, trial.number)
+        with heartbeats(study, trial):
+            ret = self._launch(overrides, trial.number)
         wall = round(time.perf_counter() - t0, 3)
         trial.set_user_attr(WALL, wall)
         with contextlib.suppress(Exception):

@@ -21,6 +21,19 @@ class PrunerConf:
 
 
 @dataclass
+class HeartbeatConf:
+    """Dead workers on a shared RDB storage (PostgreSQL, MySQL): Optuna's heartbeats.  Each running trial's
+    worker records a heartbeat every ``interval`` seconds; a RUNNING trial whose last heartbeat is older than
+    ``grace_period`` is failed by the next worker that looks (``optuna.storages.fail_stale_trials``) and queued
+    again up to ``max_retry`` times (``RetryHeartbeatStaleTrialCallback``).  An SQLite storage keeps the local
+    check (the owner's host, pid and start time)."""
+
+    interval: int = 10
+    grace_period: int = 60
+    max_retry: int = 3
+
+
+@dataclass
 class GrafOptunaSweeperConf:
     _target_: str = "hydra_plugins.graf_optuna_sweeper.graf_optuna_sweeper.GrafOptunaSweeper"
     sampler: str = (
@@ -36,6 +49,7 @@ class GrafOptunaSweeperConf:
     n_jobs: int = 1  # processes running trials at once on this machine (same storage)
     threads_per_job: int | None = None  # torch threads per trial; null: cores // n_jobs
     pruner: PrunerConf = field(default_factory=PrunerConf)
+    heartbeat: HeartbeatConf = field(default_factory=HeartbeatConf)  # RDB storages (not SQLite): dead workers
     params: dict[str, str] = field(default_factory=dict)  # the search space: key -> interval/range/choice
     test_best: bool = True  # test the chosen configuration once, after the search (best/)
     test_overrides: list[str] = field(default_factory=lambda: ["test=true"])
