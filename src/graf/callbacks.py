@@ -26,6 +26,22 @@ class PredictionCollector(Callback):
         self.ids.append(batch["tgt_id"].detach().cpu())
 
     def arrays(self) -> dict[str, np.ndarray]:
+        """The test predictions, targets and ids in the split's order.  Under data-parallel evaluation each rank
+        holds every ``world_size``-th spectrum (:meth:`SpectrumDataModule.eval_positions`): the ranks' shares
+        are gathered (every rank must call this) and dealt back into order."""
+        import torch.distributed as dist
+
+        if dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1:
+            mine = self._local()
+            parts: list = [None] * dist.get_world_size()
+            dist.all_gather_object(parts, mine)
+            n = sum(len(p["ids"]) for p in parts)
+            w = len(parts)
+            order = [(i % w, i // w) for i in range(n)]
+            return {k: np.stack([parts[r][k][j] for r, j in order]) if n else mine[k] for k in mine}
+        return self._local()
+
+    def _local(self) -> dict[str, np.ndarray]:
         if not self.pred:
             return {
                 "pred": np.zeros((0, *SPECTRUM_SHAPE), np.float32),
@@ -83,3 +99,23 @@ class AttemptClock(Callback):
                 "global_step": int(trainer.global_step),
                 "fit_s": round(time.perf_counter() - self._t0, 3),
             }
+
+
+class TargetCount(Callback):
+    """Counts the training targets this run's optimiser steps saw, over every rank (a step of data-parallel
+    training sees each rank's batch): :attr:`targets` after ``fit``, and the world size, for results.json."""
+
+    def __init__(self):
+        self.local = 0
+        self.targets: int | None = None
+        self.world_size = 1
+
+    def on_train_start(self, trainer, pl_module) -> None:
+        self.local, self.targets = 0, None
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        self.local += int(len(batch["tgt_id"]))
+
+    def on_train_end(self, trainer, pl_module) -> None:
+        total = trainer.strategy.reduce(torch.tensor(float(self.local), device=pl_module.device), reduce_op="sum")
+        self.targets, self.world_size = int(round(float(total))), int(trainer.world_size)

@@ -490,9 +490,17 @@ class SpectrumDataModule(L.LightningDataModule):
         n = len(self.fit_rows)
         return max(1, n // self.batch_size) if n > self.batch_size else 1
 
+    def _rank(self) -> tuple[int, int]:
+        """``(global rank, world size)`` of the trainer this datamodule is attached to ((0, 1) without one)."""
+        trainer = getattr(self, "trainer", None)
+        if trainer is None:
+            return 0, 1
+        return int(trainer.global_rank), int(trainer.world_size)
+
     def train_batch(self, k: int) -> dict:
-        """Training batch number ``k``: targets from epoch ``k // batches_per_epoch``'s seeded order, and L and
-        neighbours drawn with a generator seeded by ``(seed, k)``."""
+        """Training batch number ``k`` of the stream: targets from epoch ``k // batches_per_epoch``'s seeded order,
+        and L and neighbours drawn with a generator seeded by ``(seed, k)``.  Under data-parallel training the
+        loader asks for :meth:`rank_batch` instead."""
         epoch, j = divmod(int(k), self.batches_per_epoch)
         order = torch.randperm(
             len(self.fit_rows), generator=torch.Generator().manual_seed(mixed_seed(self.seed, 0, epoch))
@@ -511,19 +519,32 @@ class SpectrumDataModule(L.LightningDataModule):
             raise ValueError("trainer.accumulate_grad_batches must be 1: training batches are numbered by step")
         return int(trainer.global_step)
 
+    def rank_batch(self, k: int) -> dict:
+        """Step ``k``'s batch on this rank: the stream's draw ``k * world_size + rank`` (one process: draw ``k``),
+        so the ranks of a step train on different draws and a resumed run draws what an uninterrupted one would."""
+        rank, world = self._rank()
+        return self.train_batch(int(k) * world + rank)
+
     def train_dataloader(self) -> DataLoader:
         return StepLoader(
             TrainBatchStream(self.batches_per_epoch),
             self._global_step,
             self.seed,
-            collate_fn=self.train_batch,
+            collate_fn=self.rank_batch,
             num_workers=self.num_workers,
         )
 
+    def eval_positions(self, n: int) -> list[int]:
+        """This rank's share of an evaluation split's ``n`` positions: every ``world_size``-th from its rank, so
+        each spectrum is evaluated once (no padding) and the metrics' sums add up across ranks."""
+        rank, world = self._rank()
+        return list(range(rank, n, world))
+
     def _eval_loader(self, name: str) -> DataLoader:
         rows = self.split_neighbors(name)[0]
+        share = self.eval_positions(len(rows))
         return DataLoader(
-            _Positions(len(rows)),
+            share if len(share) < len(rows) else _Positions(len(rows)),
             batch_size=self.batch_size,
             shuffle=False,
             collate_fn=self._eval_collate(name),

@@ -252,6 +252,9 @@ def evaluation_trainer(cfg: DictConfig, loggers=(), callbacks=()) -> L.Trainer:
     return L.Trainer(
         accelerator=t.get("accelerator", "auto"),
         devices=t.get("devices", 1),
+        num_nodes=t.get("num_nodes", 1),
+        strategy=t.get("strategy", "auto"),  # under DDP each rank evaluates its share of the positions
+        use_distributed_sampler=False,  # graf deals the positions itself (no padded duplicates)
         precision=t.get("precision", "32-true"),
         logger=list(loggers) or False,
         callbacks=list(callbacks),

@@ -26,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 
 import graf
 from graf.callbacks import PredictionCollector
-from graf.io import atomic_write_json, atomic_write_npz
+from graf.io import atomic_write_json, atomic_write_npz, is_rank_zero
 from graf.metrics.names import EVAL_METRICS
 from graf.pipeline.build import evaluation_trainer
 from graf.plotting import plot_spectra_grid
@@ -140,10 +140,11 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -
         results["ray_sampling"] = sampling
     if objects.get("checkpoint"):
         results["checkpoint"] = {k: v for k, v in objects["checkpoint"].items() if k != "model"}
-    if cfg.get("save_predictions"):
+    zero = is_rank_zero()  # the other ranks of a data-parallel run compute the same figures and write nothing
+    if cfg.get("save_predictions") and zero:
         atomic_write_npz(out / "predictions.npz", **arrays)
         results["predictions"] = "predictions.npz"
-    if int(cfg.get("plot_count", 0)) > 0 and len(arrays["ids"]):
+    if int(cfg.get("plot_count", 0)) > 0 and len(arrays["ids"]) and zero:
         fig = plot_spectra_grid(
             arrays["pred"],
             arrays["target"],
@@ -165,7 +166,7 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -
             else {"method": results["method"], "scene": ev["eval_scene"], "n_test": int(len(a["ids"])), "metrics": m}
         )
         brows = [_test_baseline(cfg, name, bcfg, ev["datamodule"]) for name, bcfg in baselines]
-        if int(cfg.get("save_samples") or 0) > 0:
+        if int(cfg.get("save_samples") or 0) > 0 and zero:
             for method, arr in [(results["method"], a)] + [(r["method"], r.pop("_arrays")) for r in brows]:
                 save_samples(out, ev["eval_scene"], method, arr, int(cfg.save_samples))
         for r in brows:
@@ -208,6 +209,8 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -
         results["scene_table"] = objects["scene_table"]
     if cfg.get("regime"):
         results["regime"] = str(cfg.regime)
+    if not zero:
+        return metrics
     atomic_write_json(out / "results.json", results)
     print(format_metrics_table(rows))
     if "evaluations" in results:  # say which test scenes the model was trained on

@@ -23,7 +23,7 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from graf.errors import ConfigError, Preempted
-from graf.io import atomic_write_json
+from graf.io import atomic_write_json, is_rank_zero
 from graf.models.base import CheckpointError, check_checkpoint, read_checkpoint
 from graf.pipeline.build import build
 from graf.pipeline.config import Results, expand_heldout, family, output_dir, run_settings, scene_configs, task_wrapper
@@ -160,7 +160,13 @@ def training_record(trainer, step0: int) -> dict:
         "steps_trained": reached - int(step0),
         "epochs_trained": int(trainer.current_epoch),
         "stopped_early": False,
+        "world_size": int(trainer.world_size),
     }
+    from graf.callbacks import TargetCount
+
+    counted = next((cb for cb in trainer.callbacks if isinstance(cb, TargetCount) and cb.targets is not None), None)
+    if counted is not None:  # measured, over every rank: batch_size x world_size per step
+        rec["targets_seen"] = counted.targets
     if asked > 0 and reached < asked:
         if epochs > 0 and trainer.current_epoch >= epochs:
             reason, own = (
@@ -220,7 +226,8 @@ def preempted(cfg: DictConfig, trainer, step0: int, fit_s: float | None = None) 
             + (f"resume with the same command and ckpt_path={last}" if last else "no checkpoint was written")
         )
         record["checkpoint"] = last
-    atomic_write_json(out / "preempted.json", record)
+    if is_rank_zero():
+        atomic_write_json(out / "preempted.json", record)
     return Preempted(msg)
 
 
