@@ -101,7 +101,18 @@ def test_two_gloo_processes_test_like_one_and_a_step_sees_twice_the_targets(tmp_
     assert np.array_equal(p1["ids"], p2["ids"]) and np.allclose(p1["pred"], p2["pred"], atol=1e-6)
 
 
-def test_the_ddp_preset_composes(compose_cfg):
-    cfg = compose_cfg("train", ("trainer=ddp", "trainer.devices=4", "trainer.accelerator=gpu"))
-    t = cfg.trainer
-    assert (t.strategy, t.devices, t.accelerator, t.use_distributed_sampler) == ("ddp", 4, "gpu", False)
+def test_the_ddp_preset_composes_alone_and_after_a_gpu_preset():
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from graf.pipeline.config import CONF_DIR
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        alone = compose("train", ["trainer=ddp"]).trainer
+        gpu = compose("train", ["trainer=[gpu_bf16,ddp_strategy]", "trainer.devices=4"]).trainer
+    GlobalHydra.instance().clear()
+    assert (alone.strategy, alone.devices, alone.accelerator, alone.precision, alone.use_distributed_sampler) == (
+        "ddp", 2, "auto", "32-true", False)  # fmt: skip
+    assert (gpu.strategy, gpu.devices, gpu.accelerator, gpu.precision, gpu.float32_matmul_precision) == (
+        "ddp", 4, "gpu", "bf16-mixed", "high")  # fmt: skip
