@@ -21,6 +21,7 @@ def test_the_density_experiment_trains_from_scratch_on_a_measured_fraction():
     assert cfg.finetune.fraction == 0.2 and cfg.finetune.init_from is None  # no base model: from scratch
     assert cfg.trainer.max_steps == cfg.study_steps and cfg.baselines.knn
     assert cfg.save_predictions and cfg.callbacks.model_checkpoint  # its jobs feed graf-aoa and graf-localize
+    assert cfg.trainer.limit_test_batches == 8 and cfg.data.batch_size == 4  # 32 test spectra a job
 
 
 def test_spacing_for_a_target_interpolates_where_the_curve_crosses_it():
