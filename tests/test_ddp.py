@@ -116,3 +116,32 @@ def test_the_ddp_preset_composes_alone_and_after_a_gpu_preset():
         "ddp", 2, "auto", "32-true", False)  # fmt: skip
     assert (gpu.strategy, gpu.devices, gpu.accelerator, gpu.precision, gpu.float32_matmul_precision) == (
         "ddp", 4, "gpu", "bf16-mixed", "high")  # fmt: skip
+
+
+def test_under_ddp_rank_0_alone_reports_to_the_pruner_and_every_rank_takes_its_decision():
+    import optuna
+
+    from graf.sweeps.pruning import OptunaPruning
+
+    study = optuna.create_study(direction="maximize", pruner=optuna.pruners.MedianPruner(n_startup_trials=1))
+    done = study.ask()
+    done.report(10.0, 2)
+    study.tell(done, 10.0)
+    sent = []
+
+    def trainer(rank: int, decision_of_rank_0: bool | None = None):
+        def broadcast(value, src=0):
+            sent.append((rank, value))
+            return value if decision_of_rank_0 is None else decision_of_rank_0
+
+        return SimpleNamespace(sanity_checking=False, global_step=2, max_steps=10, is_global_zero=rank == 0,
+                               world_size=2, callback_metrics={"val/psnr": torch.tensor(-10.0)},
+                               strategy=SimpleNamespace(broadcast=broadcast))  # fmt: skip
+
+    trial = study.ask()
+    with pytest.raises(optuna.TrialPruned):
+        OptunaPruning(trial, "val/psnr").on_validation_end(trainer(0), None)  # under the median: rank 0 prunes
+    with pytest.raises(optuna.TrialPruned):  # rank 1 asks nothing and reports nothing: it takes rank 0's decision
+        OptunaPruning(trial, "val/psnr").on_validation_end(trainer(1, decision_of_rank_0=True), None)
+    assert sent == [(0, True), (1, False)]
+    assert study.trials[1].intermediate_values == {2: -10.0}  # one report, from rank 0

@@ -197,7 +197,12 @@ def test_the_validation_that_ends_training_never_prunes():
 
     def trainer(step):
         return SimpleNamespace(
-            sanity_checking=False, global_step=step, max_steps=4, callback_metrics={"val/psnr": torch.tensor(-10.0)}
+            sanity_checking=False,
+            global_step=step,
+            max_steps=4,
+            callback_metrics={"val/psnr": torch.tensor(-10.0)},
+            is_global_zero=True,
+            world_size=1,
         )
 
     last = OptunaPruning(study.ask(), "val/psnr")

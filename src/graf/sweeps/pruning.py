@@ -48,13 +48,18 @@ class OptunaPruning(Callback):
                 self._warned = True
             return
         value, step = float(value), int(trainer.global_step)
-        if not math.isfinite(value):
+        if not math.isfinite(value):  # the synced metric: every rank of a data-parallel run stops together
             raise optuna.TrialPruned(f"{self.monitor} is {value} at step {step}")
-        self.trial.report(value, step)
+        # rank 0 reports and asks the pruner; the other ranks of a data-parallel run take its decision, so that
+        # they all stop (or all go on) at the same step
+        prune = False
+        if trainer.is_global_zero:
+            self.trial.report(value, step)
+            prune = not is_last_validation(trainer) and self.trial.should_prune()
         self.reported.append((step, value))
-        if is_last_validation(trainer):
-            return  # training is over: the trial's objective decides, pruning would only throw it away
-        if self.trial.should_prune():
+        if trainer.world_size > 1:
+            prune = bool(trainer.strategy.broadcast(prune, src=0))
+        if prune:  # never at the validation that ends training: the objective decides, pruning would waste it
             raise optuna.TrialPruned(f"trial {self.trial.number} pruned at step {step}: {self.monitor}={value:.4f}")
 
 
