@@ -57,6 +57,8 @@ def test_max_steps_governs_training_whatever_the_epoch_length(compose_cfg):
         "steps_trained": 40,
         "epochs_trained": 2,
         "stopped_early": False,
+        "world_size": 1,
+        "targets_seen": 160,  # 40 steps of 4 targets, counted as they were trained
     }
 
 
