@@ -49,6 +49,7 @@ def test_commands_read_the_configs_shipped_in_the_package():
     GlobalHydra.instance().clear()
 
 
+@pytest.mark.slow  # 20-72 s in a fresh-clone CI run here: the default run must stay under 15 min
 def test_every_config_group_option_composes():
 
     groups = ["scene", "eval_scene", "band", "neighbors", "model", "trainer", "logger", "experiment"]
@@ -275,6 +276,7 @@ def test_table_of_cross_scene_runs_has_a_row_per_test_scene_and_no_scene_config_
     assert knn == [("-", "room_a", 14.0), ("-", "room_b", 13.0), ("-", "room_a", 12.0), ("-", "room_b", 15.0)]
 
 
+@pytest.mark.slow  # 20-72 s in a fresh-clone CI run here: the default run must stay under 15 min
 def test_console_scripts_run_end_to_end(tmp_path, make_scene):
     folder = make_scene(n=12)
     bindir = Path(sys.executable).parent

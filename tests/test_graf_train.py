@@ -43,6 +43,7 @@ def test_graf_train_two_steps_through_the_real_configs(compose_cfg):
         assert (Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt").is_file()
 
 
+@pytest.mark.slow  # 20-72 s in a fresh-clone CI run here: the default run must stay under 15 min
 def test_killed_training_resumes_from_its_last_checkpoint(tmp_path):
     exe = str(Path(sys.executable).parent / "graf-train")
     args = [
@@ -131,6 +132,7 @@ def test_finetune_starts_from_a_checkpoints_weights_and_rejects_another_architec
         train(missing)
 
 
+@pytest.mark.slow  # 20-72 s in a fresh-clone CI run here: the default run must stay under 15 min
 def test_eval_of_a_checkpoint_applies_inference_settings_and_refuses_the_rest(compose_cfg, tmp_path):
     from graf.pipeline.evaluate import evaluate
 

@@ -281,6 +281,7 @@ def test_every_user_error_is_one_line_with_exit_code_2(case, cli_dir, knn_dl_ckp
     assert "Traceback" not in p.stderr and "GPU available" not in p.stderr  # Lightning's start-up lines: log file
 
 
+@pytest.mark.slow  # 20-72 s in a fresh-clone CI run here: the default run must stay under 15 min
 def test_graf_report_reads_one_runs_own_folder(tmp_path):
     run = tmp_path / "run"
     assert _cli("graf-eval", "model=knn", *QUIET, f"hydra.run.dir={run}", cwd=tmp_path).returncode == 0
@@ -293,6 +294,7 @@ def test_graf_report_reads_one_runs_own_folder(tmp_path):
 # ---------------------------------------------------------------------------------------------- 5. settings
 
 
+@pytest.mark.slow  # 20-72 s in a fresh-clone CI run here: the default run must stay under 15 min
 def test_baselines_braces_and_null_switch_the_baselines_off(tmp_path):
     for i, value in enumerate(("{}", "null")):
         out = tmp_path / f"run{i}"
@@ -324,6 +326,7 @@ def test_selected_baselines_outside_a_command_follow_the_config(compose_cfg):
     assert selected_baselines(compose_cfg("train", ("baselines=null",))) == {}
 
 
+@pytest.mark.slow  # 20-72 s in a fresh-clone CI run here: the default run must stay under 15 min
 def test_graf_table_run_twice_into_its_runs_folder_reads_no_table_back(tmp_path):
     runs = tmp_path / "runs"
     assert _cli("graf-eval", "model=knn", *QUIET, f"hydra.run.dir={runs / 'a'}", cwd=tmp_path).returncode == 0
@@ -371,6 +374,7 @@ def test_graf_eval_of_a_checkpoint_refuses_a_training_setting_with_its_own_messa
     assert "model.lr=0.1 cannot change the trained checkpoint" in p.stderr and "not in struct" not in p.stderr
 
 
+@pytest.mark.slow  # 20-72 s in a fresh-clone CI run here: the default run must stay under 15 min
 def test_sigterm_stops_at_the_next_step_saves_a_checkpoint_and_resumes(tmp_path):
     out = tmp_path / "run"
     env = {**os.environ, "OMP_NUM_THREADS": "1", "WANDB_MODE": "offline"}

@@ -77,6 +77,7 @@ def test_too_many_failures_stop_the_sweep_with_an_error(tmp_path):
     assert (tmp_path / "sweep" / "trials.csv").is_file()  # the outputs are written all the same
 
 
+@pytest.mark.slow  # 20-72 s in a fresh-clone CI run here: the default run must stay under 15 min
 def test_a_sweep_killed_after_its_second_trial_resumes_to_exactly_four_trials(tmp_path):
     # the grid order is seeded: find which x the third trial gets from a dry run, then make it the slow one
     probe = tmp_path / "probe"
@@ -113,6 +114,7 @@ def test_a_sweep_killed_after_its_second_trial_resumes_to_exactly_four_trials(tm
     assert len(load(tmp_path).trials) == len(study.trials)
 
 
+@pytest.mark.slow  # 20-72 s in a fresh-clone CI run here: the default run must stay under 15 min
 def test_a_preempted_trial_stops_the_sweep_with_code_143_and_is_run_again_on_resume(tmp_path):
     probe = tmp_path / "probe"
     probe.mkdir()
@@ -304,6 +306,7 @@ def test_heldout_scenes_are_the_other_layouts_of_the_training_families():
 
 
 @pytest.mark.parametrize("search", ["neighbour_count", "cross_scene", "graf_size"])
+@pytest.mark.slow  # 20-72 s in a fresh-clone CI run here: the default run must stay under 15 min
 def test_search_smoke_with_knn_on_the_embedded_scene_never_sees_the_test_split(tmp_path, search):
     """The documented smoke test of each search; its trials are validated only (no test figure, no test
     spectrum predicted), the objective is their validation PSNR, and the chosen one is tested once."""

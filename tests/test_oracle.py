@@ -58,6 +58,7 @@ def test_padded_neighbours_keep_zero_weight():
     assert (w[1, 1:] == 0).all() and (w[0] != 1 / 3).any() and torch.isfinite(w).all()
 
 
+@pytest.mark.slow  # 20-72 s in a fresh-clone CI run here: the default run must stay under 15 min
 def test_console_script_on_rfid_s23(tmp_path):
     exe = str(Path(sys.executable).parent / "graf-oracle")
     p = subprocess.run(

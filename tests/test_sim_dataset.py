@@ -53,6 +53,7 @@ def reference(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow  # 20-72 s in a fresh-clone CI run here: the default run must stay under 15 min
 def test_killed_run_resumes_without_losing_or_duplicating_spectra(reference, tmp_path):
     parts = _h5(tmp_path).with_name("2.4ghz-n96.h5.parts")
     p = _run(tmp_path, tmp_path / "out1")
@@ -157,6 +158,7 @@ def test_changed_configuration_is_refused_and_missing_dataset_is_explained(tmp_p
         scene.load(tmp_path / "empty", band)
 
 
+@pytest.mark.slow  # 20-72 s in a fresh-clone CI run here: the default run must stay under 15 min
 def test_show_scenes_and_bench_sim_commands(reference, tmp_path):
     p = subprocess.run(
         [

@@ -21,6 +21,7 @@ def _run(args: list[str], cwd: Path, env: dict | None = None) -> subprocess.Comp
     return subprocess.run([str(EXE / args[0]), *args[1:]], cwd=cwd, capture_output=True, text=True, timeout=900, env=e)
 
 
+@pytest.mark.slow  # 20-72 s in a fresh-clone CI run here: the default run must stay under 15 min
 def test_a_study_multirun_trains_its_base_once_resumes_and_reports(small_room_root, tmp_path):
     sweep = tmp_path / "nc"
     cmd = [
@@ -70,6 +71,7 @@ def test_a_study_multirun_trains_its_base_once_resumes_and_reports(small_room_ro
     assert "a base model trained with other settings is there" in p.stderr + p.stdout
 
 
+@pytest.mark.slow  # 20-72 s in a fresh-clone CI run here: the default run must stay under 15 min
 def test_user_errors_end_with_their_message_alone(tmp_path):
     p = _run(
         [
