@@ -54,6 +54,17 @@ def find_scene(table: dict, name: str, fingerprint: dict) -> str | None:
         fp = entry.get("fingerprint")
         if fp is not None and fp.get("digest") == fingerprint["digest"]:
             return key
+    for key, entry in table.items():  # the same measurements, the gateway pose's digest apart
+        fp = entry.get("fingerprint")
+        if fp is not None and _same_measurements(fp, fingerprint):
+            log.info(
+                "scene %s: the same transmitter positions, spectra and band as the checkpoint's %s, but not the "
+                "same gateway-pose digest (its normalised quaternion rounded differently where the checkpoint was "
+                "made: another numpy or BLAS): taken as the same scene",
+                name,
+                key,
+            )
+            return key
     if name in table and table[name].get("fingerprint") is None:
         log.warning(
             "scene %s: the checkpoint records no fingerprint for it (written before they were kept): "
@@ -62,6 +73,18 @@ def find_scene(table: dict, name: str, fingerprint: dict) -> str | None:
         )
         return name
     return None
+
+
+def _same_measurements(a: dict, b: dict) -> bool:
+    """Same transmitter positions (with ids), same spectra and same band: the same scene whatever the last bits
+    of its gateway pose.  (The pose is normalised in floating point, and a checkpoint made before the reader's
+    norm became a correctly rounded sum may carry another rounding of it.)"""
+    return (
+        bool(a.get("positions"))
+        and a.get("positions") == b.get("positions")
+        and a.get("spectra") == b.get("spectra")
+        and abs(float(a.get("band_hz", -1.0)) - float(b.get("band_hz", -2.0))) < 1e-3
+    )
 
 
 def register_scene(table: dict, name: str, fingerprint: dict, index: int) -> str:

@@ -283,9 +283,13 @@ def _read_gateway(path: Path) -> tuple[np.ndarray, np.ndarray]:
             raise DataFormatError(path, f"gateway1.{key} must be {n} finite numbers, got {gw[key]!r}")
         values[key] = v
     q = values["orientation"]
-    if not math.isclose(float(np.linalg.norm(q)), 1.0, abs_tol=1e-3):
-        raise DataFormatError(path, f"gateway1.orientation is not a unit quaternion (norm {np.linalg.norm(q):.4f})")
-    return values["position"], q / np.linalg.norm(q)
+    # The norm as a correctly rounded sum (math.fsum), not np.linalg.norm: BLAS's dot product rounds differently
+    # on other CPUs and numpy builds, and the normalised pose enters the scene's content fingerprint, which must
+    # be the same on every machine (a checkpoint made on a CPU is resumed on a GPU machine).
+    norm = math.sqrt(math.fsum(float(v) * float(v) for v in q))
+    if not math.isclose(norm, 1.0, abs_tol=1e-3):
+        raise DataFormatError(path, f"gateway1.orientation is not a unit quaternion (norm {norm:.4f})")
+    return values["position"], q / norm
 
 
 def seeded_split(ids: list[int], seed: int, train_fraction: float) -> tuple[list[int], list[int]]:
