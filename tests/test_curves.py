@@ -48,6 +48,7 @@ def test_curves_run_resume_and_validate_only(tmp_path, make_scene):
         ("ray_knn", 2),
     ]
     assert all(r["val_psnr"] is not None and r["val_reliance_db"] is not None for r in res["rows"])
+    assert {r["device"] for r in res["rows"]} == {"cpu"}  # where each point trained (a GPU point names its card)
     assert res["knn"]["tiny"]["val/psnr"] is not None and not res["failed"]
     step2 = json.loads((out / "tiny" / "ray_knn" / "step_2" / "results.json").read_text())
     assert step2["resumed"]["global_step"] == 1 and step2["training"]["steps_trained"] == 1  # one trajectory
@@ -211,3 +212,10 @@ def test_a_checkpoint_interval_under_one_step_stops_with_one_line(tmp_path):
     )
     assert p.returncode != 0 and "checkpoint_every=0: must be a positive number of steps" in p.stderr
     assert "Traceback" not in p.stderr
+
+
+def test_a_points_device_is_short_in_the_table():
+    from graf.pipeline.curves import short_device
+
+    assert short_device("cuda:0 (NVIDIA H200)") == "NVIDIA H200"
+    assert short_device("cpu") == "cpu" and short_device(None) is None

@@ -490,3 +490,43 @@ def test_a_preempted_job_stops_a_studys_multirun_and_is_recorded(tmp_path):
     assert [f["job"] for f in failed] == [0, 1] and "Preempted" in failed[1]["error"]
     cfg, ret = job(Preempted("SIGTERM"), 2, optuna_trial={"number": 2})
     SweepTable().on_job_end(cfg, ret)  # a search trial: the sweeper queues it again and stops the search itself
+
+
+def test_results_name_the_device_the_trainer_ran_on_not_where_the_module_was_left():
+    """Lightning moves the module back to the CPU when a fit ends: a GPU run once recorded ``"device": "cpu"``
+    (the NeRF2 curve's points trained on an H200).  The record now comes from the trainer's strategy."""
+    from types import SimpleNamespace
+
+    from graf.pipeline.testing import run_device
+
+    module = torch.nn.Linear(2, 2)
+    module.device = torch.device("cpu")  # where Lightning leaves it after teardown
+    gpu_trainer = SimpleNamespace(strategy=SimpleNamespace(root_device=torch.device("cuda", 0)))
+    name = run_device(gpu_trainer, module)
+    assert name.startswith("cuda:0")  # "cuda:0 (<card>)" where CUDA is present
+    assert run_device(SimpleNamespace(strategy=SimpleNamespace(root_device=torch.device("cpu"))), module) == "cpu"
+    assert run_device(SimpleNamespace(), module) == "cpu"  # no strategy: the module's own device
+
+
+def test_the_gateway_pose_is_normalised_the_same_on_every_machine():
+    """The normalised gateway quaternion enters the scene's content fingerprint, which a checkpoint records: a
+    checkpoint made on this CPU was refused on a GPU machine ("not on the content of this run's scene") because
+    np.linalg.norm's BLAS dot product rounded the embedded scene's quaternion differently there.  The norm is now
+    a correctly rounded sum (independent of BLAS and numpy), and a checkpoint whose gateway digest differs while
+    its positions, spectra and band agree (an older rounding) is still recognised as the same scene."""
+    import math
+
+    from graf.data.fingerprint import find_scene, scene_fingerprint
+    from graf.data.scenes import resolve_scene_path
+
+    data = read_nerf2_folder(resolve_scene_path("embedded:rfid_s23_200", None), name="rfid_s23")
+    q = [0.51291602, -0.48674136, -0.48674136, 0.51291602]  # gateway_info.yml
+    norm = math.sqrt(math.fsum(v * v for v in q))
+    assert data.gateway_orientation.tolist() == [v / norm for v in q]  # bit for bit
+    fp = scene_fingerprint(data, 915e6)
+    older = {**fp, "gateway": "0" * 64, "digest": "1" * 64}  # another rounding of the same pose
+    assert find_scene({"rfid_s23": {"index": 0, "fingerprint": older}}, "rfid_s23", fp) == "rfid_s23"
+    other_spectra = {**older, "spectra": "2" * 64}  # other measurements: not the same scene
+    assert find_scene({"rfid_s23": {"index": 0, "fingerprint": other_spectra}}, "rfid_s23", fp) is None
+    other_band = {**older, "band_hz": 2.4e9}
+    assert find_scene({"rfid_s23": {"index": 0, "fingerprint": other_band}}, "rfid_s23", fp) is None

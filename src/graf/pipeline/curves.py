@@ -44,7 +44,9 @@ from graf.pipeline.table import to_csv
 
 log = logging.getLogger("graf")
 
-COLUMNS = ("regime", "method", "step", "val_psnr", "val_ssim", "val_lpips", "val_reliance_db", "fit_s", "s_per_step")
+COLUMNS = (
+    "regime", "method", "step", "val_psnr", "val_ssim", "val_lpips", "val_reliance_db", "fit_s", "s_per_step", "device"
+)  # fmt: skip
 FIGURES = (("val/psnr", "val_psnr", "PSNR (dB)"), ("val/ssim", "val_ssim", "SSIM"), ("val/lpips", "val_lpips", "LPIPS"))
 PREEMPTED_RUNS = "preempted_runs.json"  # a point's pre-empted attempts (their preempted.json records)
 QUIET = ["logger=none", "plot_count=0", "baselines=null", "test=false", "trainer.enable_progress_bar=false"]
@@ -109,6 +111,8 @@ def collect(out: Path, cfg: DictConfig) -> tuple[list[dict], dict]:
                         "val_reliance_db": v["val/reliance_db"],
                         "fit_s": None if fit_s is None else round(fit_s, 1),
                         "s_per_step": t.get("fit_s_per_step"),
+                        # where the point's (last) training attempt ran: seconds differ by orders of magnitude
+                        "device": short_device(r.get("device")),
                     }
                 )
     return rows, knn
@@ -193,25 +197,35 @@ def _killed_attempt(folder: Path) -> dict | None:
     }
 
 
+def short_device(device: str | None) -> str | None:
+    """``cpu``, or the card's name for a GPU run (``cuda:0 (NVIDIA H200)`` -> ``NVIDIA H200``)."""
+    if not device:
+        return None
+    if "(" in device and device.endswith(")"):
+        return device[device.index("(") + 1 : -1]
+    return device
+
+
 def _fmt(v, spec):
     return "n/a" if v is None else format(v, spec)
 
 
 def write_outputs(out: Path, rows: list[dict], knn: dict, failed: list[dict]) -> None:
     lines = [
-        "| regime | method | step | val PSNR | val SSIM | val LPIPS | val reliance dB | train s (cum.) | s/step |",
-        "|" + "---|" * 9,
+        "| regime | method | step | val PSNR | val SSIM | val LPIPS | val reliance dB | train s (cum.) | s/step "
+        "| device |",
+        "|" + "---|" * 10,
     ]
     for r in rows:
         lines.append(
             f"| {r['regime']} | {r['method']} | {r['step']} | {_fmt(r['val_psnr'], '.2f')} | "
             f"{_fmt(r['val_ssim'], '.3f')} | {_fmt(r['val_lpips'], '.3f')} | {_fmt(r['val_reliance_db'], '.2f')} | "
-            f"{_fmt(r['fit_s'], '.0f')} | {_fmt(r['s_per_step'], '.3f')} |"
+            f"{_fmt(r['fit_s'], '.0f')} | {_fmt(r['s_per_step'], '.3f')} | {r.get('device') or 'n/a'} |"
         )
     for rname, k in knn.items():
         lines.append(
             f"| {rname} | knn (line) | 0 | {_fmt(k['val/psnr'], '.2f')} | {_fmt(k['val/ssim'], '.3f')} | "
-            f"{_fmt(k['val/lpips'], '.3f')} | {_fmt(k['val/reliance_db'], '.2f')} | 0 | n/a |"
+            f"{_fmt(k['val/lpips'], '.3f')} | {_fmt(k['val/reliance_db'], '.2f')} | 0 | n/a | n/a |"
         )
     atomic_write_text(out / "curves.md", "\n".join(lines) + "\n")
     atomic_write_text(out / "curves.csv", to_csv(COLUMNS, [[r[c] for c in COLUMNS] for r in rows]))

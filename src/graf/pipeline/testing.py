@@ -69,6 +69,18 @@ def evaluate_model(cfg: DictConfig, model, dm, loggers=(), timing: dict | None =
     return {k: metrics.get(k) for k in EVAL_METRICS}, collector.arrays()
 
 
+def run_device(trainer, model) -> str:
+    """The device the run trained and evaluated on, e.g. ``cuda:0 (NVIDIA H200)`` or ``cpu``.
+
+    From the trainer's strategy, not the module: Lightning moves the module back to the CPU when a fit or test
+    ends, so ``model.device`` read afterwards says ``cpu`` for a run that ran on a GPU."""
+    dev = getattr(getattr(trainer, "strategy", None), "root_device", None)
+    dev = torch.device(dev) if dev is not None else model.device
+    if dev.type == "cuda" and torch.cuda.is_available():
+        return f"{dev} ({torch.cuda.get_device_name(dev)})"
+    return str(dev)
+
+
 def swapped_psnr(cfg: DictConfig, model, dm, split: str = "test") -> float | None:
     """Neighbour reliance's second pass: the ``split`` (test or val) PSNR with each target's neighbours "
     "replaced by another
@@ -128,7 +140,7 @@ def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -
         "neighbors": repr(objects["neighbors"]),
         "trainable_parameters": int(sum(p.numel() for p in model.parameters() if p.requires_grad)),
         "global_step": int(objects.get("checkpoint", {}).get("global_step", trainer.global_step)),
-        "device": str(model.device),
+        "device": run_device(trainer, model),
         "versions": {"graf": graf.__version__, "torch": torch.__version__, "python": platform.python_version()},
     }
     n_test = int(len(arrays["ids"]))
