@@ -352,3 +352,17 @@ def test_search_smoke_with_knn_on_the_embedded_scene_never_sees_the_test_split(t
     assert "hydra.mode=RUN" in (sweep / "best_overrides.txt").read_text()
     if search == "graf_size":
         assert (sweep / "pareto_front.png").is_file() and (sweep / "pareto.json").is_file()
+
+
+def test_heartbeat_settings_on_sqlite_are_said_to_be_unused(caplog):
+    """hydra.sweeper.heartbeat applies to RDB servers (PostgreSQL, MySQL); on SQLite it is not silently dropped:
+    one log line says it is unused and what finds dead workers there instead."""
+    import logging
+
+    from graf.sweeps.optuna_sweeper import make_storage
+
+    with caplog.at_level(logging.INFO, logger="graf"):
+        url = make_storage("sqlite:///x.db", {"interval": 10, "grace_period": 60, "max_retry": 3})
+    assert url == "sqlite:///x.db"
+    said = [r.getMessage() for r in caplog.records if "heartbeat" in r.getMessage()]
+    assert len(said) == 1 and "not used" in said[0] and "owner" in said[0]

@@ -134,6 +134,14 @@ def make_storage(url: str, heartbeat: dict | None):
     """The study's storage: the URL itself for SQLite (the owner check finds dead workers), an ``RDBStorage``
     with Optuna's heartbeats and retry callback for any other database."""
     if url.startswith("sqlite") or not heartbeat:
+        if heartbeat and url.startswith("sqlite"):
+            log.info(
+                "storage %s is SQLite: hydra.sweeper.heartbeat (interval %s s, grace period %s s) is not used there; "
+                "a dead worker's trial is found by its owner's host, pid and start time instead",
+                url,
+                heartbeat.get("interval"),
+                heartbeat.get("grace_period"),
+            )
         return url
     import sqlalchemy.exc
     from optuna.storages import RDBStorage, RetryHeartbeatStaleTrialCallback
