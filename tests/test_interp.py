@@ -40,7 +40,7 @@ def test_interp_on_the_measured_scene_fits_a_slope_per_weighting(tmp_path, capsy
     assert "rfid_s23" in capsys.readouterr().out
 
 
-def test_interp_on_a_traced_room_measures_fine_scales_and_the_curvature(tmp_path, small_room_root):
+def test_interp_on_a_traced_room_measures_fine_scales_and_the_curvature(tmp_path, small_room_root, monkeypatch):
     cfg = _cfg(
         tmp_path,
         "scene=small_room",
@@ -57,3 +57,23 @@ def test_interp_on_a_traced_room_measures_fine_scales_and_the_curvature(tmp_path
     assert fine["barycentric"]["median_rmse"][0] < fine["barycentric"]["median_rmse"][-1]  # closer is better
     assert len(k["K"]) == 3 and all(v > 0 for v in k["K"]) and -1.0 <= k["spearman_rho"] <= 1.0
     assert np.array(s["kmap"]["K"]).shape == (len(s["kmap"]["y"]), len(s["kmap"]["x"]))
+    # resumable per scene: a second invocation into the same folder keeps the finished scene, tracing nothing
+    import graf.pipeline.interp as interp
+
+    def no_trace(*a, **k):
+        raise AssertionError("a finished scene was traced again")
+
+    monkeypatch.setattr(interp, "fine_part", no_trace)
+    again = run(cfg)
+    assert again["complete"] and again["scenes"]["small_room"]["curvature"] == k
+
+
+def test_a_layout_variants_removed_objects_are_left_out_of_the_map():
+    """conference_v2 removes chairs by setting them to null (graf-interp once failed on it)."""
+    from types import SimpleNamespace
+
+    from graf.pipeline.interp import footprints
+
+    room = SimpleNamespace(objects={"chair": None, "table": {"center": [1, 2, 0.7], "size": [1, 1, 0.1]}})
+    assert footprints(room) == [{"center": [1, 2, 0.7], "size": [1, 1, 0.1]}]
+    assert footprints(SimpleNamespace(objects=None)) == [] and footprints(object()) == []
