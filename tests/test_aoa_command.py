@@ -31,7 +31,7 @@ def test_graf_aoa_reads_a_saved_run_and_reports_the_three_errors(tmp_path):
         assert 0.0 <= r[k]["median"] <= r[k]["p90"] <= 180.0
         assert len(r["per_spectrum"][k]) == 40
     assert r["test_reliance_db"] is not None and (out / "aoa_cdf.png").is_file() and (out / "aoa.md").is_file()
-    assert "| knn | rfid_s23 | 40 |" in p.stdout
+    assert r["n_measured"] == 160 and "| knn | rfid_s23 | 160 | 40 |" in p.stdout  # the whole training split
 
 
 def test_graf_aoa_names_a_folder_without_predictions(tmp_path):
@@ -41,3 +41,22 @@ def test_graf_aoa_names_a_folder_without_predictions(tmp_path):
     (tmp_path / "results.json").write_text("{}")
     with pytest.raises(ConfigError, match=r"predictions.npz: missing .*save_predictions=true"):
         run_errors(Path(tmp_path), None)
+
+
+@pytest.mark.slow  # two commands' start-up and a KNN evaluation (about 40 s here)
+def test_graf_aoa_adds_the_knn_baseline_on_the_runs_own_positions_and_neighbours(tmp_path):
+    """A study job keeps only its model's predictions; graf-aoa re-evaluates the KNN it was tested beside
+    (``baselines.knn``) on the same test positions and neighbours: its PSNR is the run's own KNN figure."""
+    from graf.pipeline.aoa import knn_errors
+
+    run = tmp_path / "run"
+    p = subprocess.run(
+        [sys.executable, "-m", "graf.cli.train", "model=knn", "save_predictions=true", "logger=none", "plot_count=0",
+         "trainer.limit_test_batches=3", f"hydra.run.dir={run}", f"data_root={tmp_path / 'data'}"],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert p.returncode == 0, p.stderr[-2000:]
+    res = json.loads((run / "results.json").read_text())
+    row = knn_errors(run, str(tmp_path / "data"))
+    assert row["method"] == "knn" and row["n"] == res["n_test"] < 40  # the run's limited test positions
+    assert row["test_psnr"] == pytest.approx(res["metrics"]["test/psnr"], abs=1e-6)

@@ -16,6 +16,7 @@ Writes ``results.json``, ``aoa.md`` and ``aoa_cdf.png`` into the output folder.
 from __future__ import annotations
 
 import json
+import logging
 import time
 from pathlib import Path
 
@@ -30,6 +31,8 @@ from graf.pipeline.build import build_datamodule
 from graf.pipeline.config import output_dir, task_wrapper
 from graf.plotting import save_figure
 
+log = logging.getLogger("graf")
+
 ERRORS = ("pred_vs_geometry", "true_vs_geometry", "pred_vs_true")
 
 
@@ -37,12 +40,11 @@ def _summary(err: np.ndarray) -> dict:
     return {"median": float(np.median(err)), "p90": float(np.percentile(err, 90)), "mean": float(np.mean(err))}
 
 
-def run_errors(folder: Path, data_root: str | None) -> dict:
-    """AoA errors of one run folder (see the module doc)."""
-    res_path, pred_path = folder / "results.json", folder / "predictions.npz"
-    for p in (res_path, pred_path):
-        if not p.is_file():
-            raise ConfigError(f"{p}: missing (run graf-train or graf-eval with save_predictions=true into {folder})")
+def _load_run(folder: Path, data_root: str | None):
+    """A run folder's results, config (``data_root`` replaced when given), datamodule (set up) and its one scene."""
+    res_path = folder / "results.json"
+    if not res_path.is_file():
+        raise ConfigError(f"{res_path}: missing (run graf-train or graf-eval with save_predictions=true into {folder})")
     res = json.loads(res_path.read_text())
     cfg = OmegaConf.create(res["config"])
     if data_root is not None:
@@ -51,48 +53,86 @@ def run_errors(folder: Path, data_root: str | None) -> dict:
     dm.setup("fit")
     if len(dm.sets) != 1:
         raise ConfigError(f"{folder}: graf-aoa reads runs tested on one scene, this one has {len(dm.sets)}")
-    d = dm.sets[0]
-    arr = np.load(pred_path)
+    return res, cfg, dm, dm.sets[0]
+
+
+def _errors(d, pred, target, ids, where) -> dict:
+    """The three AoA errors (degrees, per spectrum) of predicted and true spectra at the scene's ids."""
     row = {int(i): k for k, i in enumerate(np.asarray(d.ids))}
-    missing = [int(i) for i in arr["ids"] if int(i) not in row]
+    missing = [int(i) for i in ids if int(i) not in row]
     if missing:
-        raise ConfigError(f"{pred_path}: ids {missing[:5]} are not in scene {d.name}'s dataset")
-    pos = np.asarray(d.positions)[[row[int(i)] for i in arr["ids"]]]
+        raise ConfigError(f"{where}: ids {missing[:5]} are not in scene {d.name}'s dataset")
+    pos = np.asarray(d.positions)[[row[int(i)] for i in ids]]
     rot = Rotation.from_quat(np.asarray(d.gateway_orientation, dtype=np.float64)).as_matrix()
     g_el, g_az = arrival_direction(pos, np.asarray(d.gateway_position, dtype=np.float64), rot)
-    pe = np.array([peak_direction(s) for s in arr["pred"]])
-    te = np.array([peak_direction(s) for s in arr["target"]])
-    errs = {
+    pe = np.array([peak_direction(s) for s in pred])
+    te = np.array([peak_direction(s) for s in target])
+    return {
         "pred_vs_geometry": angular_error(pe[:, 0], pe[:, 1], g_el, g_az),
         "true_vs_geometry": angular_error(te[:, 0], te[:, 1], g_el, g_az),
         "pred_vs_true": angular_error(pe[:, 0], pe[:, 1], te[:, 0], te[:, 1]),
     }
-    m = res.get("metrics") or {}
+
+
+def _row(folder, method, d, res_splits, metrics, ids, errs) -> dict:
     return {
         "folder": str(folder),
-        "method": res.get("method"),
+        "method": method,
         "scene": d.name,
-        "n": int(len(arr["ids"])),
-        "test_psnr": m.get("test/psnr"),
-        "test_reliance_db": m.get("test/reliance_db"),
+        "n": int(len(ids)),
+        # the survey the run was trained and conditioned on (a density job's measured part), or None
+        "n_measured": (res_splits or {}).get("n_measured"),
+        "test_psnr": metrics.get("test/psnr"),
+        "test_reliance_db": metrics.get("test/reliance_db"),
         **{k: _summary(v) for k, v in errs.items()},
-        "per_spectrum": {"ids": [int(i) for i in arr["ids"]], **{k: v.tolist() for k, v in errs.items()}},
+        "per_spectrum": {"ids": [int(i) for i in ids], **{k: v.tolist() for k, v in errs.items()}},
     }
+
+
+def run_errors(folder: Path, data_root: str | None) -> dict:
+    """AoA errors of one run folder (see the module doc)."""
+    pred_path = folder / "predictions.npz"
+    if not pred_path.is_file():
+        raise ConfigError(
+            f"{pred_path}: missing (run graf-train or graf-eval with save_predictions=true into {folder})"
+        )
+    res, _, _, d = _load_run(folder, data_root)
+    arr = np.load(pred_path)
+    errs = _errors(d, arr["pred"], arr["target"], arr["ids"], pred_path)
+    return _row(folder, res.get("method"), d, res.get("splits"), res.get("metrics") or {}, arr["ids"], errs)
+
+
+def knn_errors(folder: Path, data_root: str | None) -> dict | None:
+    """AoA errors of the KNN baseline the run was tested beside (its ``baselines.knn``), re-evaluated on the run's
+    own test positions, survey and neighbours (a study job keeps only its model's predictions)."""
+    from graf.pipeline.testing import _test_baseline
+
+    res, cfg, dm, d = _load_run(folder, data_root)
+    bcfg = (cfg.get("baselines") or {}).get("knn")
+    if bcfg is None:
+        log.warning("%s: tested without a KNN baseline (baselines.knn): no KNN row for its scene and survey", folder)
+        return None
+    cfg.save_predictions = False
+    cfg.validate = False
+    out = _test_baseline(cfg, "knn", bcfg, dm)
+    arr = out["_arrays"]
+    errs = _errors(d, arr["pred"], arr["target"], arr["ids"], folder)
+    return _row(f"{folder} (baselines.knn)", out["method"], d, res.get("splits"), out["metrics"], arr["ids"], errs)
 
 
 def markdown(rows: list[dict]) -> str:
     head = (
-        "| method | scene | n | AoA error vs geometry (median / p90, deg) | true spectra vs geometry | "
+        "| method | scene | measured | n | AoA error vs geometry (median / p90, deg) | true spectra vs geometry | "
         "vs the true spectra's AoA | test PSNR | reliance dB |"
     )
-    lines = [head, "|" + "---|" * 8]
+    lines = [head, "|" + "---|" * 9]
     for r in rows:
         f = lambda k, r=r: f"{r[k]['median']:.1f} / {r[k]['p90']:.1f}"  # noqa: E731
         psnr = "-" if r["test_psnr"] is None else f"{r['test_psnr']:.2f}"
         rel = "-" if r["test_reliance_db"] is None else f"{r['test_reliance_db']:.2f}"
         lines.append(
-            f"| {r['method']} | {r['scene']} | {r['n']} | {f('pred_vs_geometry')} | {f('true_vs_geometry')} | "
-            f"{f('pred_vs_true')} | {psnr} | {rel} |"
+            f"| {r['method']} | {r['scene']} | {r.get('n_measured') or 'all'} | {r['n']} | {f('pred_vs_geometry')} | "
+            f"{f('true_vs_geometry')} | {f('pred_vs_true')} | {psnr} | {rel} |"
         )
     return "\n".join(lines)
 
@@ -122,6 +162,20 @@ def run(cfg: DictConfig) -> dict:
     if not cfg.get("runs"):
         raise ConfigError("graf-aoa: give runs=[<run folder>, ...] (runs with save_predictions=true)")
     rows = [run_errors(Path(str(f)), cfg.get("data_root")) for f in cfg.runs]
+    if cfg.get("knn"):  # KNN beside: once per scene and survey, from the first run of each
+        seen = set()
+        for r in rows:
+            group = (r["scene"], r["n_measured"])
+            if r["method"] == "knn":  # KNN's own run is that group's KNN row
+                seen.add(group)
+        for f, r in zip(cfg.runs, list(rows)):
+            group = (r["scene"], r["n_measured"])
+            if group not in seen:
+                seen.add(group)
+                knn = knn_errors(Path(str(f)), cfg.get("data_root"))
+                if knn is not None:
+                    rows.append(knn)
+    rows.sort(key=lambda r: (r["scene"], r["method"] or "", r.get("n_measured") or 0))
     out = output_dir(cfg)
     table = markdown(rows)
     _plot(out / "aoa_cdf.png", rows)
