@@ -5,6 +5,7 @@ rows.json (written by graf-report), nothing recomputed.
     python scripts/study_tables.py sweeps/neighbour_count         # metric vs L per method
     python scripts/study_tables.py sweeps/unseen_layouts          # seed Tables 1-4 shape, metric vs fraction
     python scripts/study_tables.py sweeps/bands                   # train band x test band (PSNR)
+    python scripts/study_tables.py sweeps/density                 # metric vs the survey, spacing for X dB
 """
 
 from __future__ import annotations
@@ -131,6 +132,47 @@ def unseen(rows: list[dict]) -> str:
     return "\n\n".join(out)
 
 
+def density(report: dict, rows: list[dict]) -> str:
+    """Per scene: each method's test PSNR (reliance dB) and LPIPS against the survey (fraction of the training
+    split measured, trained from scratch on it; its spacing: the median nearest-neighbour distance of the
+    measured positions), and the largest spacing at which each method reaches X dB (report.json)."""
+    out = []
+    for scene in sorted({r["eval_scene"] for r in rows}):
+        sub = [r for r in rows if r["eval_scene"] == scene]
+        fr = [x for x in FRACTIONS if any(r["finetune"] == x for r in sub)]
+        spacing = {r["finetune"]: r.get("spacing_m") for r in sub}
+        head = ["method", *[f"{x} ({fmt(spacing.get(x) and spacing[x] * 100, '{:.1f}')} cm)" for x in fr]]
+        by = defaultdict(dict)
+        for r in sub:
+            by[r["method"]][r["finetune"]] = r
+        for key, name, f, rel in (
+            ("test/psnr", "PSNR (reliance dB)", "{:.2f}", True),
+            ("test/lpips", "LPIPS", "{:.3f}", False),
+        ):  # noqa: E501
+            body = []
+            for m, cells in sorted(by.items()):
+                row = [m]
+                for x in fr:
+                    r = cells.get(x) or {}
+                    v = fmt(r.get(key), f)
+                    if rel and r.get("test/reliance_db") is not None:
+                        v += f" ({r['test/reliance_db']:.1f})"
+                    row.append(v)
+                body.append(row)
+            out.append(
+                f"**{scene}**: test {name} against the survey (fraction measured, its spacing)\n\n" + md(head, body)
+            )
+        answer = (report.get("spacing_for_psnr") or {}).get(scene) or {}
+        if answer:
+            th = sorted({t for v in answer.values() for t in v}, key=float)
+            body = [[m, *[fmt(v.get(t) and v[t] * 100, "{:.1f}") for t in th]] for m, v in sorted(answer.items())]
+            out.append(
+                f"**{scene}**: the largest survey spacing (cm) at which each method reaches X dB (- : not reached)\n\n"
+                + md(["method", *[f"{t} dB" for t in th]], body)
+            )
+    return "\n\n".join(out)
+
+
 def bands(report: dict) -> str:
     out = []
     for m, d in report["band_matrix"].items():
@@ -150,7 +192,9 @@ def main() -> None:
     if "vs_L" in report:
         print(vs_l(report, rows))
         print(per_pair(rows))
-    if "vs_fraction" in report:
+    if "vs_spacing" in report:  # the density study: surveys trained from scratch, not fine-tuned fractions
+        print(density(report, rows))
+    elif "vs_fraction" in report:
         print(unseen(rows))
     if "band_matrix" in report:
         print(bands(report))
