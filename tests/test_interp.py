@@ -57,6 +57,8 @@ def test_interp_on_a_traced_room_measures_fine_scales_and_the_curvature(tmp_path
     assert fine["barycentric"]["median_rmse"][0] < fine["barycentric"]["median_rmse"][-1]  # closer is better
     assert len(k["K"]) == 3 and all(v > 0 for v in k["K"]) and -1.0 <= k["spearman_rho"] <= 1.0
     assert np.array(s["kmap"]["K"]).shape == (len(s["kmap"]["y"]), len(s["kmap"]["x"]))
+    nf = s["kmap_near_far"]
+    assert nf["near"]["n"] + nf["open"]["n"] + nf["inside_objects"] <= np.array(s["kmap"]["K"]).size
     # resumable per scene: a second invocation into the same folder keeps the finished scene, tracing nothing
     import graf.pipeline.interp as interp
 
@@ -77,3 +79,23 @@ def test_a_layout_variants_removed_objects_are_left_out_of_the_map():
     room = SimpleNamespace(objects={"chair": None, "table": {"center": [1, 2, 0.7], "size": [1, 1, 0.1]}})
     assert footprints(room) == [{"center": [1, 2, 0.7], "size": [1, 1, 0.1]}]
     assert footprints(SimpleNamespace(objects=None)) == [] and footprints(object()) == []
+
+
+def test_the_k_map_is_split_into_points_near_walls_or_objects_and_open_space():
+    from types import SimpleNamespace
+
+    from graf.pipeline.interp import near_far
+    from graf.sim.geometry import Box, SceneGeometry
+
+    xs = ys = [0.5, 1.5, 2.5, 3.5]  # a 4 x 4 m room, 1 m grid at z = 1
+    K = [[10.0 if (x in (0.5, 3.5) or y in (0.5, 3.5)) else 1.0 for x in xs] for y in ys]  # high along the walls
+    K[1][1] = 5.0  # (1.5, 1.5) sits in the table's box: left out
+    room = SimpleNamespace(
+        room={"size": [4.0, 4.0, 3.0]},
+        geometry=SceneGeometry(boxes=[Box("table", np.array([1.5, 1.5, 1.0]), np.array([0.4, 0.4, 0.4]))]),
+    )
+    nf = near_far({"x": xs, "y": ys, "z": 1.0, "K": K}, room, margin=0.5)
+    assert nf["inside_objects"] == 1 and nf["near"]["n"] + nf["open"]["n"] == 15
+    assert nf["near"]["n"] == 12 and nf["open"]["n"] == 3  # the wall-side ring; the table is 1 m from the rest
+    assert nf["near"]["median_K"] == 10.0 and nf["open"]["median_K"] == 1.0 and nf["near_over_open"] == 10.0
+    assert near_far({}, room, 0.5) is None and near_far({"x": xs}, SimpleNamespace(), 0.5) is None

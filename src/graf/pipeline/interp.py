@@ -136,6 +136,33 @@ def _plot(path, name, data, fine, kpart, kmap, objects, wavelength) -> None:
     save_figure(fig, path, dpi=90)
 
 
+def near_far(kmap: dict, scene_obj, margin: float) -> dict | None:
+    """K over the floor-plan map split by clearance: grid points within ``margin`` of a wall (the room's side
+    walls; floor and ceiling are left out, the map being at one height) or of an object's box (its yaw
+    included), against the open space beyond.  Median K of each, their ratio, and the counts; grid points
+    inside an object are left out (nothing is traced there).  None without a map or a geometry."""
+    geo = getattr(scene_obj, "geometry", None)
+    if not kmap or geo is None:
+        return None
+    xs, ys, z = np.asarray(kmap["x"]), np.asarray(kmap["y"]), float(kmap["z"])
+    gx, gy = np.meshgrid(xs, ys, indexing="xy")
+    pts = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, z)], -1)
+    K = np.asarray(kmap["K"], dtype=float).ravel()
+    inside = geo.inside_objects(pts, 0.0)
+    near = geo.inside_objects(pts, margin)
+    room = getattr(scene_obj, "room", None)
+    if room:
+        sx, sy = float(room["size"][0]), float(room["size"][1])
+        near |= np.minimum.reduce([pts[:, 0], sx - pts[:, 0], pts[:, 1], sy - pts[:, 1]]) <= margin
+    keep = ~inside & np.isfinite(K) & (K > 0)
+    out = {"margin_m": float(margin), "inside_objects": int(inside.sum())}
+    for name, sel in (("near", keep & near), ("open", keep & ~near)):
+        out[name] = {"n": int(sel.sum()), "median_K": float(np.median(K[sel])) if sel.any() else None}
+    a, b = out["near"]["median_K"], out["open"]["median_K"]
+    out["near_over_open"] = a / b if a and b else None
+    return out
+
+
 def footprints(scene_obj) -> list[dict]:
     """The scene's objects for the K map's outlines; a layout variant removes an object by setting it to null."""
     return [dict(o) for o in (getattr(scene_obj, "objects", None) or {}).values() if o]
@@ -163,6 +190,9 @@ def _summary_line(name: str, rec: dict, lam: float) -> str:
         up = fine["barycentric"]["quadratic_up_to_m"]
         line += f"; quadratic up to {'-' if up is None else f'{up:.3g} m ({up / lam:.2g} wavelengths)'}"
         line += f"; rho(K, error/dP^2) {kpart['spearman_rho']:.2f}"
+    nf = rec.get("kmap_near_far") or {}
+    if nf.get("near_over_open"):
+        line += f"; K near walls/objects / open {nf['near_over_open']:.2f}"
     return line
 
 
@@ -191,6 +221,8 @@ def run(cfg: DictConfig) -> dict:
             and prev.get("n_positions") == len(d.positions)
         ):  # finished by an earlier invocation with the same settings: kept (the command is resumable per scene)
             log.info("%s: kept from the earlier run (%s)", d.name, out / "results.json")
+            if "kmap_near_far" not in prev and prev.get("kmap"):  # added after the record was made: no tracing
+                prev["kmap_near_far"] = near_far(prev["kmap"], scene_obj, float(ic.kmap_spacing_m))
             results["scenes"][d.name] = prev
             lines.append(_summary_line(d.name, prev, lam))
             continue
@@ -227,6 +259,7 @@ def run(cfg: DictConfig) -> dict:
                 "K": curvature_map(trace, pts, h).reshape(gx.shape).tolist(),
             }
             rec.update(fine=fine, curvature=kpart, kmap=kmap)
+            rec["kmap_near_far"] = near_far(kmap, scene_obj, float(ic.kmap_spacing_m))
         objects = footprints(scene_obj) if simulated else []
         fig = out / f"interp_{d.name}.png"
         _plot(fig, d.name, rec["dataset"], fine, kpart, kmap, objects, lam)
