@@ -176,9 +176,12 @@ def _finished_scenes(path: Path, config: dict) -> dict:
         prev = json.loads(path.read_text())
     except (OSError, ValueError):
         return {}
-    same = (prev.get("config") or {}).get("interp") == config.get("interp") and (prev.get("config") or {}).get(
-        "seed"
-    ) == config.get("seed")
+
+    def settings(c: dict) -> dict:  # a setting added since, left at its default (null), changes nothing
+        return {k: v for k, v in ((c or {}).get("interp") or {}).items() if v is not None}
+
+    before = prev.get("config") or {}
+    same = settings(before) == settings(config) and before.get("seed") == config.get("seed")
     return dict(prev.get("scenes") or {}) if same else {}
 
 
@@ -241,10 +244,14 @@ def run(cfg: DictConfig) -> dict:
             fine = fine_part(trace, anchors, scales, float(ic.threshold_slope), int(cfg.get("seed") or 0))
             h = float(ic.fd_step_wavelengths) * lam
             K = curvature_map(trace, anchors, h)
-            first = np.array(fine["scale"]) == scales[0]
-            ratio = np.array(fine["barycentric"]["rmse"])[first] / scales[0] ** 2
+            # error / dP^2 at one cluster scale (the finest unless interp.ratio_scale_wavelengths names another:
+            # at the finest, both it and K by finite differences can be ruled by the tracer's noise floor)
+            rs = ic.get("ratio_scale_wavelengths")
+            at = scales[0] if rs is None else min(scales, key=lambda x: abs(x - float(rs) * lam))
+            first = np.isclose(np.array(fine["scale"]), at)
+            ratio = np.array(fine["barycentric"]["rmse"])[first] / at**2
             rho, p = stats.spearmanr(K, ratio)
-            kpart = {"K": K.tolist(), "ratio": ratio.tolist(), "scale_m": scales[0], "fd_step_m": h,
+            kpart = {"K": K.tolist(), "ratio": ratio.tolist(), "scale_m": at, "fd_step_m": h,
                      "spearman_rho": float(rho), "spearman_p": float(p), "fit_ratio_vs_K": _fit(K, ratio)}  # fmt: skip
             lo, hi = np.asarray(scene_obj.transmitters["min"], float), np.asarray(scene_obj.transmitters["max"], float)
             z = float(ic.kmap_height) if ic.get("kmap_height") is not None else float((lo[2] + hi[2]) / 2)
