@@ -147,3 +147,12 @@ def test_the_curvature_map_is_the_curvature_at_every_point():
     k = curvature_map(_wave_field, pts, h=1e-3)
     assert k.shape == (5,)
     assert k == pytest.approx([curvature(_wave_field, p, 1e-3) for p in pts], rel=1e-9)
+    # traced in chunks (memory bounded), the same values; a call never holds more than a chunk's stencils
+    calls = []
+
+    def field(x):
+        calls.append(len(x))
+        return _wave_field(x)
+
+    assert curvature_map(field, pts, h=1e-3, chunk=2) == pytest.approx(k, rel=1e-12)
+    assert calls == [14, 14, 7]

@@ -137,10 +137,15 @@ def quadratic_up_to(scale, error, threshold: float = 1.5) -> float | None:
     return last
 
 
-def curvature_map(trace: Callable[[np.ndarray], np.ndarray], points, h: float) -> np.ndarray:
-    """:func:`curvature` at every point ``[M, 3]``, all stencils traced in one call."""
+def curvature_map(trace: Callable[[np.ndarray], np.ndarray], points, h: float, chunk: int = 128) -> np.ndarray:
+    """:func:`curvature` at every point ``[M, 3]``, the stencils of ``chunk`` points traced per call (memory
+    bounded: an outdoor floor grid of 8,000 points in one call, 56,000 spectra, once took all 24 GB)."""
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     stencil = np.concatenate([np.zeros((1, 3))] + [s * h * e[None] for e in np.eye(3) for s in (1.0, -1.0)])
-    batch = (pts[:, None, :] + stencil[None]).reshape(-1, 3)
-    spectra = np.asarray(trace(batch), dtype=np.float64).reshape(len(pts), 7, -1)
-    return np.array([curvature(lambda _p, s=s: s, p, h) for p, s in zip(pts, spectra)])
+    out = []
+    for i in range(0, len(pts), max(1, int(chunk))):
+        part = pts[i : i + max(1, int(chunk))]
+        batch = (part[:, None, :] + stencil[None]).reshape(-1, 3)
+        spectra = np.asarray(trace(batch), dtype=np.float64).reshape(len(part), 7, -1)
+        out += [curvature(lambda _p, s=s: s, p, h) for p, s in zip(part, spectra)]
+    return np.array(out, dtype=np.float64).reshape(len(pts))
