@@ -41,6 +41,7 @@ def test_graf_localize_on_a_knn_run_resumes_and_reports_each_initialisation(tmp_
     knn_psnr = json.loads((run / "results.json").read_text())["metrics"]["test/psnr"]
     assert g["inits"]["knn"]["quality_psnr"] == pytest.approx(knn_psnr, abs=1e-3)
     assert (out / "localize.png").is_file() and "| rfid_s23 | 160 | knn |" in p.stdout
+    assert g["inits"]["knn"]["quality_n_test"] == 40
     # a second invocation finds the group done and trains nothing again
     p = _run("graf.cli.localize", f"runs=[{run}]", *SMALL, f"hydra.run.dir={out}", f"data_root={data}")
     assert "already in" in p.stderr + p.stdout
@@ -66,3 +67,20 @@ def test_a_measured_set_holding_a_test_position_is_refused():
     test = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
     with pytest.raises(ConfigError, match="measured set holds 1 position"):
         check_disjoint(np.array([[0.5, 0.5, 0.5], [1.0, 1.0, 1.0]]), test, 1e-9, "measured set")
+
+
+@pytest.mark.slow
+def test_graf_localize_quality_on_a_jobs_own_test_budget_equals_its_test_psnr(tmp_path):
+    """quality_test_count: a run tested on the first 12 test spectra (3 batches of 4, as the density jobs test on
+    their first 32) gets that run's test PSNR as its synthesis quality; the localizers still see all 40."""
+    run, out, data = tmp_path / "knn", tmp_path / "loc", tmp_path / "data"
+    _run("graf.cli.evaluate", "model=knn", "logger=none", "plot_count=0", "data.batch_size=4",
+         "trainer.limit_test_batches=3", f"hydra.run.dir={run}", f"data_root={data}")  # fmt: skip
+    res = json.loads((run / "results.json").read_text())
+    n = res["n_test"]
+    assert n == 12
+    _run("graf.cli.localize", f"runs=[{run}]", *SMALL, f"quality_test_count={n}", f"hydra.run.dir={out}",
+         f"data_root={data}")  # fmt: skip
+    (g,) = json.loads((out / "results.json").read_text())["groups"]
+    assert g["n_test"] == 40 and g["inits"]["knn"]["quality_n_test"] == n
+    assert g["inits"]["knn"]["quality_psnr"] == pytest.approx(res["metrics"]["test/psnr"], abs=1e-3)

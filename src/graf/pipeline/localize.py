@@ -17,7 +17,8 @@ and measured part form a *group*; per group:
   refuses anything closer, and a measured set holding a test position);
 - **synthesizers**: every run of the group, and IDW KNN on the same pool (``knn=true``), predict spectra
   at the synthetic positions; each one's test PSNR (its predictions at the test positions, same pool) is
-  its *synthesis quality*;
+  its *synthesis quality* (on the first ``quality_test_count`` test positions when set: a study job's own
+  test budget, so the figure equals that job's test PSNR);
 - **localizers** (:class:`~graf.analysis.localization.SpectrumLocalizer`), per seed: ``random`` (random
   initialisation, ``train_steps`` on the measured set) and one per synthesizer (``pretrain_steps`` on its
   synthesized spectra, then the same ``train_steps`` on the measured set with a fresh Adam).
@@ -147,6 +148,10 @@ def run_group(runs: list[dict], cfg: DictConfig) -> dict:
     syn_pos = synthetic_positions(*box, int(cfg.n_synth), test_pos, min_gap, seed=int(cfg.synth_seed))
     check_disjoint(syn_pos, test_pos, min_gap, "synthesized set")
 
+    # synthesis quality on the first n_q spectra of the seeded test split (all unless quality_test_count says)
+    n_q = len(test) if cfg.get("quality_test_count") is None else min(int(cfg.quality_test_count), len(test))
+    if n_q < 1:
+        raise ConfigError(f"graf-localize: quality_test_count={cfg.quality_test_count} leaves no test spectrum")
     synthesizers = [(r["method"], r) for r in runs]
     if cfg.knn and not any(r["method"] == "knn" for r in runs):
         knn = {**runs[0], "ckpt": None, "folder": None, "reliance_db": runs[0]["knn_reliance_db"]}
@@ -157,9 +162,10 @@ def run_group(runs: list[dict], cfg: DictConfig) -> dict:
         mcfg = OmegaConf.load(CONF_DIR / "model" / "knn.yaml") if r["folder"] is None else r["cfg"].model
         model = load_model(mcfg, r["ckpt"], f"run {r['folder']}")
         spectra = synthesize(model, r["dm"], syn_pos)
-        quality = _psnr(synthesize(model, r["dm"], test_pos), dm.spectra[test])
-        synth[name] = {"spectra": spectra, "quality_psnr": quality, "reliance_db": r["reliance_db"],
-                       "folder": r["folder"], "seconds": round(time.perf_counter() - t0, 2)}  # fmt: skip
+        quality = _psnr(synthesize(model, r["dm"], test_pos[:n_q]), dm.spectra[test[:n_q]])
+        synth[name] = {"spectra": spectra, "quality_psnr": quality, "quality_n_test": n_q,
+                       "reliance_db": r["reliance_db"], "folder": r["folder"],
+                       "seconds": round(time.perf_counter() - t0, 2)}  # fmt: skip
         log.info("%s: %s synthesized %d spectra (test PSNR %.2f dB)", d.name, name, len(spectra), quality)
 
     meas_x, test_x = dm.spectra[measured].float(), dm.spectra[test].float()
