@@ -84,3 +84,10 @@ def test_graf_localize_quality_on_a_jobs_own_test_budget_equals_its_test_psnr(tm
     (g,) = json.loads((out / "results.json").read_text())["groups"]
     assert g["n_test"] == 40 and g["inits"]["knn"]["quality_n_test"] == n
     assert g["inits"]["knn"]["quality_psnr"] == pytest.approx(res["metrics"]["test/psnr"], abs=1e-3)
+    # the same folder with another setting, or more quality spectra than the test split holds: one line each
+    for bad in ("quality_test_count=5", "quality_test_count=41"):
+        out2 = out if bad.endswith("5") else tmp_path / "loc2"
+        p = subprocess.run([sys.executable, "-m", "graf.cli.localize", f"runs=[{run}]", *SMALL, bad,
+                            f"hydra.run.dir={out2}", f"data_root={data}"], capture_output=True, text=True)  # fmt: skip
+        assert p.returncode != 0
+        assert ("other quality_test_count" if bad.endswith("5") else "test split holds 40") in p.stderr + p.stdout

@@ -55,6 +55,9 @@ from graf.plotting import save_figure
 
 log = logging.getLogger("graf")
 
+# the settings a group's figures depend on: a resumed invocation must give the same ones
+SETTINGS = ("knn", "n_synth", "synth_seed", "min_gap_wavelengths", "quality_test_count", "seeds", "localizer")
+
 
 def read_run(folder: Path, data_root: str | None) -> dict:
     """One run folder: its config, method, checkpoint (None for a method with nothing to train), the
@@ -149,9 +152,9 @@ def run_group(runs: list[dict], cfg: DictConfig) -> dict:
     check_disjoint(syn_pos, test_pos, min_gap, "synthesized set")
 
     # synthesis quality on the first n_q spectra of the seeded test split (all unless quality_test_count says)
-    n_q = len(test) if cfg.get("quality_test_count") is None else min(int(cfg.quality_test_count), len(test))
-    if n_q < 1:
-        raise ConfigError(f"graf-localize: quality_test_count={cfg.quality_test_count} leaves no test spectrum")
+    n_q = len(test) if cfg.get("quality_test_count") is None else int(cfg.quality_test_count)
+    if not 1 <= n_q <= len(test):
+        raise ConfigError(f"graf-localize: quality_test_count={n_q}, but {d.name}'s test split holds {len(test)}")
     synthesizers = [(r["method"], r) for r in runs]
     if cfg.knn and not any(r["method"] == "knn" for r in runs):
         knn = {**runs[0], "ckpt": None, "folder": None, "reliance_db": runs[0]["knn_reliance_db"]}
@@ -249,6 +252,13 @@ def run(cfg: DictConfig) -> dict:
     out = output_dir(cfg)
     res_path = out / "results.json"
     done = json.loads(res_path.read_text())["groups"] if res_path.is_file() else []
+    if done:  # resuming: the groups kept must have been made with these settings, or none is comparable
+        before = json.loads(res_path.read_text()).get("config") or {}
+        now = OmegaConf.to_container(cfg, resolve=True)
+        changed = [k for k in SETTINGS if before.get(k) != now.get(k)]
+        if changed:
+            raise ConfigError(f"{res_path}: its groups were made with other {', '.join(changed)}; "
+                              "give another hydra.run.dir (or the same settings to resume)")  # fmt: skip
     groups: dict[tuple, list[dict]] = {}
     for f in cfg.runs:
         r = read_run(Path(str(f)), cfg.get("data_root"))
