@@ -145,3 +145,28 @@ def test_under_ddp_rank_0_alone_reports_to_the_pruner_and_every_rank_takes_its_d
         OptunaPruning(trial, "val/psnr").on_validation_end(trainer(1, decision_of_rank_0=True), None)
     assert sent == [(0, True), (1, False)]
     assert study.trials[1].intermediate_values == {2: -10.0}  # one report, from rank 0
+
+
+def test_a_run_started_as_several_processes_without_a_shared_folder_is_refused(tmp_path):
+    # torchrun / srun start every rank with the same command: the default folder names the second each started in
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "WORLD_SIZE": "2", "RANK": "1", "LOCAL_RANK": "1"}
+    p = subprocess.run([sys.executable, "-m", "graf.cli.train", "model=knn", "logger=none"], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=300, env=env)  # fmt: skip
+    assert p.returncode == 2  # a user error's exit code
+    assert "2 processes were started for this run (torchrun / srun)" in p.stderr
+    assert "hydra.run.dir=outputs/ddp_run" in p.stderr
+    assert "Traceback" not in p.stderr and not list(tmp_path.rglob("results.json"))
+
+
+@pytest.mark.slow  # a base model and its fine-tuning, both by two gloo processes: about a minute here
+def test_under_ddp_a_base_model_trained_on_the_fly_is_trained_by_every_rank_then_fine_tuned(tmp_path):
+    base = tmp_path / "base"
+    study = ["finetune=f50", "finetune.init_from=base", "finetune.max_steps=3",
+             f"finetune.base={{dir:'{base}',overrides:['model=knn_dl']}}"]  # fmt: skip
+    two = _run(tmp_path, "graf.cli.train", "model=knn_dl", "trainer.max_steps=2", *study, procs=2)
+    b = json.loads((base / "results.json").read_text())
+    assert b["training"]["world_size"] == 2 and b["global_step"] == 2  # the ranks trained the base together
+    r = two["results"]
+    assert r["training"]["world_size"] == 2 and r["training"]["targets_seen"] == 3 * 2 * 4
+    assert r["finetune"]["init_from"] == str(base / "checkpoints" / "last.ckpt") and r["finetune"]["base_steps"] == 2
+    assert two["stdout"].count("results:") == 2  # the base's and the fine-tuned run's, each printed by rank 0 once

@@ -50,6 +50,7 @@ def task_wrapper(task):
     @functools.wraps(task)
     def wrapped(cfg: DictConfig, *args, **kwargs):
         try:
+            check_shared_run_folder()
             return task(cfg, *args, **kwargs)
         except Exception as exc:
             if (is_user_error(exc) or hasattr(exc, "exit_code")) and os.environ.get("HYDRA_FULL_ERROR") != "1":
@@ -72,6 +73,38 @@ def task_wrapper(task):
                 pass
 
     return wrapped
+
+
+def launched_ranks() -> int:
+    """How many processes an outside launcher started for this command: torchrun's (and Lightning's children's)
+    ``WORLD_SIZE``, srun's ``SLURM_STEP_NUM_TASKS``; 1 for a plain command."""
+    for key in ("WORLD_SIZE", "SLURM_STEP_NUM_TASKS"):
+        try:
+            n = int(os.environ.get(key) or 1)
+        except ValueError:
+            continue
+        if n > 1:
+            return n
+    return 1
+
+
+def check_shared_run_folder() -> None:
+    """Refuse a run started as several processes (torchrun, srun) without ``hydra.run.dir``: each process would
+    name its own folder after the second it started in, so rank 0 would write the run's files in one folder and
+    the others would look for them (a base model trained on the fly, a checkpoint) in another.  Lightning's own
+    launcher passes its folder to the processes it starts; a multirun's folders are named once by its launcher."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    n = launched_ranks()
+    if n < 2 or not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.RUN:
+        return
+    if any(o.split("=", 1)[0].lstrip("+~") == "hydra.run.dir" for o in HydraConfig.get().overrides.hydra):
+        return
+    raise ConfigError(
+        f"{n} processes were started for this run (torchrun / srun), and each would name its own output folder "
+        "after the second it started in: give them one, e.g. hydra.run.dir=outputs/ddp_run"
+    )
 
 
 def scene_configs(node) -> list[DictConfig]:

@@ -236,6 +236,8 @@ def _plot(path: Path, groups: list[dict]) -> None:
             pts = [(g["n_measured"], g["inits"][init]["median_m"]) for g in gs if init in g["inits"]]
             ax.plot(*zip(*pts), "o-" if init != "random" else "k--", label=init)
         ax.set_xscale("log")
+        ax.set_xticks([g["n_measured"] for g in gs], [str(g["n_measured"]) for g in gs])  # the surveys run
+        ax.minorticks_off()
         ax.set_xlabel("measured spectra")
         ax.set_ylabel("median localization error (m)")
         ax.set_title(scene)
