@@ -42,6 +42,7 @@ def test_graf_localize_on_a_knn_run_resumes_and_reports_each_initialisation(tmp_
     assert g["inits"]["knn"]["quality_psnr"] == pytest.approx(knn_psnr, abs=1e-3)
     assert (out / "localize.png").is_file() and "| rfid_s23 | 160 | knn |" in p.stdout
     assert g["inits"]["knn"]["quality_n_test"] == 40
+    assert 0 < g["seconds"] <= res["seconds"]  # the group's wall time, and the command's over its invocations
     # a second invocation finds the group done and trains nothing again
     p = _run("graf.cli.localize", f"runs=[{run}]", *SMALL, f"hydra.run.dir={out}", f"data_root={data}")
     assert "already in" in p.stderr + p.stdout

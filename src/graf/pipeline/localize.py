@@ -25,8 +25,10 @@ and measured part form a *group*; per group:
 
 Reports per group and initialisation the median and 90th-percentile localization error on the test positions
 (metres; mean over seeds, each seed's figures kept), beside the synthesizer's quality and the run's neighbour
-reliance.  ``results.json`` is rewritten after every group (a killed run resumes at the next group);
-``localize.md`` and ``localize.png`` (median error against the number of measured spectra, a panel per scene).
+reliance.  ``results.json`` is rewritten after every group (a killed run resumes at the next group), with each
+group's wall time and the command's over all its invocations (``seconds``; results written before this kept only
+the last invocation's); ``localize.md`` and ``localize.png`` (median error against the number of measured
+spectra, a panel per scene).
 """
 
 from __future__ import annotations
@@ -253,11 +255,11 @@ def run(cfg: DictConfig) -> dict:
     torch.set_num_threads(int(cfg.threads))
     out = output_dir(cfg)
     res_path = out / "results.json"
-    done = json.loads(res_path.read_text())["groups"] if res_path.is_file() else []
+    before = json.loads(res_path.read_text()) if res_path.is_file() else {}
+    done, earlier_s = before.get("groups", []), float(before.get("seconds") or 0)  # seconds: over every invocation
     if done:  # resuming: the groups kept must have been made with these settings, or none is comparable
-        before = json.loads(res_path.read_text()).get("config") or {}
-        now = OmegaConf.to_container(cfg, resolve=True)
-        changed = [k for k in SETTINGS if before.get(k) != now.get(k)]
+        made_with, now = before.get("config") or {}, OmegaConf.to_container(cfg, resolve=True)
+        changed = [k for k in SETTINGS if made_with.get(k) != now.get(k)]
         if changed:
             raise ConfigError(f"{res_path}: its groups were made with other {', '.join(changed)}; "
                               "give another hydra.run.dir (or the same settings to resume)")  # fmt: skip
@@ -271,10 +273,11 @@ def run(cfg: DictConfig) -> dict:
         if any(g["runs"] == folders for g in done):
             log.info("%s: already in %s", folders, res_path)
             continue
-        results.append(run_group(runs, cfg))
+        t0 = time.perf_counter()
+        results.append({**run_group(runs, cfg), "seconds": round(time.perf_counter() - t0, 1)})
         atomic_write_json(res_path, {"analysis": "localization", "groups": results,
                                      "config": OmegaConf.to_container(cfg, resolve=True),
-                                     "seconds": round(time.perf_counter() - started, 3)})  # fmt: skip
+                                     "seconds": round(earlier_s + time.perf_counter() - started, 1)})  # fmt: skip
     table = markdown(results)
     atomic_write_text(out / "localize.md", table + "\n")
     _plot(out / "localize.png", results)
