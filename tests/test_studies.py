@@ -120,3 +120,16 @@ def test_study_jobs_outside_the_design_are_skipped_with_the_reason(compose_cfg):
         "experiment=unseen_layouts", "scene=bedroom", "finetune.base.band=scene"
     )
     assert reason("experiment=unseen_layouts", "scene=rfid_s23", "finetune.base.band=scene") is None
+
+
+@pytest.mark.parametrize("study", ["bands", "cross_scene_matrix", "density", "neighbour_count", "unseen_layouts"])
+def test_a_study_optimises_nothing_so_its_jobs_return_no_sweep_value(compose_cfg, study, caplog):
+    from graf.pipeline.testing import sweep_value
+
+    cfg = compose_cfg("train", (f"experiment={study}",))
+    assert cfg.validate is False and cfg.optimized_metric is None
+    with caplog.at_level("WARNING", logger="graf"):  # no "val/psnr is nan; reporting the worst value" per job
+        assert sweep_value(cfg, {"val/psnr": None, "test/psnr": 20.0}) == 0.0
+    assert not caplog.records
+    # a search composed with a study keeps its own metric (hparams_search comes after experiment)
+    assert compose_cfg("train", (f"experiment={study}", "hparams_search=neighbour_count")).optimized_metric
