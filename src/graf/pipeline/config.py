@@ -75,6 +75,12 @@ def task_wrapper(task):
     return wrapped
 
 
+def override_key(override: str) -> str:
+    """The key a command-line override sets: ``model`` for ``model=knn``, ``+trainer.x`` and ``~trainer.x`` ->
+    ``trainer.x``."""
+    return override.split("=", 1)[0].lstrip("+~")
+
+
 def launched_ranks() -> int:
     """How many processes an outside launcher started for this command: torchrun's (and Lightning's children's)
     ``WORLD_SIZE``, srun's ``SLURM_STEP_NUM_TASKS``; 1 for a plain command."""
@@ -99,7 +105,7 @@ def check_shared_run_folder() -> None:
     n = launched_ranks()
     if n < 2 or not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.RUN:
         return
-    if any(o.split("=", 1)[0].lstrip("+~") == "hydra.run.dir" for o in HydraConfig.get().overrides.hydra):
+    if any(override_key(o) == "hydra.run.dir" for o in HydraConfig.get().overrides.hydra):
         return
     raise ConfigError(
         f"{n} processes were started for this run (torchrun / srun), and each would name its own output folder "

@@ -19,7 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from graf.models.base import CheckpointError, check_checkpoint, read_checkpoint
 from graf.pipeline.build import build
-from graf.pipeline.config import CONF_DIR, Results, task_wrapper
+from graf.pipeline.config import CONF_DIR, Results, override_key, task_wrapper
 from graf.pipeline.testing import test_and_report
 
 
@@ -27,7 +27,7 @@ def _model_overrides(overrides: Sequence[str]) -> tuple[str | None, list[str]]:
     """``(model group choice or None, [keys overridden under model.])`` from command-line overrides."""
     choice, keys = None, []
     for o in overrides:
-        key = o.split("=", 1)[0].lstrip("+~")
+        key = override_key(o)
         if key == "model":
             choice = o.split("=", 1)[1]
         elif key.startswith("model."):
@@ -95,11 +95,9 @@ def checkpoint_model_choice(args: Sequence[str]) -> str | None:
     exists when Hydra composes (the default model, KNN, has no ``lr``) and :func:`load_checkpoint_model` can
     apply or refuse it.  None when nothing is to be added (or the checkpoint cannot be read: the run then
     reports that itself)."""
-    if not any(a.startswith("ckpt_path=") for a in args) or any(
-        a.split("=", 1)[0].lstrip("+~") == "model" for a in args
-    ):
+    if not any(a.startswith("ckpt_path=") for a in args) or any(override_key(a) == "model" for a in args):
         return None
-    if not any(a.lstrip("+~").startswith("model.") for a in args):
+    if not any(override_key(a).startswith("model.") for a in args):
         return None
     path = next(a.split("=", 1)[1] for a in args if a.startswith("ckpt_path="))
     try:

@@ -154,9 +154,12 @@ def run_group(runs: list[dict], cfg: DictConfig) -> dict:
     check_disjoint(syn_pos, test_pos, min_gap, "synthesized set")
 
     # synthesis quality on the first n_q spectra of the seeded test split (all unless quality_test_count says)
-    n_q = len(test) if cfg.get("quality_test_count") is None else int(cfg.quality_test_count)
-    if not 1 <= n_q <= len(test):
-        raise ConfigError(f"graf-localize: quality_test_count={n_q}, but {d.name}'s test split holds {len(test)}")
+    n_q = len(test) if cfg.get("quality_test_count") is None else cfg.quality_test_count
+    if isinstance(n_q, bool) or not isinstance(n_q, int) or not 1 <= n_q <= len(test):
+        raise ConfigError(
+            f"graf-localize: quality_test_count={n_q}: give a whole number from 1 to {len(test)} "
+            f"({d.name}'s test split holds {len(test)})"
+        )
     synthesizers = [(r["method"], r) for r in runs]
     if cfg.knn and not any(r["method"] == "knn" for r in runs):
         knn = {**runs[0], "ckpt": None, "folder": None, "reliance_db": runs[0]["knn_reliance_db"]}

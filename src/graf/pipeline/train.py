@@ -26,7 +26,16 @@ from graf.errors import ConfigError, Preempted
 from graf.io import atomic_write_json, is_rank_zero
 from graf.models.base import CheckpointError, check_checkpoint, read_checkpoint
 from graf.pipeline.build import build
-from graf.pipeline.config import Results, expand_heldout, family, output_dir, run_settings, scene_configs, task_wrapper
+from graf.pipeline.config import (
+    Results,
+    expand_heldout,
+    family,
+    output_dir,
+    override_key,
+    run_settings,
+    scene_configs,
+    task_wrapper,
+)
 from graf.pipeline.testing import test_and_report
 
 log = logging.getLogger("graf")
@@ -412,7 +421,7 @@ def job_overrides() -> list[str]:
         return []
     out = []
     for o in HydraConfig.get().overrides.task:
-        key = o.split("=", 1)[0].lstrip("+~")
+        key = override_key(o)
         if not any(key == k or key.startswith(k + ".") for k in JOB_SPECIFIC):
             out.append(o)
     return out
