@@ -164,7 +164,7 @@ def include(path: str) -> str:
 
 
 def choose(path: str) -> str:
-    """GRaF's neighbour-feature mode ranked on validation by ``scripts/choose_graf.py``, per regime and over all."""
+    """GRaF's neighbor-feature mode ranked on validation by ``scripts/choose_graf.py``, per regime and over all."""
     cg = _script("choose_graf")
     with open(_record(ROOT / path), newline="") as fh:
         rows = list(csv.DictReader(fh))

@@ -1,4 +1,4 @@
-"""Choose GRaF's neighbour-feature mode from the learning curves, on validation figures only (the curves never
+"""Choose GRaF's neighbor-feature mode from the learning curves, on validation figures only (the curves never
 test).
 
 The rule: among the GRaF modes, at the largest step that every mode has reached in a regime, rank the modes on

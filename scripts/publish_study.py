@@ -3,7 +3,7 @@ skipped.json, base_overrides.json, the job log), the multirun's config, and graf
 Checkpoints and prediction samples stay behind (they are large; the study's command makes them again).
 
     python scripts/publish_study.py cross_scene_matrix     (then add the command and wall time in its README.md)
-    python scripts/publish_study.py search_neighbour_count (a search: also its optuna.db, trials.csv, best files)
+    python scripts/publish_study.py search_neighbor_count (a search: also its optuna.db, trials.csv, best files)
 """
 
 from __future__ import annotations

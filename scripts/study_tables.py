@@ -2,7 +2,7 @@
 rows.json (written by graf-report), nothing recomputed.
 
     python scripts/study_tables.py sweeps/cross_scene_matrix      # train x test matrix per metric
-    python scripts/study_tables.py sweeps/neighbour_count         # metric vs L per method
+    python scripts/study_tables.py sweeps/neighbor_count         # metric vs L per method
     python scripts/study_tables.py sweeps/unseen_layouts          # seed Tables 1-4 shape, metric vs fraction
     python scripts/study_tables.py sweeps/bands                   # train band x test band (PSNR)
     python scripts/study_tables.py sweeps/density                 # metric vs the survey, spacing for X dB
@@ -113,7 +113,7 @@ def unseen(rows: list[dict]) -> str:
                 if r["finetune"] in ((ft, "zero-shot", "-") if ft == "none" else (ft, "-"))
             ]
             out.append(
-                f"**{scene}**, models trained at {band}, {title} (test neighbours: "
+                f"**{scene}**, models trained at {band}, {title} (test neighbors: "
                 f"{'the whole training split' if ft == 'none' else 'the measured 20%'})\n\n"
                 + md(["method", "test spectra", "steps", *[n for _, n, _ in METRICS]], body)
             )
@@ -134,7 +134,7 @@ def unseen(rows: list[dict]) -> str:
 
 def density(report: dict, rows: list[dict]) -> str:
     """Per scene: each method's test PSNR (reliance dB) and LPIPS against the survey (fraction of the training
-    split measured, trained from scratch on it; its spacing: the median nearest-neighbour distance of the
+    split measured, trained from scratch on it; its spacing: the median nearest-neighbor distance of the
     measured positions), and the largest spacing at which each method reaches X dB (report.json)."""
     out = []
     for scene in sorted({r["eval_scene"] for r in rows}):

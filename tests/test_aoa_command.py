@@ -35,8 +35,8 @@ def test_graf_aoa_reads_a_saved_run_and_reports_the_three_errors(tmp_path):
 
 
 def test_graf_aoa_names_a_folder_without_predictions(tmp_path):
+    from graf.cases.aoa import run_errors
     from graf.errors import ConfigError
-    from graf.pipeline.aoa import run_errors
 
     (tmp_path / "results.json").write_text("{}")
     with pytest.raises(ConfigError, match=r"predictions.npz: missing .*save_predictions=true"):
@@ -44,10 +44,10 @@ def test_graf_aoa_names_a_folder_without_predictions(tmp_path):
 
 
 @pytest.mark.slow  # two commands' start-up and a KNN evaluation (about 40 s here)
-def test_graf_aoa_adds_the_knn_baseline_on_the_runs_own_positions_and_neighbours(tmp_path):
+def test_graf_aoa_adds_the_knn_baseline_on_the_runs_own_positions_and_neighbors(tmp_path):
     """A study job keeps only its model's predictions; graf-aoa re-evaluates the KNN it was tested beside
-    (``baselines.knn``) on the same test positions and neighbours: its PSNR is the run's own KNN figure."""
-    from graf.pipeline.aoa import knn_errors
+    (``baselines.knn``) on the same test positions and neighbors: its PSNR is the run's own KNN figure."""
+    from graf.cases.aoa import knn_errors
 
     run = tmp_path / "run"
     p = subprocess.run(

@@ -12,10 +12,10 @@ from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from hydra.errors import HydraException
 
-import graf.pipeline.bench as bench_cli
+import graf.studies.bench as bench_cli
 from graf.errors import ConfigError
-from graf.pipeline.bench import add_ratios, bench, ensure_simulated, scene_and_band
-from graf.pipeline.config import CONF_DIR
+from graf.run.config import CONF_DIR
+from graf.studies.bench import add_ratios, bench, ensure_simulated, scene_and_band
 
 REQUIRED = {
     "method",

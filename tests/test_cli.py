@@ -17,10 +17,10 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from graf.data.spectrum_set import DataFormatError
 from graf.errors import ConfigError
-from graf.pipeline.config import CONF_DIR, CONF_PATH, scene_band_config, scene_configs
-from graf.pipeline.evaluate import evaluate
-from graf.pipeline.table import make_table
-from graf.pipeline.train import train
+from graf.run.config import CONF_DIR, CONF_PATH, scene_band_config, scene_configs
+from graf.run.evaluate import evaluate
+from graf.run.train import train
+from graf.studies.table import make_table
 
 RESULT_KEYS = {"method", "scene", "band_hz", "n_train", "n_test", "metrics", "seconds", "config", "splits"}
 TEST_KEYS = {"test/mse", "test/psnr", "test/ssim", "test/lpips"}
@@ -139,10 +139,10 @@ def test_eval_knn_rfid_s23_writes_results_and_predictions(compose_cfg):
     # and the targets are the test split's spectra in the reader's order
     test_ids = [int(x) for x in (CONF_DIR.parent / "embedded/rfid_s23_200/test_index.txt").read_text().split()]
     assert z["ids"].tolist() == test_ids
-    assert 20 < r["metrics"]["test/psnr"] < 40  # dense real neighbours: a sane range, not a fixed value
+    assert 20 < r["metrics"]["test/psnr"] < 40  # dense real neighbors: a sane range, not a fixed value
 
 
-def test_barycentric_and_sparse_neighbours_change_the_result(compose_cfg):
+def test_barycentric_and_sparse_neighbors_change_the_result(compose_cfg):
     dense = evaluate(
         compose_cfg("eval", ("model.weighting=barycentric", "neighbors=fixed", "neighbors.L=6", "plot_count=0"))
     )[0]
@@ -158,7 +158,7 @@ def test_barycentric_and_sparse_neighbours_change_the_result(compose_cfg):
             ),
         )
     )[0]
-    assert sparse["test/psnr"] < dense["test/psnr"] - 3  # s23 is dense; removing near neighbours hurts
+    assert sparse["test/psnr"] < dense["test/psnr"] - 3  # s23 is dense; removing near neighbors hurts
 
 
 def test_train_with_knn_skips_fit_and_tests(compose_cfg):
@@ -231,7 +231,7 @@ def test_table_collects_runs(compose_cfg, tmp_path):
 
 
 def test_table_of_cross_scene_runs_has_a_row_per_test_scene_and_no_scene_config_columns():
-    from graf.pipeline.table import build_table
+    from graf.studies.table import build_table
 
     def run(trained, tested, psnrs, L):
         scenes = {n: {"name": n, "room": {"size": [i + 5.0, 4.0, 3.0]}} for i, n in enumerate(trained)}
@@ -333,7 +333,7 @@ def test_a_sweep_with_a_failing_job_keeps_the_table_of_the_others(tmp_path):
     assert "| knn-barycentric |" in (sweep / "table.md").read_text()
 
 
-def test_the_comparison_study_composes_one_job_per_method_on_the_same_neighbours():
+def test_the_comparison_study_composes_one_job_per_method_on_the_same_neighbors():
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         options = GlobalHydra.instance().config_loader().get_group_options("experiment")

@@ -120,7 +120,7 @@ def test_true_and_predicted_spectra_share_one_scale_with_a_colour_bar(monkeypatc
 
 
 def test_a_studys_matrices_share_one_scale_across_methods(tmp_path, monkeypatch):
-    from graf.pipeline import report
+    from graf.studies import report
 
     figs = []
     real_plt = report._plt()

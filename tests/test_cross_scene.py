@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from graf.pipeline.build import build_datamodule, eval_scene_indices
-from graf.pipeline.evaluate import evaluate
-from graf.pipeline.train import train
+from graf.run.build import build_datamodule, eval_scene_indices
+from graf.run.evaluate import evaluate
+from graf.run.train import train
 
 FAST = [
     "model.rays_per_step=64",
@@ -59,7 +59,7 @@ def test_two_scenes_of_different_bands_and_samples_per_ray_train_two_steps(compo
     assert all(v == v for v in r["metrics"].values()) and r["global_step"] == 2
 
 
-def test_neighbours_never_cross_scenes_and_never_are_the_target(compose_cfg, data_root):
+def test_neighbors_never_cross_scenes_and_never_are_the_target(compose_cfg, data_root):
     cfg = compose_cfg(
         "train",
         (

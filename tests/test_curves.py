@@ -34,7 +34,7 @@ def test_curves_run_resume_and_validate_only(tmp_path, make_scene):
         f"+regimes={{tiny: {{max_steps: 3, overrides: {regime}}}}}",
         "only_regimes=[tiny]",
         f"methods.pooled.overrides={q('model=graf_cpu', *small)}",
-        f"methods.ray_knn.overrides={q('model=graf_cpu', 'model.neighbour_features=ray_knn', *small)}",
+        f"methods.ray_knn.overrides={q('model=graf_cpu', 'model.neighbor_features=ray_knn', *small)}",
         "only_methods=[pooled,ray_knn]",
         f"hydra.run.dir={tmp_path / 'h'}",
     ]
@@ -77,7 +77,7 @@ def test_a_sigterm_is_passed_to_the_run_and_stops_the_command_with_code_143(tmp_
     import threading
 
     from graf.errors import PREEMPTED_EXIT_CODE, Preempted
-    from graf.pipeline.pareto import _run
+    from graf.studies.pareto import _run
 
     child = tmp_path / "child.py"
     child.write_text(
@@ -114,7 +114,7 @@ def _wait_for(path: Path, text: str, timeout: float = 30.0) -> None:
 
 
 def test_a_preempted_point_resumes_from_its_own_checkpoint_and_its_seconds_count(tmp_path):
-    from graf.pipeline.curves import PREEMPTED_RUNS, _preempted_runs, _resume_preempted
+    from graf.studies.curves import PREEMPTED_RUNS, _preempted_runs, _resume_preempted
 
     prev, folder = tmp_path / "step_1000", tmp_path / "step_10000"
     (folder / "checkpoints").mkdir(parents=True)
@@ -132,7 +132,7 @@ def test_a_preempted_point_resumes_from_its_own_checkpoint_and_its_seconds_count
 
 def test_a_preempted_point_moved_to_another_folder_resumes_from_its_own_checkpoint(tmp_path):
     """A curve run in one folder and published, stopped, into sweeps/: preempted.json names the old path."""
-    from graf.pipeline.curves import _preempted_runs, _resume_preempted
+    from graf.studies.curves import _preempted_runs, _resume_preempted
 
     prev, folder = tmp_path / "published" / "step_1000", tmp_path / "published" / "step_3000"
     (folder / "checkpoints").mkdir(parents=True)
@@ -149,7 +149,7 @@ def test_a_killed_point_resumes_from_its_periodic_checkpoint_and_its_saved_secon
     from the previous point, and the seconds its saved steps cost (AttemptClock's record) count in fit_s."""
     import torch
 
-    from graf.pipeline.curves import _preempted_runs, _resume_preempted
+    from graf.studies.curves import _preempted_runs, _resume_preempted
 
     prev, folder = tmp_path / "step_3000", tmp_path / "step_10000"
     (folder / "checkpoints").mkdir(parents=True)
@@ -215,7 +215,7 @@ def test_a_checkpoint_interval_under_one_step_stops_with_one_line(tmp_path):
 
 
 def test_a_points_device_is_short_in_the_table():
-    from graf.pipeline.curves import short_device
+    from graf.studies.curves import short_device
 
     assert short_device("cuda:0 (NVIDIA H200)") == "NVIDIA H200"
     assert short_device("cpu") == "cpu" and short_device(None) is None

@@ -8,9 +8,9 @@ import torch
 
 from graf.bands import Band
 from graf.data.datamodule import SpectrumDataModule, carve_validation
+from graf.data.neighbors import NeighborSelector
 from graf.data.scenes import NeRF2Scene
 from graf.data.spectrum_set import DataFormatError
-from graf.neighbors import NeighborSelector
 
 S23 = NeRF2Scene("rfid_s23", "embedded:rfid_s23_200")
 BAND = Band("915mhz", 915e6)
@@ -29,7 +29,7 @@ def test_validation_is_carved_from_training_and_never_meets_test():
     assert len(val) == 16 and len(fit) == 144 and len(test) == 40  # 10% of the 160 training spectra
     assert val | fit == train and not val & fit
     assert not val & test and not fit & test
-    # validation neighbours come from the fit spectra only; test neighbours from the whole training split
+    # validation neighbors come from the fit spectra only; test neighbors from the whole training split
     for split, pool in (("val", fit), ("test", train)):
         rows, idx, mask = dm.split_neighbors(split)
         used = set(dm.ids[idx[mask]].tolist())
@@ -39,7 +39,7 @@ def test_validation_is_carved_from_training_and_never_meets_test():
     assert not torch.equal(_dm(val_seed=1).val_rows, dm.val_rows)
 
 
-def test_training_targets_and_neighbours_are_fit_spectra_only():
+def test_training_targets_and_neighbors_are_fit_spectra_only():
     dm = _dm()
     fit = set(dm.fit_rows.tolist())
     for k in range(40):
@@ -92,7 +92,7 @@ def test_workers_build_the_same_stream_without_repeating_draws():
     a, b = _stream(dm0, n=12), _stream(dm2, n=12)
     for x, y in zip(a, b):
         assert torch.equal(x["tgt_index"], y["tgt_index"]) and torch.equal(x["src_index"], y["src_index"])
-    # batches built by different workers draw different neighbour counts (no shared, copied generator)
+    # batches built by different workers draw different neighbor counts (no shared, copied generator)
     counts = [tuple(x["src_mask"].sum(1).tolist()) for x in b]
     assert len(set(counts)) > 6
 
@@ -117,7 +117,7 @@ def test_batches_carry_each_items_scene_geometry(make_scene):
             b["wavelength"], torch.where(s == 0, torch.tensor(BAND.wavelength), torch.tensor(299_792_458.0 / 2.412e9))
         )
         assert torch.equal(b["gw_pos"], dm.gw_pos[s]) and torch.equal(b["ray_length"], dm.ray_length[s])
-        # neighbours never cross scenes
+        # neighbors never cross scenes
         src_scene = dm.row_scene[b["src_index"]]
         assert (src_scene == s[:, None])[b["src_mask"]].all()
     assert seen == {0, 1}
@@ -127,7 +127,7 @@ def test_batches_carry_each_items_scene_geometry(make_scene):
         _ = dm.data
 
 
-def test_the_measured_spacing_is_the_median_nearest_neighbour_distance_and_grows_as_the_survey_thins():
+def test_the_measured_spacing_is_the_median_nearest_neighbor_distance_and_grows_as_the_survey_thins():
     full, thin = _dm(), _dm(measured_fraction=0.2, measured_seed=0)
     full.setup("fit"), thin.setup("fit")
     pos = full.positions[full.measured_rows].double()

@@ -18,8 +18,8 @@ import torch
 
 from graf.bands import Band
 from graf.data.datamodule import SpectrumDataModule
+from graf.data.neighbors import NeighborSelector
 from graf.data.scenes import NeRF2Scene
-from graf.neighbors import NeighborSelector
 
 S23, BAND = NeRF2Scene("rfid_s23", "embedded:rfid_s23_200"), Band("915mhz", 915e6)
 
@@ -105,7 +105,7 @@ def test_the_ddp_preset_composes_alone_and_after_a_gpu_preset():
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    from graf.pipeline.config import CONF_DIR
+    from graf.run.config import CONF_DIR
 
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
@@ -121,7 +121,7 @@ def test_the_ddp_preset_composes_alone_and_after_a_gpu_preset():
 def test_under_ddp_rank_0_alone_reports_to_the_pruner_and_every_rank_takes_its_decision():
     import optuna
 
-    from graf.sweeps.pruning import OptunaPruning
+    from graf.search.pruning import OptunaPruning
 
     study = optuna.create_study(direction="maximize", pruner=optuna.pruners.MedianPruner(n_startup_trials=1))
     done = study.ask()

@@ -9,8 +9,8 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 
-from graf.pipeline.config import CONF_DIR
-from graf.pipeline.report import make_report, spacing_for
+from graf.run.config import CONF_DIR
+from graf.studies.report import make_report, spacing_for
 
 
 def test_the_density_experiment_trains_from_scratch_on_a_measured_fraction():

@@ -1,5 +1,5 @@
 """Fine-tuning fractions: the measured part of a scene's training split (seeded, disjoint from the test split,
-nested, limiting the test neighbour pool when asked), fine-tuning and zero-shot runs from a checkpoint, and
+nested, limiting the test neighbor pool when asked), fine-tuning and zero-shot runs from a checkpoint, and
 the errors of a checkpoint that does not fit the run (band, scene-index setting)."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import torch
 from graf.data.spectrum_set import DataFormatError
 from graf.errors import ConfigError
 from graf.models.base import CheckpointError
-from graf.pipeline.build import build_datamodule
-from graf.pipeline.train import train
+from graf.run.build import build_datamodule
+from graf.run.train import train
 
 QUIET = ["plot_count=0", "trainer.enable_progress_bar=false", "baselines={}"]
 
@@ -45,7 +45,7 @@ def test_measured_fraction_is_seeded_nested_disjoint_from_test_and_limits_the_te
     assert _ids(f20, f20.fit_rows) | _ids(f20, f20.val_rows) == _ids(f20, f20.measured_rows)
     assert torch.equal(f20.test_rows, whole.test_rows)
 
-    rows, src, mask = f20.split_neighbors("test")  # test neighbours from the measured part only ...
+    rows, src, mask = f20.split_neighbors("test")  # test neighbors from the measured part only ...
     assert set(src[mask].tolist()) <= set(f20.measured_rows.tolist())
     full = _dm(compose_cfg, "finetune=f20", "finetune.init_from=null", "finetune.test_pool=train_split")
     rows, src, mask = full.split_neighbors("test")  # ... or, as named, from the whole training split

@@ -13,14 +13,14 @@ from omegaconf import OmegaConf
 
 from graf.bands import Band
 from graf.data.datamodule import SpectrumDataModule
+from graf.data.neighbors import NeighborSelector
 from graf.data.scenes import NeRF2Scene
 from graf.geometry.encoding import PositionalEncoding, normalize_positions
 from graf.geometry.grid import grid_directions
 from graf.geometry.rays import num_samples, random_pixels, sample_voxels
 from graf.models.graf import CrossAttentionBlock, GRaFModule, ResNetEncoder, SelfAttentionBlock
 from graf.models.knn import KNNModule
-from graf.neighbors import NeighborSelector
-from graf.pipeline.config import CONF_DIR
+from graf.run.config import CONF_DIR
 
 UHF = Band(name="915mhz", frequency_hz=915e6)
 
@@ -167,14 +167,14 @@ def test_prediction_contract_and_invariances(tiny):
         assert pred.shape == (2, 90, 360) and pred.dtype == torch.float32
         assert torch.isfinite(pred).all() and (pred >= 0).all() and pred.std() > 0
 
-        # a padded neighbour (mask False) holding garbage changes nothing
+        # a padded neighbor (mask False) holding garbage changes nothing
         g = dict(b)
         g["src_pos"] = torch.cat([b["src_pos"], torch.full((2, 1, 3), 1e4)], 1)
         g["src_spectra"] = torch.cat([b["src_spectra"], torch.rand(2, 1, 90, 360) * 100], 1)
         g["src_mask"] = torch.cat([b["src_mask"], torch.zeros(2, 1, dtype=torch.bool)], 1)
         assert torch.allclose(model.predict_spectra(g), pred, atol=1e-5)
 
-        # L = 1, a co-located neighbour, all-zero and all-one spectra
+        # L = 1, a co-located neighbor, all-zero and all-one spectra
         one = {
             **b,
             "src_pos": b["src_pos"][:, :1],
@@ -222,12 +222,12 @@ def test_residual_at_init_is_knn(rfid, weighting):
 def test_chunking_and_encoder_calls(rfid):
     model = _small(chunk_rays=1000)
     b = _eval_batch(rfid)
-    b["src_mask"][0, 7:] = False  # fewer real neighbours for one target
+    b["src_mask"][0, 7:] = False  # fewer real neighbors for one target
     seen = []
     model.encoder.register_forward_hook(lambda mod, inp, out: seen.append(inp[0].shape[0]))
     with torch.no_grad():
         chunked = model.predict_spectra(b)
-        assert seen == [int(b["src_mask"].sum())] == [17]  # once per real neighbour spectrum, not per ray
+        assert seen == [int(b["src_mask"].sum())] == [17]  # once per real neighbor spectrum, not per ray
         model.chunk_rays = 40000
         whole = model.predict_spectra(b)
         assert seen == [17]  # evaluation: a spectrum already encoded with these weights is not encoded again

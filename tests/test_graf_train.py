@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from graf.models.base import CheckpointError
-from graf.pipeline.train import train
+from graf.run.train import train
 
 FAST = [
     "model.rays_per_step=64",
@@ -76,7 +76,7 @@ def test_killed_training_resumes_from_its_last_checkpoint(tmp_path):
     assert r["global_step"] == 16  # continued from the checkpoint to the planned length, not restarted
     resumed = torch.load(second / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
     assert resumed["global_step"] == 16
-    # ... and ends with the weights of a run that was never interrupted (same batches, neighbours and rays)
+    # ... and ends with the weights of a run that was never interrupted (same batches, neighbors and rays)
     third = tmp_path / "uninterrupted"
     p = subprocess.run([exe, *args, f"hydra.run.dir={third}"], capture_output=True, text=True, timeout=600)
     assert p.returncode == 0, p.stderr[-3000:]
@@ -92,7 +92,7 @@ def test_finetune_starts_from_a_checkpoints_weights_and_rejects_another_architec
 
     from hydra.utils import instantiate
 
-    from graf.pipeline.train import load_weights
+    from graf.run.train import load_weights
 
     fresh = instantiate(cfg.model)
     assert not all(torch.equal(fresh.state_dict()[k], v) for k, v in trained.items())
@@ -134,7 +134,7 @@ def test_finetune_starts_from_a_checkpoints_weights_and_rejects_another_architec
 
 @pytest.mark.slow  # 20-72 s in a fresh-clone CI run here: the default run must stay under 15 min
 def test_eval_of_a_checkpoint_applies_inference_settings_and_refuses_the_rest(compose_cfg, tmp_path):
-    from graf.pipeline.evaluate import evaluate
+    from graf.run.evaluate import evaluate
 
     cfg = compose_cfg(
         "train", ("experiment=graf_rfid_s23", "trainer.max_steps=1", "model=graf_cpu", "model.residual=true", *FAST)

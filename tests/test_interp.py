@@ -10,8 +10,8 @@ import numpy as np
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 
-from graf.pipeline.config import CONF_DIR
-from graf.pipeline.interp import run
+from graf.cases.interp import run
+from graf.run.config import CONF_DIR
 
 
 def _cfg(tmp_path: Path, *overrides: str):
@@ -32,7 +32,7 @@ def test_interp_on_the_measured_scene_fits_a_slope_per_weighting(tmp_path, capsy
         assert fit["n"] == 600 and fit["ci"][0] < fit["slope"] < fit["ci"][1]
         med = s["dataset"][w]["per_L"]
         assert med[1]["median_dp_m"] < med[4]["median_dp_m"] < med[16]["median_dp_m"]
-    # L = 1: both weightings copy the nearest neighbour, so their errors are the same
+    # L = 1: both weightings copy the nearest neighbor, so their errors are the same
     assert s["dataset"]["barycentric"]["per_L"][1] == s["dataset"]["idw"]["per_L"][1]
     out = tmp_path / "out"
     assert json.loads((out / "results.json").read_text())["scenes"]["rfid_s23"]["figure"] == "interp_rfid_s23.png"
@@ -60,7 +60,7 @@ def test_interp_on_a_traced_room_measures_fine_scales_and_the_curvature(tmp_path
     nf = s["kmap_near_far"]
     assert nf["near"]["n"] + nf["open"]["n"] + nf["inside_objects"] <= np.array(s["kmap"]["K"]).size
     # resumable per scene: a second invocation into the same folder keeps the finished scene, tracing nothing
-    import graf.pipeline.interp as interp
+    import graf.cases.interp as interp
 
     def no_trace(*a, **k):
         raise AssertionError("a finished scene was traced again")
@@ -74,7 +74,7 @@ def test_a_layout_variants_removed_objects_are_left_out_of_the_map():
     """conference_v2 removes chairs by setting them to null (graf-interp once failed on it)."""
     from types import SimpleNamespace
 
-    from graf.pipeline.interp import footprints
+    from graf.cases.interp import footprints
 
     room = SimpleNamespace(objects={"chair": None, "table": {"center": [1, 2, 0.7], "size": [1, 1, 0.1]}})
     assert footprints(room) == [{"center": [1, 2, 0.7], "size": [1, 1, 0.1]}]
@@ -84,7 +84,7 @@ def test_a_layout_variants_removed_objects_are_left_out_of_the_map():
 def test_the_k_map_is_split_into_points_near_walls_or_objects_and_open_space():
     from types import SimpleNamespace
 
-    from graf.pipeline.interp import near_far
+    from graf.cases.interp import near_far
     from graf.sim.geometry import Box, SceneGeometry
 
     xs = ys = [0.5, 1.5, 2.5, 3.5]  # a 4 x 4 m room, 1 m grid at z = 1

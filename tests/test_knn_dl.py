@@ -11,8 +11,8 @@ from torch import nn
 
 from graf.models.knn import KNNModule
 from graf.models.knn_dl import KNNDLModule, upsample_maps
-from graf.pipeline.build import build_datamodule
-from graf.pipeline.train import train
+from graf.run.build import build_datamodule
+from graf.run.train import train
 
 
 @pytest.fixture
@@ -22,7 +22,7 @@ def batches(compose_cfg):
     _, _, _, dm = build_datamodule(cfg)
     dm.setup()
     test, trn = next(iter(dm.test_dataloader())), next(iter(dm.train_dataloader()))
-    trn["src_mask"][0, 2:] = False  # make sure some neighbours are padded
+    trn["src_mask"][0, 2:] = False  # make sure some neighbors are padded
     return test, trn
 
 
@@ -44,7 +44,7 @@ def test_initial_model_is_idw_knn(batches):
         assert torch.allclose(pred, knn, atol=1e-5)
 
 
-def test_padded_neighbours_get_zero_weight_and_weights_sum_to_one(batches):
+def test_padded_neighbors_get_zero_weight_and_weights_sum_to_one(batches):
     _, batch = batches
     m = _randomised()
     with torch.no_grad():
@@ -62,7 +62,7 @@ def test_padded_neighbours_get_zero_weight_and_weights_sum_to_one(batches):
         assert (convex.fusion_weights(batch) >= 0).all()
 
 
-def test_one_neighbour_and_a_co_located_neighbour(batches):
+def test_one_neighbor_and_a_co_located_neighbor(batches):
     test, _ = batches
     m = _randomised()
     one = dict(test, src_mask=torch.zeros_like(test["src_mask"]))
@@ -76,7 +76,7 @@ def test_one_neighbour_and_a_co_located_neighbour(batches):
     pred.mean().backward()
     assert torch.isfinite(pred).all()
     assert all(torch.isfinite(p.grad).all() for p in m.parameters() if p.grad is not None)
-    with torch.no_grad():  # at initialisation the co-located neighbour takes all the weight, as IDW
+    with torch.no_grad():  # at initialisation the co-located neighbor takes all the weight, as IDW
         assert torch.allclose(KNNDLModule().predict_spectra(same), same["src_spectra"][:, 1], atol=1e-6)
 
 
@@ -100,7 +100,7 @@ def test_bad_config_values_name_the_key():
 
 
 def test_twenty_steps_on_one_batch_lower_the_loss(batches):
-    batch = {k: v[:2] for k, v in batches[1].items()}  # two targets, one with padded neighbours
+    batch = {k: v[:2] for k, v in batches[1].items()}  # two targets, one with padded neighbors
     torch.manual_seed(0)
     m = KNNDLModule(lr=1e-2)
     opt = torch.optim.Adam(m.parameters(), lr=m.lr)

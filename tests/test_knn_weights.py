@@ -47,8 +47,8 @@ def test_barycentric_edge_cases():
     w = barycentric_weights(tgt, nbr, mask)
     _simplex_ok(w, mask)
     assert w[0].tolist() == [1.0, 0.0]  # L = 1 (outside the hull: nearest point)
-    assert float(w[1, 0]) > 0.999  # co-located neighbour
-    assert w[2].tolist() == [0.5, 0.5]  # every neighbour at the target
+    assert float(w[1, 0]) > 0.999  # co-located neighbor
+    assert w[2].tolist() == [0.5, 0.5]  # every neighbor at the target
 
 
 def test_affine_field_is_exact_for_barycentric_not_idw():
@@ -64,7 +64,7 @@ def test_affine_field_is_exact_for_barycentric_not_idw():
     assert float(e_bary) < 1e-3 < float(e_idw)
 
 
-def test_barycentric_error_is_quadratic_in_neighbour_distance():
+def test_barycentric_error_is_quadratic_in_neighbor_distance():
     """Seed A.1: error <= K max_i |P_t - P_i|^2; on a smooth field the fitted log-log slope is ~2."""
 
     def field(p):
@@ -72,7 +72,7 @@ def test_barycentric_error_is_quadratic_in_neighbour_distance():
 
     g = torch.Generator().manual_seed(3)
     tgt = torch.rand(40, 3, generator=g, dtype=torch.float64)
-    # six neighbours at +-h along randomly rotated axes (random lengths in [0.5h, h]): the target is
+    # six neighbors at +-h along randomly rotated axes (random lengths in [0.5h, h]): the target is
     # inside their convex hull, as the theorem assumes
     rot, _ = torch.linalg.qr(torch.randn(40, 3, 3, generator=g, dtype=torch.float64))
     axes = torch.cat([torch.eye(3, dtype=torch.float64), -torch.eye(3, dtype=torch.float64)])

@@ -1,11 +1,11 @@
-"""The one neighbour selector every method uses."""
+"""The one neighbor selector every method uses."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from graf.neighbors import NeighborSelector, NoNeighborsError, select_neighbors
+from graf.data.neighbors import NeighborSelector, NoNeighborsError, select_neighbors
 
 
 def _brute(tp, cp, L, tid=None, cid=None):
@@ -32,7 +32,7 @@ def test_never_returns_target_itself_even_when_colocated():
     nb = select_neighbors(cp, cp, 2, target_ids=ids, cand_ids=ids)
     for t in range(4):
         assert int(ids[t]) not in ids[nb.index[t]].tolist()
-    # id 10's co-located twin (id 11) is a valid neighbour at distance 0
+    # id 10's co-located twin (id 11) is a valid neighbor at distance 0
     assert nb.index[0, 0] == 1 and float(nb.distance[0, 0]) == 0.0
 
 
@@ -59,7 +59,7 @@ def test_exclude_within_and_no_candidates_error():
     tp = torch.zeros(1, 3)
     nb = select_neighbors(tp, cp, 3, exclude_within=0.1)
     assert nb.index[0][nb.mask[0]].tolist() == [1, 2]
-    with pytest.raises(NoNeighborsError, match="no candidate neighbour"):
+    with pytest.raises(NoNeighborsError, match="no candidate neighbor"):
         select_neighbors(tp, cp, 3, exclude_within=10.0)
 
 

@@ -15,11 +15,11 @@ from hydra.utils import instantiate
 import graf.models.nerf2 as nerf2_pkg
 from graf.bands import Band
 from graf.data.datamodule import SpectrumDataModule
+from graf.data.neighbors import NeighborSelector
 from graf.data.scenes import NeRF2Scene
 from graf.geometry.rays import random_pixels
 from graf.models.nerf2 import NeRF2Module, NeRF2Network, render_rays, sample_distances
-from graf.neighbors import NeighborSelector
-from graf.pipeline.train import train
+from graf.run.train import train
 
 UHF = Band(name="915mhz", frequency_hz=915e6)
 SMALL = {"depth": 4, "width": 32, "skips": [1]}  # the real code paths at a fraction of the FLOPs
@@ -224,7 +224,7 @@ def test_two_training_steps_through_the_real_configs_and_checkpoint(compose_cfg)
     r = json.loads((out / "results.json").read_text())
     assert r["method"] == "nerf2" and r["global_step"] == 2
     assert all(math.isfinite(float(v)) for k, v in metrics.items() if "swapped" not in k and "reliance" not in k)
-    assert metrics["test/reliance_db"] is None  # NeRF2 reads no neighbours: no reliance to measure
+    assert metrics["test/reliance_db"] is None  # NeRF2 reads no neighbors: no reliance to measure
     loaded = NeRF2Module.load_from_checkpoint(out / "checkpoints" / "last.ckpt", map_location="cpu")
     model = objects["model"]
     assert loaded.hparams == model.hparams and loaded.method == "nerf2"

@@ -23,8 +23,8 @@ from lightning.pytorch.callbacks import Callback
 from graf.data.nerf2_format import read_nerf2_folder, write_nerf2_folder
 from graf.errors import ConfigError
 from graf.models.base import CheckpointError
-from graf.pipeline.evaluate import evaluate
-from graf.pipeline.train import train
+from graf.run.evaluate import evaluate
+from graf.run.train import train
 
 from .conftest import smooth_spectra
 
@@ -102,7 +102,7 @@ def test_a_stop_before_max_steps_that_is_not_the_users_is_warned_and_marked(comp
 
 
 def test_training_that_would_never_end_or_is_not_a_count_is_refused(compose_cfg):
-    from graf.pipeline.train import check_training_length
+    from graf.run.train import check_training_length
 
     with pytest.raises(ConfigError, match="would never end"):
         check_training_length(compose_cfg("train", ("trainer.max_steps=-1", "trainer.max_epochs=-1")))
@@ -239,7 +239,7 @@ def knn_dl_ckpt(tmp_path_factory):
 
 
 CASES = {  # name: (command, arguments, what the one line says); {d}: the module's folder, {ckpt}: a KNN-DL checkpoint
-    "no_neighbours_left": ("graf-eval", ["neighbors=sparse", "neighbors.exclude_within=100"], "no candidate neighbour"),
+    "no_neighbors_left": ("graf-eval", ["neighbors=sparse", "neighbors.exclude_within=100"], "no candidate neighbor"),
     "val_fraction_0": ("graf-eval", ["data.val_fraction=0"], "data.val_fraction must be in (0, 1)"),
     "eval_split_bogus": ("graf-eval", ["data.eval_split=bogus"], "data.eval_split must be one of"),
     "seed_abc": ("graf-eval", ["seed=abc"], "seed must be an integer"),
@@ -320,7 +320,7 @@ def test_baselines_braces_and_null_switch_the_baselines_off(tmp_path):
 
 
 def test_selected_baselines_outside_a_command_follow_the_config(compose_cfg):
-    from graf.pipeline.testing import selected_baselines
+    from graf.run.evaluation import selected_baselines
 
     assert list(selected_baselines(compose_cfg("train"))) == ["knn"]
     assert selected_baselines(compose_cfg("train", ("baselines=null",))) == {}
@@ -363,7 +363,7 @@ def test_resuming_with_other_settings_is_refused_and_a_longer_run_is_recorded(co
 
 
 def test_graf_eval_of_a_checkpoint_refuses_a_training_setting_with_its_own_message(knn_dl_ckpt, tmp_path):
-    from graf.pipeline.evaluate import checkpoint_model_choice
+    from graf.run.evaluate import checkpoint_model_choice
 
     assert checkpoint_model_choice([f"ckpt_path={knn_dl_ckpt}", "model.lr=0.1"]) == "knn_dl"
     assert checkpoint_model_choice([f"ckpt_path={knn_dl_ckpt}"]) is None
@@ -440,7 +440,7 @@ def test_sigterm_stops_at_the_next_step_saves_a_checkpoint_and_resumes(tmp_path)
 
 
 def test_a_base_model_whose_last_checkpoint_is_stale_is_refused(tmp_path):
-    from graf.pipeline.train import check_base_checkpoint
+    from graf.run.train import check_base_checkpoint
 
     folder = tmp_path / "base"
     (folder / "checkpoints").mkdir(parents=True)
@@ -461,7 +461,7 @@ def test_a_preempted_job_stops_a_studys_multirun_and_is_recorded(tmp_path):
     from omegaconf import OmegaConf
 
     from graf.errors import Preempted
-    from graf.pipeline.table import SweepTable
+    from graf.studies.table import SweepTable
 
     def job(exc, num, **extra):
         cfg = OmegaConf.create(
@@ -497,7 +497,7 @@ def test_results_name_the_device_the_trainer_ran_on_not_where_the_module_was_lef
     (the NeRF2 curve's points trained on an H200).  The record now comes from the trainer's strategy."""
     from types import SimpleNamespace
 
-    from graf.pipeline.testing import run_device
+    from graf.run.evaluation import run_device
 
     module = torch.nn.Linear(2, 2)
     module.device = torch.device("cpu")  # where Lightning leaves it after teardown

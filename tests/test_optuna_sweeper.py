@@ -18,7 +18,7 @@ import optuna
 import pytest
 from optuna.trial import TrialState
 
-from graf.sweeps.objectives import check_objective_names, objective_values
+from graf.search.objectives import check_objective_names, objective_values
 
 REPO = Path(__file__).resolve().parents[1]
 APP = REPO / "tests" / "data" / "sweep_app" / "app.py"
@@ -187,7 +187,7 @@ def test_the_validation_that_ends_training_never_prunes():
 
     import torch
 
-    from graf.sweeps.pruning import OptunaPruning
+    from graf.search.pruning import OptunaPruning
 
     study = optuna.create_study(
         direction="maximize", pruner=optuna.pruners.MedianPruner(n_startup_trials=1, n_warmup_steps=0)
@@ -219,7 +219,7 @@ def test_search_space_grammar():
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from optuna.distributions import CategoricalDistribution, FloatDistribution, IntDistribution
 
-    from graf.sweeps.search_space import SearchSpaceError, parse_search_space
+    from graf.search.search_space import SearchSpaceError, parse_search_space
 
     parser = OverridesParser.create()
     space = parse_search_space(
@@ -250,8 +250,8 @@ def test_search_space_grammar():
 def test_samplers_follow_the_space_and_the_objectives():
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    from graf.sweeps.optuna_sweeper import make_sampler
-    from graf.sweeps.search_space import SearchSpaceError, parse_search_space
+    from graf.search.optuna_sweeper import make_sampler
+    from graf.search.search_space import SearchSpaceError, parse_search_space
 
     parser = OverridesParser.create()
     cat = parse_search_space({"a": "choice(1,2)", "b": "choice(3,4,5)"}, [], parser)
@@ -278,7 +278,7 @@ def test_objectives_refuse_test_metrics_and_average_over_test_scenes():
 
 
 def test_best_json_means_are_the_means_over_the_evaluated_scenes():
-    from graf.sweeps.objectives import metrics_mean
+    from graf.search.objectives import metrics_mean
 
     evals = [
         {"eval_scene": "a", "metrics": {"val/psnr": 15.0, "test/psnr": 14.0, "val/ssim": 0.5}},
@@ -290,7 +290,7 @@ def test_best_json_means_are_the_means_over_the_evaluated_scenes():
 
 def test_heldout_scenes_are_the_other_layouts_of_the_training_families():
     from graf.errors import ConfigError
-    from graf.pipeline.config import heldout_scenes
+    from graf.run.config import heldout_scenes
 
     assert heldout_scenes(["conference_v1"], "auto") == ["conference_v2", "conference_v3"]
     assert heldout_scenes(["conference_v1", "office_v2"], "auto") == [
@@ -305,7 +305,7 @@ def test_heldout_scenes_are_the_other_layouts_of_the_training_families():
         heldout_scenes(["conference_v1"], ["conference_v9"])
 
 
-@pytest.mark.parametrize("search", ["neighbour_count", "cross_scene", "graf_size"])
+@pytest.mark.parametrize("search", ["neighbor_count", "cross_scene", "graf_size"])
 @pytest.mark.slow  # 20-72 s in a fresh-clone CI run here: the default run must stay under 15 min
 def test_search_smoke_with_knn_on_the_embedded_scene_never_sees_the_test_split(tmp_path, search):
     """The documented smoke test of each search; its trials are validated only (no test figure, no test
@@ -359,7 +359,7 @@ def test_heartbeat_settings_on_sqlite_are_said_to_be_unused(caplog):
     one log line says it is unused and what finds dead workers there instead."""
     import logging
 
-    from graf.sweeps.optuna_sweeper import make_storage
+    from graf.search.optuna_sweeper import make_storage
 
     with caplog.at_level(logging.INFO, logger="graf"):
         url = make_storage("sqlite:///x.db", {"interval": 10, "grace_period": 60, "max_retry": 3})

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from graf.analysis.oracle import fit_weights, run_oracle, select_targets
-from graf.pipeline.build import build_datamodule
+from graf.run.build import build_datamodule
 
 
 @pytest.fixture
@@ -50,7 +50,7 @@ def test_targets_of_every_split_exclude_themselves(tiny):
         run_oracle(tiny.data.spectra, tiny.positions, rows, idx, mask, [], 5)
 
 
-def test_padded_neighbours_keep_zero_weight():
+def test_padded_neighbors_keep_zero_weight():
     g = torch.Generator().manual_seed(0)
     src, target = torch.rand(2, 3, 90, 360, generator=g), torch.rand(2, 90, 360, generator=g)
     mask = torch.tensor([[True, True, True], [True, False, False]])

@@ -10,8 +10,8 @@ import sys
 import pytest
 from hydra import compose, initialize_config_dir
 
-from graf.pipeline.config import CONF_DIR
-from graf.pipeline.pareto import pareto_front
+from graf.run.config import CONF_DIR
+from graf.studies.pareto import pareto_front
 
 
 def test_pareto_front_keeps_only_undominated_points():

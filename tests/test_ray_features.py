@@ -1,5 +1,5 @@
-"""Ray-aligned neighbour features (issue 22, points 2 and 3): a ray at (elevation, azimuth) reads every
-neighbour at (elevation, azimuth), the azimuth wrapping at 360 degrees; the ray_knn variant is IDW KNN at
+"""Ray-aligned neighbor features (issue 22, points 2 and 3): a ray at (elevation, azimuth) reads every
+neighbor at (elevation, azimuth), the azimuth wrapping at 360 degrees; the ray_knn variant is IDW KNN at
 step 0; every option composes through Hydra and round-trips a checkpoint."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import torch
 from graf.models.graf import GRaFModule
 from graf.models.graf.ray_features import pad_wrap, pixel_window, sample_wrap, upsample_wrap
 from graf.models.knn import KNNModule
-from graf.pipeline.train import train
+from graf.run.train import train
 
 TINY = dict(
     encoder_widths=[4, 8, 8, 8],
@@ -63,7 +63,7 @@ def test_pixel_window_reads_the_rays_own_pixel_and_wraps_the_azimuth_seam():
     win = pixel_window(spectra, bi, rows * 360 + cols, radius=1)  # [4, L=3, 9]
     assert win.shape == (4, 3, 9)
     for i, (b, r, c) in enumerate(zip(bi.tolist(), rows.tolist(), cols.tolist())):
-        assert torch.equal(win[i, :, 4], spectra[b, :, r, c])  # the centre: pixel (el, az) of every neighbour
+        assert torch.equal(win[i, :, 4], spectra[b, :, r, c])  # the centre: pixel (el, az) of every neighbor
     assert torch.equal(win[1, :, 5], spectra[1, :, 0, 0])  # (el 0, az 359) + 1 column -> az 0 (wrapped)
     assert torch.equal(win[1, :, 1], spectra[1, :, 0, 359])  # one row up from the top row: clamped, not wrapped
     assert torch.equal(win[2, :, 3], spectra[1, :, 89, 359])  # az 0 - 1 column -> az 359
@@ -76,7 +76,7 @@ def _batch(B=2, L=3, seed=0, colocated=False):
     if colocated:
         src[:, 0] = tgt
     mask = torch.ones(B, L, dtype=torch.bool)
-    mask[1, -1] = False  # a padded neighbour
+    mask[1, -1] = False  # a padded neighbor
     return {
         "tgt_pos": tgt,
         "src_pos": src,
@@ -94,9 +94,9 @@ def _batch(B=2, L=3, seed=0, colocated=False):
 
 
 @pytest.mark.parametrize("features", ["ray_knn", "ray_weights"])
-def test_knn_based_modes_at_step_0_are_idw_knn_on_the_same_neighbours(features):
+def test_knn_based_modes_at_step_0_are_idw_knn_on_the_same_neighbors(features):
     torch.manual_seed(0)
-    model = GRaFModule(**TINY, neighbour_features=features).eval()
+    model = GRaFModule(**TINY, neighbor_features=features).eval()
     batch = _batch()
     with torch.no_grad():
         pred = model.predict_spectra(batch)
@@ -105,20 +105,20 @@ def test_knn_based_modes_at_step_0_are_idw_knn_on_the_same_neighbours(features):
 
 
 @pytest.mark.parametrize("features", ["ray_knn", "ray_weights"])
-def test_a_colocated_neighbour_with_its_identity_weight_is_reproduced(features):
+def test_a_colocated_neighbor_with_its_identity_weight_is_reproduced(features):
     torch.manual_seed(0)
-    model = GRaFModule(**TINY, neighbour_features=features).eval()
+    model = GRaFModule(**TINY, neighbor_features=features).eval()
     batch = _batch(colocated=True)
     with torch.no_grad():
         pred = model.predict_spectra(batch)
     assert (pred - batch["src_spectra"][:, 0]).abs().max() < 1e-5
 
 
-def test_ray_mode_reads_each_neighbour_at_the_rays_own_pixel():
-    """Changing one neighbour pixel changes the ray through that pixel; pooled mode spreads it over every ray,
+def test_ray_mode_reads_each_neighbor_at_the_rays_own_pixel():
+    """Changing one neighbor pixel changes the ray through that pixel; pooled mode spreads it over every ray,
     ray mode moves that ray most."""
     torch.manual_seed(0)
-    model = GRaFModule(**TINY, neighbour_features="ray", pixel_window=0).eval()
+    model = GRaFModule(**TINY, neighbor_features="ray", pixel_window=0).eval()
     batch = _batch()
     r, c = 40, 359
     with torch.no_grad():
@@ -136,7 +136,7 @@ def test_ray_options_compose_train_and_round_trip_a_checkpoint(compose_cfg, feat
         "train",
         (
             "experiment=graf_rfid_s23",
-            f"model.neighbour_features={features}",
+            f"model.neighbor_features={features}",
             "trainer.max_steps=2",
             "model.rays_per_step=64",
             "model.max_samples=4",
@@ -153,7 +153,7 @@ def test_ray_options_compose_train_and_round_trip_a_checkpoint(compose_cfg, feat
     assert res["method"] == "graf-" + features.replace("_", "-") and res["global_step"] == 2
     model = objects["model"].eval()
     loaded = GRaFModule.load_from_checkpoint(tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu").eval()
-    assert loaded.hparams.neighbour_features == features
+    assert loaded.hparams.neighbor_features == features
     batch = next(iter(objects["datamodule"].test_dataloader()))
     with torch.no_grad():
         assert torch.equal(model.predict_spectra(batch), loaded.predict_spectra(batch))
@@ -161,17 +161,17 @@ def test_ray_options_compose_train_and_round_trip_a_checkpoint(compose_cfg, feat
 
 def test_ray_knn_refuses_the_pooled_residual_and_unknown_modes_are_refused():
     with pytest.raises(ValueError, match="ray_knn already adds"):
-        GRaFModule(**TINY, neighbour_features="ray_knn", residual=True)
+        GRaFModule(**TINY, neighbor_features="ray_knn", residual=True)
     with pytest.raises(ValueError, match="ray_weights already adds"):
-        GRaFModule(**TINY, neighbour_features="ray_weights", residual=True)
-    with pytest.raises(ValueError, match="neighbour_features must be one of"):
-        GRaFModule(**TINY, neighbour_features="rays")
+        GRaFModule(**TINY, neighbor_features="ray_weights", residual=True)
+    with pytest.raises(ValueError, match="neighbor_features must be one of"):
+        GRaFModule(**TINY, neighbor_features="rays")
 
 
-def test_ray_weights_predicts_only_convex_combinations_of_what_the_neighbours_measured_even_after_training():
-    """Trained or not, every pixel of a ray_weights prediction lies between the neighbours' values there."""
+def test_ray_weights_predicts_only_convex_combinations_of_what_the_neighbors_measured_even_after_training():
+    """Trained or not, every pixel of a ray_weights prediction lies between the neighbors' values there."""
     torch.manual_seed(0)
-    model = GRaFModule(**TINY, neighbour_features="ray_weights")
+    model = GRaFModule(**TINY, neighbor_features="ray_weights")
     batch = _batch()
     opt = torch.optim.SGD(model.parameters(), lr=0.5)
     for _ in range(3):  # move the weights away from IDW

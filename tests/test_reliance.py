@@ -1,6 +1,6 @@
-"""Neighbour reliance (issue 22, point 1): every test of a neighbour-conditioned method also measures its PSNR
-with each target's neighbours replaced by another target's (a seeded derangement within the scene, same L);
-``test/reliance_db`` = PSNR(true) - PSNR(swapped) says at once whether a model reads its neighbours."""
+"""Neighbor reliance (issue 22, point 1): every test of a neighbor-conditioned method also measures its PSNR
+with each target's neighbors replaced by another target's (a seeded derangement within the scene, same L);
+``test/reliance_db`` = PSNR(true) - PSNR(swapped) says at once whether a model reads its neighbors."""
 
 from __future__ import annotations
 
@@ -13,9 +13,9 @@ import torch
 
 from graf.data.datamodule import derangement
 from graf.models.base import SpectrumModule
-from graf.pipeline.build import build
-from graf.pipeline.evaluate import evaluate
-from graf.pipeline.testing import evaluate_model, format_metrics_table
+from graf.run.build import build
+from graf.run.evaluate import evaluate
+from graf.run.evaluation import evaluate_model, format_metrics_table
 
 
 @pytest.mark.parametrize("n", [2, 3, 7, 40])
@@ -25,7 +25,7 @@ def test_derangement_moves_every_index_and_is_seeded(n):
     assert (p == derangement(n, np.random.default_rng(5))).all()
 
 
-def test_swapped_neighbours_are_another_targets_of_the_same_scene(compose_cfg):
+def test_swapped_neighbors_are_another_targets_of_the_same_scene(compose_cfg):
     cfg = compose_cfg("eval", ("model=knn",))
     dm = build(cfg, trains=False)["datamodule"]
     rows, idx, mask = dm.split_neighbors("test")
@@ -39,11 +39,11 @@ def test_swapped_neighbours_are_another_targets_of_the_same_scene(compose_cfg):
     assert dm.swapped_neighbors("test", seed=1)[1].tolist() != s_idx.tolist()
 
 
-def test_knn_reads_its_neighbours_on_the_dense_real_scene(compose_cfg):
+def test_knn_reads_its_neighbors_on_the_dense_real_scene(compose_cfg):
     cfg = compose_cfg("eval", ("model=knn", "neighbors.exclude_within=0"))
     metrics, _ = evaluate(cfg, overrides=[])
     res = json.loads((Path(cfg.paths.output_dir) / "results.json").read_text())
-    assert metrics["test/reliance_db"] > 3.0, metrics  # a wrong neighbour set costs KNN several dB
+    assert metrics["test/reliance_db"] > 3.0, metrics  # a wrong neighbor set costs KNN several dB
     assert metrics["val/reliance_db"] > 3.0, metrics  # measured on validation too (what curves choose on)
     assert res["metrics"]["test/reliance_db"] == pytest.approx(
         res["metrics"]["test/psnr"] - res["metrics"]["test/psnr_swapped"]
@@ -51,8 +51,8 @@ def test_knn_reads_its_neighbours_on_the_dense_real_scene(compose_cfg):
     assert "reliance dB" in format_metrics_table([res])
 
 
-class _IgnoresNeighbours(SpectrumModule):
-    """Predicts from the target position alone: its output cannot depend on the neighbours."""
+class _IgnoresNeighbors(SpectrumModule):
+    """Predicts from the target position alone: its output cannot depend on the neighbors."""
 
     def predict_spectra(self, batch):
         p = batch["tgt_pos"].float()
@@ -63,17 +63,17 @@ class _IgnoresNeighbours(SpectrumModule):
         )
 
 
-def test_a_model_that_ignores_its_neighbours_has_zero_reliance(compose_cfg):
+def test_a_model_that_ignores_its_neighbors_has_zero_reliance(compose_cfg):
     cfg = compose_cfg("eval", ("model=knn",))
     dm = build(cfg, trains=False)["datamodule"]
-    metrics, _ = evaluate_model(cfg, _IgnoresNeighbours(), dm)
+    metrics, _ = evaluate_model(cfg, _IgnoresNeighbors(), dm)
     assert metrics["test/reliance_db"] == pytest.approx(0.0, abs=1e-6)
 
 
 @pytest.mark.slow  # 70 s on this 2-core machine: the default run reached 14 min 16 s with it (limit 15 min)
 def test_knn_dl_and_the_baselines_report_reliance_and_nerf2_none(compose_cfg):
     cfg = compose_cfg("train", ("model=knn_dl", "trainer.max_steps=1"))
-    from graf.pipeline.train import train
+    from graf.run.train import train
 
     train(cfg)
     res = json.loads((Path(cfg.paths.output_dir) / "results.json").read_text())

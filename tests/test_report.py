@@ -11,7 +11,7 @@ import pytest
 
 from graf.errors import ConfigError
 from graf.io import atomic_write_json
-from graf.pipeline.report import make_report
+from graf.studies.report import make_report
 
 GHZ24, MHZ915 = 2.412e9, 915e6
 
@@ -92,7 +92,7 @@ def test_cross_scene_matrix_tables_heatmaps_and_spectra(tmp_path):
     )  # reliance: not in these rows
 
 
-def test_neighbour_count_curve_averages_the_same_family_pairs(tmp_path):
+def test_neighbor_count_curve_averages_the_same_family_pairs(tmp_path):
     for L, (c2, c3, o2) in {2: (10.0, 12.0, 5.0), 10: (20.0, 22.0, 6.0)}.items():
         # trained on a conference layout: tested on its family (averaged) and on another (left out of the curve)
         _result(

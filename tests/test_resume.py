@@ -1,4 +1,4 @@
-"""A training run stopped at a checkpoint and resumed draws exactly the batches (targets, L, neighbours) of an
+"""A training run stopped at a checkpoint and resumed draws exactly the batches (targets, L, neighbors) of an
 uninterrupted run and ends with the same weights, mid-epoch and across epoch boundaries (Lightning's own loop)."""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ from torch import nn
 
 from graf.bands import Band
 from graf.data.datamodule import SpectrumDataModule
+from graf.data.neighbors import NeighborSelector
 from graf.data.scenes import NeRF2Scene
 from graf.models.base import SpectrumModule
-from graf.neighbors import NeighborSelector
 
 
 class Recorder(SpectrumModule):

@@ -12,7 +12,7 @@ from hydra.utils import instantiate
 from graf.bands import Band
 from graf.metrics import psnr_per_sample
 from graf.models.knn.weights import barycentric_weights
-from graf.pipeline.config import CONF_DIR
+from graf.run.config import CONF_DIR
 from graf.sim.scene import SimulatedScene
 
 pytest.importorskip("sionna.rt")  # graf.sim (imported above) has configured the LLVM backend

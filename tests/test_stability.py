@@ -11,13 +11,13 @@ from omegaconf import OmegaConf
 
 from graf.bands import Band
 from graf.data.datamodule import SpectrumDataModule
+from graf.data.neighbors import NeighborSelector
 from graf.data.scenes import NeRF2Scene
 from graf.geometry.rays import random_pixels
 from graf.metrics import lpips_distance, mse_per_sample, psnr_per_sample, ssim_per_sample
 from graf.models.knn import KNNModule
 from graf.models.nerf2 import NeRF2Module
-from graf.neighbors import NeighborSelector
-from graf.pipeline.config import CONF_DIR
+from graf.run.config import CONF_DIR
 
 UHF, SHF = Band("915mhz", 915e6), Band("3ghz", 3e9)
 
@@ -63,13 +63,13 @@ def _finite_render(model, batch):
     return out
 
 
-def test_transmitter_at_the_gateway_and_co_located_neighbours(dm):
+def test_transmitter_at_the_gateway_and_co_located_neighbors(dm):
     model = _graf()
     b = _batch(dm)
     at_gw = _batch(dm, tgt_pos=b["gw_pos"].clone())
     _finite_render(model, at_gw)
     _finite_step(model, at_gw)
-    # every neighbour at one position, and that position the target's (zero distances everywhere)
+    # every neighbor at one position, and that position the target's (zero distances everywhere)
     same = b["tgt_pos"][:, None, :].expand_as(b["src_pos"]).clone()
     co = _batch(dm, src_pos=same)
     _finite_render(model, co)
@@ -80,7 +80,7 @@ def test_transmitter_at_the_gateway_and_co_located_neighbours(dm):
         assert torch.isfinite(NeRF2Module(max_samples=4, chunk_rays=40000).predict_spectra(at_gw)).all()
 
 
-def test_one_neighbour_and_more_asked_than_there_are(make_scene):
+def test_one_neighbor_and_more_asked_than_there_are(make_scene):
     for L in (1, 50):
         d = SpectrumDataModule(
             NeRF2Scene("tiny", str(make_scene(n=24, name=f"t{L}"))),

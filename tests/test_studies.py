@@ -26,7 +26,7 @@ def test_a_study_multirun_trains_its_base_once_resumes_and_reports(small_room_ro
     sweep = tmp_path / "nc"
     cmd = [
         "graf-train",
-        "experiment=neighbour_count",
+        "experiment=neighbor_count",
         "model=knn_dl",
         "scene=small_room",
         "eval_scene=same",
@@ -105,7 +105,7 @@ def test_user_errors_end_with_their_message_alone(tmp_path):
 
 
 def test_study_jobs_outside_the_design_are_skipped_with_the_reason(compose_cfg):
-    from graf.pipeline.train import skip_reason
+    from graf.run.train import skip_reason
 
     def reason(*overrides):
         return skip_reason(compose_cfg("train", overrides))
@@ -122,9 +122,9 @@ def test_study_jobs_outside_the_design_are_skipped_with_the_reason(compose_cfg):
     assert reason("experiment=unseen_layouts", "scene=rfid_s23", "finetune.base.band=scene") is None
 
 
-@pytest.mark.parametrize("study", ["bands", "cross_scene_matrix", "density", "neighbour_count", "unseen_layouts"])
+@pytest.mark.parametrize("study", ["bands", "cross_scene_matrix", "density", "neighbor_count", "unseen_layouts"])
 def test_a_study_optimises_nothing_so_its_jobs_return_no_sweep_value(compose_cfg, study, caplog):
-    from graf.pipeline.testing import sweep_value
+    from graf.run.evaluation import sweep_value
 
     cfg = compose_cfg("train", (f"experiment={study}",))
     assert cfg.validate is False and cfg.optimized_metric is None
@@ -132,4 +132,4 @@ def test_a_study_optimises_nothing_so_its_jobs_return_no_sweep_value(compose_cfg
         assert sweep_value(cfg, {"val/psnr": None, "test/psnr": 20.0}) == 0.0
     assert not caplog.records
     # a search composed with a study keeps its own metric (hparams_search comes after experiment)
-    assert compose_cfg("train", (f"experiment={study}", "hparams_search=neighbour_count")).optimized_metric
+    assert compose_cfg("train", (f"experiment={study}", "hparams_search=neighbor_count")).optimized_metric

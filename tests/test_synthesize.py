@@ -11,12 +11,12 @@ import pytest
 import torch
 
 from graf.bands import Band
+from graf.cases.synthesis import synthesize
 from graf.data.datamodule import SpectrumDataModule
+from graf.data.neighbors import NeighborSelector
 from graf.data.nerf2_format import read_nerf2_folder
 from graf.data.scenes import NeRF2Scene
 from graf.models.knn import KNNModule
-from graf.neighbors import NeighborSelector
-from graf.synthesize import synthesize
 
 
 def _dm(L=4):

@@ -2,7 +2,7 @@
 
 - :func:`filter_known_warnings`: the one place where third-party warnings that are understood are filtered, each
   with the reason it may be ignored here (``KNOWN_WARNINGS``); every command calls it first
-  (:func:`graf.cli.entry.cli_errors`).  Warnings of graf's own (a neighbour radius widened, a capped sample
+  (:func:`graf.cli.entry.cli_errors`).  Warnings of graf's own (a neighbor radius widened, a capped sample
   count) are never filtered.
 - :func:`progress_bar`: the training progress callback (the ``callbacks`` group's ``progress_bar``): Lightning's
   redrawing bar on a terminal; on anything else (a log file, a pipe, CI) :class:`LineProgress`, one line every
@@ -40,7 +40,7 @@ KNOWN_WARNINGS: tuple[tuple[str, str], ...] = (
     (
         r"(Argument ``heartbeat_interval`` is an|.*fail_stale_trials is) experimental",
         "Optuna marks RDBStorage's heartbeats experimental (since 2.9, unchanged through 5.0); a study shared "
-        "on PostgreSQL uses them to find dead workers (graf.sweeps.optuna_sweeper.make_storage), as the issue asks",
+        "on PostgreSQL uses them to find dead workers (graf.search.optuna_sweeper.make_storage), as the issue asks",
     ),
     (
         r"The number of training batches \(\d+\) is smaller than the logging interval",

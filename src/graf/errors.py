@@ -3,7 +3,7 @@
 Every command ends on one of these with its message alone on stderr and exit code 2
 (:func:`graf.cli.entry.cli_errors`); anything else is a bug and keeps its traceback.  The classes that
 name a file (:class:`graf.data.spectrum_set.DataFormatError`), a checkpoint
-(:class:`graf.models.base.CheckpointError`) or a neighbour shortage (:class:`graf.neighbors.NoNeighborsError`)
+(:class:`graf.models.base.CheckpointError`) or a neighbor shortage (:class:`graf.data.neighbors.NoNeighborsError`)
 subclass :class:`UserError` beside :class:`ConfigError`.
 """
 

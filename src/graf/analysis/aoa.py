@@ -4,7 +4,7 @@ A spectrum is ``[90, 360]`` in the angle convention of :mod:`graf.geometry.grid`
 column c azimuth c + 1 deg, the direction ``(cos e cos a, cos e sin a, sin e)`` in the gateway frame.
 
 - :func:`peak_direction`: the strongest pixel, refined to a fraction of a degree by a quadratic through it and its
-  two neighbours along each axis (azimuth wraps at 360 deg; at elevation 1 or 90 deg the edge is kept).
+  two neighbors along each axis (azimuth wraps at 360 deg; at elevation 1 or 90 deg the edge is kept).
 - :func:`arrival_direction`: the direction a transmitter is seen from by the gateway (the direct path's angle of
   arrival), as (elevation, azimuth) in the same convention; a transmitter behind the array plane is mirrored into
   the front hemisphere, which is all a planar array can tell (:mod:`graf.sim.array`).

@@ -1,9 +1,9 @@
-"""The interpolation theorem measured (seed appendix A.1): the error of a convex combination of neighbours'
-spectra against the largest neighbour distance dP, and the local curvature constant K that bounds it
+"""The interpolation theorem measured (seed appendix A.1): the error of a convex combination of neighbors'
+spectra against the largest neighbor distance dP, and the local curvature constant K that bounds it
 (``error <= K dP**2`` where the field is smooth).
 
 - :func:`interpolation_errors`: every target of a set interpolated from its L nearest other positions with
-  barycentric or IDW weights; per target the largest neighbour distance and the mean squared error.
+  barycentric or IDW weights; per target the largest neighbor distance and the mean squared error.
 - :func:`curvature`: K at a position from a field ``trace(positions) -> spectra`` (the simulator), by central
   second differences along the three axes: the root mean square over pixels of the largest second directional
   derivative (per metre squared).
@@ -16,8 +16,8 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
+from graf.data.neighbors import select_neighbors
 from graf.models.knn.weights import barycentric_weights, idw_weights
-from graf.neighbors import select_neighbors
 
 WEIGHTINGS = ("barycentric", "idw")
 
@@ -29,7 +29,7 @@ def interpolation_errors(
 
     ``positions`` ``[N, 3]`` (m), ``spectra`` ``[N, 90, 360]`` (or ``[N, P]``); ``targets``: the rows to
     interpolate (default: all).  Returns ``{"target", "dp_max", "dp_mean", "mse", "rmse"}``, one entry per
-    target: the largest and mean neighbour distance (m) and the (root) mean squared error of the interpolated
+    target: the largest and mean neighbor distance (m) and the (root) mean squared error of the interpolated
     spectrum.  The theorem bounds the error itself, so its slope against ``dp_max`` is read on ``rmse``."""
     if weighting not in WEIGHTINGS:
         raise ValueError(f"weighting={weighting!r}: one of {', '.join(WEIGHTINGS)}")
@@ -77,7 +77,7 @@ _CUBE = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)],
 
 def cluster_errors(trace: Callable[[np.ndarray], np.ndarray], anchors, scales, seed: int = 0) -> dict[str, np.ndarray]:
     """Interpolation error at fine scales, from a field ``trace`` (the simulator): around every anchor and for
-    every scale ``d`` (m), eight neighbours towards the corners of a randomly rotated cube (each direction jittered,
+    every scale ``d`` (m), eight neighbors towards the corners of a randomly rotated cube (each direction jittered,
     one per octant) at distances drawn in [d/2, d] (the largest set to d, so ``dp_max == d``); the anchor is
     interpolated from them with barycentric and IDW weights.  Returns ``{"anchor", "scale", "dp_max",
     "rmse_barycentric", "rmse_idw"}`` (one entry per anchor and scale), all traced in one call per scale."""

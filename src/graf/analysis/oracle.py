@@ -1,21 +1,21 @@
 """The per-pixel linear-fusion oracle of seed appendix A.2 ("Observation #2", Fig 1b).
 
-For every target spectrum, its L (6) nearest other transmitters are taken as neighbours and a free
-weight matrix ``W_l [90, 360]`` per neighbour (initialised to 1/L, i.e. the plain mean) is fitted with
+For every target spectrum, its L (6) nearest other transmitters are taken as neighbors and a free
+weight matrix ``W_l [90, 360]`` per neighbor (initialised to 1/L, i.e. the plain mean) is fitted with
 Adam for ``iterations`` (200) steps to the target's *true* spectrum, MSE loss; the fitted fusion
 ``sum_l W_l * SS_l`` is then scored by PSNR.  It sees the truth, so it is an analysis, not a method: an
-upper reference for what any per-pixel linear fusion of those neighbours (KNN, KNN-DL) could reach.
+upper reference for what any per-pixel linear fusion of those neighbors (KNN, KNN-DL) could reach.
 
 **The PSNR depends on the learning rate** (the seed does not give one).  Adam moves every weight by
 about ``lr`` per step, so 200 steps let a weight travel about ``200 lr``: at 1e-2 (2 units) and more the
 per-pixel weights are free enough to fit almost every pixel exactly and the PSNR mostly measures the
-optimiser, not the neighbours; at 1e-3 (0.2 units from the mean) the fit stays a moderate re-weighting
-of the neighbours, which is what A.2 argues about.  The default, 1e-3, is Adam's own default lr and the
+optimiser, not the neighbors; at 1e-3 (0.2 units from the mean) the fit stays a moderate re-weighting
+of the neighbors, which is what A.2 argues about.  The default, 1e-3, is Adam's own default lr and the
 likeliest unstated choice; the command reports every lr in ``oracle.lrs``.
 
 All targets' weights are one tensor ``[T, L, 90, 360]`` (in chunks of ``chunk_targets`` targets, which
 changes nothing: the loss is the sum of the per-target mean squared errors, so each target's weights get
-exactly the gradient of its own problem, as in the seed's per-target fits).  Padded neighbours (fewer
+exactly the gradient of its own problem, as in the seed's per-target fits).  Padded neighbors (fewer
 than L candidates) keep weight 0.  PSNRs are taken after clamping predictions to [0, 1], as in the test
 protocol of every method.
 """
@@ -36,7 +36,7 @@ from graf.models.knn.weights import idw_weights  # noqa: E402
 from graf.plotting import save_figure  # noqa: E402
 
 SPLITS = ("test", "train", "all")
-# Seed appendix A.2, Fig 1b: RFID dataset, 6 neighbours, 200 iterations.
+# Seed appendix A.2, Fig 1b: RFID dataset, 6 neighbors, 200 iterations.
 PAPER_REFERENCE = {"psnr_mean": 20.5, "psnr_std": 4.1, "source": "seed appendix A.2, Fig 1b"}
 HIST_BINS = 40  # bins of the normalised-weight histogram over [-1, 1]
 
@@ -44,11 +44,11 @@ HIST_BINS = 40  # bins of the normalised-weight histogram over [-1, 1]
 def select_targets(dm, split: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(rows [T], src_index [T, L], src_mask [T, L])`` of a set-up datamodule's spectra.
 
-    ``test``: the test spectra with neighbours from the training split (as every method is tested);
-    ``train``: the training spectra with their other training neighbours; ``all``: every spectrum with
-    neighbours among all the others, train and test alike (the seed's protocol).  The selection is the
-    datamodule's :class:`graf.neighbors.NeighborSelector` (L nearest, matched by id so a target is never
-    its own neighbour)."""
+    ``test``: the test spectra with neighbors from the training split (as every method is tested);
+    ``train``: the training spectra with their other training neighbors; ``all``: every spectrum with
+    neighbors among all the others, train and test alike (the seed's protocol).  The selection is the
+    datamodule's :class:`graf.data.neighbors.NeighborSelector` (L nearest, matched by id so a target is never
+    its own neighbor)."""
     if split not in SPLITS:
         raise ValueError(f"oracle.split must be one of {SPLITS}, got {split!r}")
     everything = torch.arange(len(dm.positions))
@@ -64,7 +64,7 @@ def fit_weights(
     target: torch.Tensor, src: torch.Tensor, mask: torch.Tensor, lr: float, iterations: int
 ) -> torch.Tensor:
     """Per-pixel weights ``[T, L, H, W]`` fitted by Adam to ``target [T, H, W]`` from ``src [T, L, H, W]``;
-    initialised to 1 / (number of real neighbours), 0 for padded ones (which stay 0).
+    initialised to 1 / (number of real neighbors), 0 for padded ones (which stay 0).
 
     The loss is the sum over targets of each target's mean squared error; its gradient
     ``2 / (H W) * (pred - target) * src`` is written out rather than taken by autograd, and Adam is the
@@ -83,9 +83,9 @@ def fit_weights(
 
 
 class WeightStats:
-    """Running statistics of fitted weights over the real neighbours: raw mean / std / min / max and the
+    """Running statistics of fitted weights over the real neighbors: raw mean / std / min / max and the
     fraction below 0; normalised (each target's weights divided by their largest magnitude, so in
-    [-1, 1], as the seed's Fig 1b) mean / std overall and per neighbour rank, and a histogram."""
+    [-1, 1], as the seed's Fig 1b) mean / std overall and per neighbor rank, and a histogram."""
 
     def __init__(self, L: int):
         self.n = 0
@@ -150,10 +150,10 @@ def run_oracle(
     iterations: int,
     chunk_targets: int = 64,
 ) -> dict:
-    """Fit the oracle for every target ``rows`` (neighbours ``src_index``/``src_mask``) at each lr.
+    """Fit the oracle for every target ``rows`` (neighbors ``src_index``/``src_mask``) at each lr.
 
     Returns ``{"idw_psnr": [T], "runs": [{"lr", "psnr": [T], "weights": WeightStats.result()}]}``, with
-    IDW KNN (1/d) on the same neighbours for context."""
+    IDW KNN (1/d) on the same neighbors for context."""
     lrs = [float(v) for v in lrs]
     if not lrs or min(lrs) <= 0:
         raise ValueError(f"oracle.lrs must be a non-empty list of positive numbers, got {lrs}")

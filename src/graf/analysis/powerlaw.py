@@ -1,6 +1,6 @@
 """A power law fitted on log-log axes, with its confidence interval (the interpolation theorem's check: the
-error of interpolating neighbours' spectra grows as ``K * dP**2``, so its log-log slope against the largest
-neighbour distance should be 2 where the law holds)."""
+error of interpolating neighbors' spectra grows as ``K * dP**2``, so its log-log slope against the largest
+neighbor distance should be 2 where the law holds)."""
 
 from __future__ import annotations
 

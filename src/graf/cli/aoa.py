@@ -1,13 +1,13 @@
 """graf-aoa: the angle of arrival of the direct path from each method's predicted spectra, against the geometry
-and the true spectra.  The work is :func:`graf.pipeline.aoa.run`, callable from Python with a composed config."""
+and the true spectra.  The work is :func:`graf.cases.aoa.run`, callable from Python with a composed config."""
 
 from __future__ import annotations
 
 import hydra
 from omegaconf import DictConfig
 
+from graf.cases.aoa import run
 from graf.cli.entry import CONF_PATH, cli_errors
-from graf.pipeline.aoa import run
 
 
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="aoa")

@@ -1,6 +1,6 @@
 """graf-curves: learning curves on validation data (``conf/curves.yaml``).
 
-The work is :func:`graf.pipeline.curves.curves`, callable from Python with a composed config."""
+The work is :func:`graf.studies.curves.curves`, callable from Python with a composed config."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import hydra
 from omegaconf import DictConfig
 
 from graf.cli.entry import CONF_PATH, cli_errors
-from graf.pipeline.curves import curves
+from graf.studies.curves import curves
 
 
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="curves")

@@ -10,7 +10,7 @@ from omegaconf import DictConfig
 
 from graf.console import filter_known_warnings
 from graf.errors import is_user_error, user_message
-from graf.pipeline.config import CONF_PATH
+from graf.run.config import CONF_PATH
 
 __all__ = ["CONF_PATH", "cli_errors"]
 

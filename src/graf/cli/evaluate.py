@@ -1,8 +1,8 @@
 """graf-eval: validate and test a method (or a checkpoint, ckpt_path=...) on a scene; writes results.json.
 
-The work is :func:`graf.pipeline.evaluate.evaluate`.  With ``ckpt_path`` and a ``model.*`` override but no
+The work is :func:`graf.run.evaluate.evaluate`.  With ``ckpt_path`` and a ``model.*`` override but no
 ``model=``, the checkpoint's model config is added to the command line
-(:func:`graf.pipeline.evaluate.checkpoint_model_choice`) so that the key exists when Hydra composes.
+(:func:`graf.run.evaluate.checkpoint_model_choice`) so that the key exists when Hydra composes.
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ import hydra
 from omegaconf import DictConfig
 
 from graf.cli.entry import CONF_PATH, cli_errors
-from graf.pipeline.evaluate import checkpoint_model_choice, evaluate
-from graf.pipeline.testing import sweep_value
+from graf.run.evaluate import checkpoint_model_choice, evaluate
+from graf.run.evaluation import sweep_value
 
 
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="eval")

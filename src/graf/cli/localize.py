@@ -1,13 +1,13 @@
 """graf-localize: a localization model trained from random initialisation and pre-trained on each method's
-synthesized spectra, against the number of measured spectra.  The work is :func:`graf.pipeline.localize.run`."""
+synthesized spectra, against the number of measured spectra.  The work is :func:`graf.cases.localize.run`."""
 
 from __future__ import annotations
 
 import hydra
 from omegaconf import DictConfig
 
+from graf.cases.localize import run
 from graf.cli.entry import CONF_PATH, cli_errors
-from graf.pipeline.localize import run
 
 
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="localize")

@@ -1,6 +1,6 @@
 """graf-pareto: GRaF's speed/accuracy trade, measured (the knobs of ``conf/pareto.yaml``).
 
-The work is :func:`graf.pipeline.pareto.sweep`, callable from Python with a composed config."""
+The work is :func:`graf.studies.pareto.sweep`, callable from Python with a composed config."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import hydra
 from omegaconf import DictConfig
 
 from graf.cli.entry import CONF_PATH, cli_errors
-from graf.pipeline.pareto import sweep
+from graf.studies.pareto import sweep
 
 
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="pareto")

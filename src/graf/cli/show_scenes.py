@@ -1,6 +1,6 @@
 """graf-show-scenes: a picture of a few spectra from each simulated scene's dataset at one band.
 
-The work is :func:`graf.pipeline.show_scenes.show`, callable from Python with a composed config."""
+The work is :func:`graf.sim_commands.show_scenes.show`, callable from Python with a composed config."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import hydra
 from omegaconf import DictConfig
 
 from graf.cli.entry import CONF_PATH, cli_errors
-from graf.pipeline.show_scenes import show
+from graf.sim_commands.show_scenes import show
 
 
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="show_scenes")

@@ -1,6 +1,6 @@
 """graf-table: collect results.json files (a run, a multirun folder, or several) into one table.
 
-The work is :func:`graf.pipeline.table.make_table`, callable from Python with a composed config."""
+The work is :func:`graf.studies.table.make_table`, callable from Python with a composed config."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import hydra
 from omegaconf import DictConfig
 
 from graf.cli.entry import CONF_PATH, cli_errors
-from graf.pipeline.table import make_table
+from graf.studies.table import make_table
 
 
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="table")

@@ -1,7 +1,7 @@
 """graf-train: fit the model when it has parameters, then test it beside its baselines; writes results.json.
 
-The work is :func:`graf.pipeline.train.train`; the value returned to a sweeper is the run's objective
-(:func:`graf.pipeline.testing.sweep_value`: validation figures and costs only).
+The work is :func:`graf.run.train.train`; the value returned to a sweeper is the run's objective
+(:func:`graf.run.evaluation.sweep_value`: validation figures and costs only).
 """
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import hydra
 from omegaconf import DictConfig
 
 from graf.cli.entry import CONF_PATH, cli_errors
-from graf.pipeline.testing import sweep_value
-from graf.pipeline.train import train
+from graf.run.evaluation import sweep_value
+from graf.run.train import train
 
 
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="train")

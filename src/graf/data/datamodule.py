@@ -1,4 +1,4 @@
-"""From scenes' spectra in memory to batches of targets with their neighbours.
+"""From scenes' spectra in memory to batches of targets with their neighbors.
 
 A batch (IBRNet/GNT style: source views on one axis with a mask)::
 
@@ -6,7 +6,7 @@ A batch (IBRNet/GNT style: source views on one axis with a mask)::
     tgt_id       long  [B]              spectrum id as in the scene's files
     tgt_pos      float [B, 3]
     tgt_spectrum float [B, 90, 360]
-    src_index    long  [B, L]           rows of the neighbours (always of the target's own scene)
+    src_index    long  [B, L]           rows of the neighbors (always of the target's own scene)
     src_pos      float [B, L, 3]
     src_spectra  float [B, L, 90, 360]  gathered from the one in-memory tensor, never stored per ray
     src_mask     bool  [B, L]
@@ -26,22 +26,22 @@ of different sizes and bands can share a batch.
 (``val_seed``, the same whatever the run's ``seed``), into a *validation* part (``val_fraction`` of it, at
 least one spectrum) and the *fit* part (the rest):
 
-- training targets and their neighbours: fit spectra only (never the target itself);
-- validation targets: the validation spectra, neighbours from the fit spectra only (so nothing a model is
+- training targets and their neighbors: fit spectra only (never the target itself);
+- validation targets: the validation spectra, neighbors from the fit spectra only (so nothing a model is
   chosen on was trained on, and validation conditions match training);
-- test targets: the test split, neighbours from the whole training split (fit + validation: at test time
+- test targets: the test split, neighbors from the whole training split (fit + validation: at test time
   every measured spectrum is known).
 
 The validation and test splits never share a spectrum; nothing is ever chosen on the test split.
 
 **Measured fraction** (fine-tuning, ``conf/finetune``).  With ``measured_fraction`` (e.g. 0.2), only a seeded
 part of each scene's training split counts as measured (``measured_seed``; at least 2 spectra, else an error):
-the validation and fit parts are cut from it, and it is the pool test neighbours come from.  With
-``test_pool="train_split"`` test neighbours come from the whole training split instead (the seed's zero-shot
+the validation and fit parts are cut from it, and it is the pool test neighbors come from.  With
+``test_pool="train_split"`` test neighbors come from the whole training split instead (the seed's zero-shot
 protocol), while fitting still sees the measured part only.  The test split is never touched.
 
 **Training batches are a pure function of (seed, batch number).**  Batch ``k`` belongs to epoch
-``k // batches_per_epoch``, whose order is a permutation seeded by ``(seed, epoch)``; its neighbour
+``k // batches_per_epoch``, whose order is a permutation seeded by ``(seed, epoch)``; its neighbor
 counts and draws come from a generator seeded by ``(seed, k)``.  The loader starts at the trainer's
 ``global_step``, so a run resumed from a checkpoint draws exactly the batches an uninterrupted run would,
 and with ``num_workers > 0`` worker ``w`` builds batches ``k = w, w + W, ...`` (no shared generator, no
@@ -62,9 +62,9 @@ import torch
 from torch.utils.data import DataLoader, Dataset, IterableDataset, get_worker_info
 
 from graf.bands import Band
+from graf.data.neighbors import Neighbors, NeighborSelector, NoNeighborsError
 from graf.data.spectrum_set import DataFormatError, SpectrumSet
 from graf.errors import ConfigError
-from graf.neighbors import Neighbors, NeighborSelector, NoNeighborsError
 
 log = logging.getLogger(__name__)
 
@@ -74,7 +74,7 @@ TEST_POOLS = ("measured", "train_split")
 
 def measured_part(train_rows: np.ndarray, fraction: float | None, seed: int, where: str) -> np.ndarray:
     """The seeded ``fraction`` of ``train_rows`` that is measured (rounded, at least 2: one to validate on, one
-    to fit and take neighbours from); all of them when ``fraction`` is None."""
+    to fit and take neighbors from); all of them when ``fraction`` is None."""
     n = len(train_rows)
     if fraction is None or fraction >= 1.0:
         return np.sort(train_rows)
@@ -83,7 +83,7 @@ def measured_part(train_rows: np.ndarray, fraction: float | None, seed: int, whe
         raise DataFormatError(
             where,
             f"a measured fraction of {fraction:g} of its {n} training spectra leaves {k}: at "
-            "least 2 are needed (one to validate on, one to fit and take neighbours from); "
+            "least 2 are needed (one to validate on, one to fit and take neighbors from); "
             "use a larger fraction or more spectra",
         )
     perm = np.random.default_rng(int(seed)).permutation(n)
@@ -118,7 +118,7 @@ def carve_validation(train_rows: np.ndarray, fraction: float, seed: int, where: 
         raise DataFormatError(
             where,
             f"the training split holds {n} spectrum(s): at least 2 are needed, one to "
-            "validate on and one to train on and take neighbours from",
+            "validate on and one to train on and take neighbors from",
         )
     n_val = min(max(int(round(n * fraction)), 1), n - 1)
     perm = np.random.default_rng(int(seed)).permutation(n)
@@ -192,14 +192,14 @@ class SpectrumDataModule(L.LightningDataModule):
     data_root: where datasets are read from and written to.
     batch_size: targets per batch.
     eval_split: what ``test_dataloader`` evaluates: ``test`` (default), ``val``, or ``train`` (each fit
-        target with its other fit neighbours).
-    seed: seeds the training stream (target order, L and neighbour draws).
+        target with its other fit neighbors).
+    seed: seeds the training stream (target order, L and neighbor draws).
     val_fraction / val_seed: the validation part of each scene's training split (seeded by ``val_seed``,
         independent of ``seed``).
     scene_indices: the scene index each scene's items carry (default ``0 .. n_scenes - 1``).
     measured_fraction: the part of each scene's training split that is measured (null: all of it).
     measured_seed: draws the measured part.
-    test_pool: where test neighbours come from: ``measured`` (the measured part: default) or
+    test_pool: where test neighbors come from: ``measured`` (the measured part: default) or
         ``train_split`` (the whole training split, measured or not).
     simulate_missing: a simulated scene whose dataset file is missing is ray-traced first (studies).
     """
@@ -312,10 +312,10 @@ class SpectrumDataModule(L.LightningDataModule):
         self.ray_length = torch.as_tensor(ray_len, dtype=torch.float32)
         self.bounds = torch.stack(bounds).float()
         self._eval = {}
-        self.check_neighbours()
+        self.check_neighbors()
 
-    def check_neighbours(self) -> None:
-        """Every target of every split has at least one neighbour under the run's selector (``exclude_within``
+    def check_neighbors(self) -> None:
+        """Every target of every split has at least one neighbor under the run's selector (``exclude_within``
         drops the nearest ones): checked once at set-up, so a setting that leaves a target with none is one
         clear error before any training or evaluation starts, not a failure deep inside a loader."""
         for name in ("train", "val", "test"):
@@ -354,7 +354,7 @@ class SpectrumDataModule(L.LightningDataModule):
     def n_train(self) -> int:
         return int(len(self.train_rows))
 
-    # ------------------------------------------------------------------ neighbours
+    # ------------------------------------------------------------------ neighbors
     def select(
         self,
         rows: torch.Tensor,
@@ -363,7 +363,7 @@ class SpectrumDataModule(L.LightningDataModule):
         generator: torch.Generator | None = None,
         quiet: bool = False,
     ) -> Neighbors:
-        """Neighbours of ``rows`` among ``pool`` (both datamodule rows), each target's from its own scene only,
+        """Neighbors of ``rows`` among ``pool`` (both datamodule rows), each target's from its own scene only,
         never the target itself; indices returned as datamodule rows."""
         rows, pool = torch.as_tensor(rows, dtype=torch.long), torch.as_tensor(pool, dtype=torch.long)
         parts = []
@@ -371,7 +371,7 @@ class SpectrumDataModule(L.LightningDataModule):
             t = (self.row_scene[rows] == k).nonzero().flatten()
             cand = pool[self.row_scene[pool] == k]
             if len(cand) == 0:
-                raise DataFormatError(self.sets[k].source, "no spectra left to take neighbours from")
+                raise DataFormatError(self.sets[k].source, "no spectra left to take neighbors from")
             try:
                 nb = self.neighbors.select(
                     self.positions[rows[t]],
@@ -408,7 +408,7 @@ class SpectrumDataModule(L.LightningDataModule):
         return out
 
     def _split(self, name: str) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(target rows, neighbour pool)`` of an evaluation split."""
+        """``(target rows, neighbor pool)`` of an evaluation split."""
         pool = self.measured_rows if self.test_pool == "measured" else self.train_rows
         return {
             "test": (self.test_rows, pool),
@@ -454,9 +454,9 @@ class SpectrumDataModule(L.LightningDataModule):
         }
 
     def swapped_neighbors(self, name: str, seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
-        """``split_neighbors(name)`` with each target's neighbours replaced by another target's of the same scene
+        """``split_neighbors(name)`` with each target's neighbors replaced by another target's of the same scene
         (a seeded derangement: no target keeps its own, every list is some target's, the same L): what a model
-        that reads its neighbours must do worse on (:func:`graf.metrics.reliance.neighbour_reliance`).  None when
+        that reads its neighbors must do worse on (:func:`graf.metrics.reliance.neighbor_reliance`).  None when
         a scene has a single target in the split (no derangement exists)."""
         rows, idx, mask = self.split_neighbors(name)
         perm = torch.arange(len(rows))
@@ -470,10 +470,10 @@ class SpectrumDataModule(L.LightningDataModule):
 
     def _eval_collate(self, name: str):
         rows, idx, mask = self.split_neighbors(name)
-        if self.swap_seed is not None:  # the reliance pass: every target with another target's neighbours
+        if self.swap_seed is not None:  # the reliance pass: every target with another target's neighbors
             swapped = self.swapped_neighbors(name, self.swap_seed)
             if swapped is None:
-                raise ValueError(f"split {name}: a scene has a single target, no derangement of its neighbours")
+                raise ValueError(f"split {name}: a scene has a single target, no derangement of its neighbors")
             rows, idx, mask = swapped
 
         def collate(positions: list[int]) -> dict:
@@ -499,7 +499,7 @@ class SpectrumDataModule(L.LightningDataModule):
 
     def train_batch(self, k: int) -> dict:
         """Training batch number ``k`` of the stream: targets from epoch ``k // batches_per_epoch``'s seeded order,
-        and L and neighbours drawn with a generator seeded by ``(seed, k)``.  Under data-parallel training the
+        and L and neighbors drawn with a generator seeded by ``(seed, k)``.  Under data-parallel training the
         loader asks for :meth:`rank_batch` instead."""
         epoch, j = divmod(int(k), self.batches_per_epoch)
         order = torch.randperm(
@@ -558,7 +558,7 @@ class SpectrumDataModule(L.LightningDataModule):
         return self._eval_loader(self.eval_split)
 
     def measured_spacing(self) -> float | None:
-        """Median nearest-neighbour distance (m) among the measured training positions of each scene (the
+        """Median nearest-neighbor distance (m) among the measured training positions of each scene (the
         density of the survey the methods see; all training positions when no fraction is set), the median
         over scenes; None when a scene has fewer than two."""
         out = []
@@ -596,7 +596,7 @@ class SpectrumDataModule(L.LightningDataModule):
 
     def query_batches(self, positions, batch_size: int | None = None):
         """Batches for new transmitter positions ``[N, 3]`` of the (single) scene (no measured spectrum:
-        ``tgt_spectrum`` is zeros), with neighbours from the training split as at test.  Used by graf-synthesize."""
+        ``tgt_spectrum`` is zeros), with neighbors from the training split as at test.  Used by graf-synthesize."""
         pos = torch.as_tensor(positions, dtype=torch.float64)
         pool = self._split("test")[1]
         nb = self.neighbors.select(pos, self.positions[pool], self.band.wavelength, train=False)

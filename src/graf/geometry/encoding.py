@@ -60,7 +60,7 @@ def normalize_positions(p: torch.Tensor, bounds: torch.Tensor) -> torch.Tensor:
 
 
 def normalize_offsets(v: torch.Tensor, bounds: torch.Tensor) -> torch.Tensor:
-    """Displacements ``v [B, ..., 3]`` (e.g. neighbour - target) in the same frame (scaled, not centred)."""
+    """Displacements ``v [B, ..., 3]`` (e.g. neighbor - target) in the same frame (scaled, not centred)."""
     _, scale = scene_frame(bounds.to(v.dtype))
     return v / scale.view((v.shape[0],) + (1,) * (v.dim() - 1))
 
@@ -75,7 +75,7 @@ def to_gateway_frame(p: torch.Tensor, gw_pos: torch.Tensor, gw_rot: torch.Tensor
 
 
 def to_gateway_axes(v: torch.Tensor, gw_rot: torch.Tensor) -> torch.Tensor:
-    """Displacements ``v [B, ..., 3]`` (m, e.g. neighbour - target) in the gateway's axes (rotated, not moved)."""
+    """Displacements ``v [B, ..., 3]`` (m, e.g. neighbor - target) in the gateway's axes (rotated, not moved)."""
     return torch.einsum("bij,b...i->b...j", gw_rot.to(v.dtype), v)
 
 

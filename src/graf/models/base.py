@@ -74,9 +74,9 @@ def adam_exponential_decay(module, lr: float, lr_decay: float, decay_steps: int)
 
 
 class SpectrumModule(L.LightningModule):
-    # whether predictions are conditioned on the neighbours' spectra: such a method's test also measures its
-    # neighbour reliance (graf.pipeline.testing.swapped_psnr); NeRF2 sets False
-    uses_neighbours = True
+    # whether predictions are conditioned on the neighbors' spectra: such a method's test also measures its
+    # neighbor reliance (graf.run.evaluation.swapped_psnr); NeRF2 sets False
+    uses_neighbors = True
     LAYOUT = 1
     LAYOUT_CHANGES: dict[int, str] = {}
 
@@ -91,7 +91,7 @@ class SpectrumModule(L.LightningModule):
             "layout": int(self.LAYOUT),
             "scenes": self.trained_scenes(),
         }
-        if getattr(self, "run_settings", None):  # data, neighbours, seed, trainer: a resume is checked against them
+        if getattr(self, "run_settings", None):  # data, neighbors, seed, trainer: a resume is checked against them
             checkpoint["graf"]["run"] = self.run_settings
 
     def trained_scenes(self) -> dict:

@@ -55,7 +55,7 @@ class SimulatedScene:
         self.band, self.fixed_band = (
             band,
             bool(fixed_band),
-        )  # the run's band choice (graf.pipeline.config.scene_band_config)
+        )  # the run's band choice (graf.run.config.scene_band_config)
         self.num_tx = None if num_tx is None else int(num_tx)
         self.room, self.ground, self.objects = room, ground, objects or {}
         self.gateway, self.transmitters = dict(gateway), dict(transmitters)

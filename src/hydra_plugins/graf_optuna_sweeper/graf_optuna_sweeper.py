@@ -1,8 +1,8 @@
 """``hydra/sweeper=graf_optuna``: Optuna >= 4 searches with persistent, resumable, failure-tolerant studies.
 
-    graf-train -m hparams_search=neighbour_count            # conf/hparams_search/*.yaml select this sweeper
+    graf-train -m hparams_search=neighbor_count            # conf/hparams_search/*.yaml select this sweeper
 
-Settings (``hydra.sweeper.*``): see :class:`GrafOptunaSweeperConf`; behaviour: :mod:`graf.sweeps.optuna_sweeper`.
+Settings (``hydra.sweeper.*``): see :class:`GrafOptunaSweeperConf`; behaviour: :mod:`graf.search.optuna_sweeper`.
 """
 
 from dataclasses import dataclass, field
@@ -64,7 +64,7 @@ class GrafOptunaSweeper(Sweeper):
     def __init__(self, **kwargs: Any) -> None:
         from omegaconf import OmegaConf
 
-        from graf.sweeps.optuna_sweeper import OptunaSweep
+        from graf.search.optuna_sweeper import OptunaSweep
 
         kwargs = {
             k: OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else v for k, v in kwargs.items()

@@ -49,7 +49,7 @@ def lightning_trial(cfg: DictConfig, marks: Path) -> float:
     import lightning as L
     import torch
 
-    from graf.sweeps.pruning import pruning_callback
+    from graf.search.pruning import pruning_callback
 
     first = not (marks / "lightning_first").exists()
     (marks / "lightning_first").touch()

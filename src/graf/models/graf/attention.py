@@ -6,7 +6,7 @@ One block: ``x = LayerNorm(x + Attention(x, context))``, then ``x = LayerNorm(x 
 ``1 / sqrt(head_dim)`` scaling.
 
 * :class:`CrossAttentionBlock`: queries ``x [B, Nq, d]`` attend to ``context [B, Nk, d]`` (GRaF's scene
-  representation: voxel queries over the neighbour tokens; 1 head of width d = 16).
+  representation: voxel queries over the neighbor tokens; 1 head of width d = 16).
 * :class:`SelfAttentionBlock`: ``x [B, N, d]`` attends to itself (GRaF's ray transformer: 10 heads of
   8 on width-16 voxel tokens).
 

@@ -1,11 +1,11 @@
-"""ResNet-18 feature extractor of a neighbour's spatial spectrum (seed appendix D), in plain torch.
+"""ResNet-18 feature extractor of a neighbor's spatial spectrum (seed appendix D), in plain torch.
 
 ``[N, 1, 90, 360]`` (or ``[N, 90, 360]``) -> ``[N, widths[-1]]``: optional ``downsample`` x
 ``downsample`` average pooling, stem conv 7x7 stride 2 + max-pool 3x3 stride 2, four stages of two
 BasicBlocks (stride 1, 2, 2, 2; channel widths ``widths``), global average pooling.
 
 Normalisation: GroupNorm instead of ResNet's BatchNorm.  A spectrum's feature then depends on that
-spectrum alone: not on which other neighbours (or how many, L varies per target) share the batch, not on
+spectrum alone: not on which other neighbors (or how many, L varies per target) share the batch, not on
 train/eval mode, and not on how inference is chunked.  Groups: ``gcd(C, 32)`` but at least two channels
 per group (32 groups from 64 channels up, 8 groups of 2 at 16 channels).
 """

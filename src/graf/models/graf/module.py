@@ -1,13 +1,13 @@
 """GRaF: geometry-aware radiance field with neural ray tracing (seed section 3, appendix D, figures 2-3).
 
-For a target transmitter at P and its L neighbours (spectra SS_l at positions P_l), every spectrum pixel is
+For a target transmitter at P and its L neighbors (spectra SS_l at positions P_l), every spectrum pixel is
 a ray from the gateway; the predicted value of a ray is
 
-1. **Neighbour tokens** (once per neighbour spectrum per batch, never per ray): ``MLP1(ResNet18(SS_l) ⊕
-   PE(P_l) ⊕ PE(P_l - P))`` -> ``d_model`` (16) tokens; padded neighbours are masked out.
+1. **Neighbor tokens** (once per neighbor spectrum per batch, never per ray): ``MLP1(ResNet18(SS_l) ⊕
+   PE(P_l) ⊕ PE(P_l - P))`` -> ``d_model`` (16) tokens; padded neighbors are masked out.
 2. **Voxel latents**: the S voxels along the ray (one wavelength apart unless capped at ``max_samples``,
    see :mod:`graf.geometry.rays`) are queries ``Linear(PE(x_s) ⊕ PE(dir) ⊕ PE(P))`` (voxel, ray direction,
-   target) that attend to the neighbour tokens through ``scene_blocks`` post-norm cross-attention blocks
+   target) that attend to the neighbor tokens through ``scene_blocks`` post-norm cross-attention blocks
    (1 head of width d), then ``MLP2``.
 3. **Neural ray tracing**: voxel latents + a code of each voxel's distance from the gateway in wavelengths
    (``Linear(sinusoidal(dist / wavelength))``: continuous, so it means the same in every scene and band and
@@ -21,7 +21,7 @@ a ray from the gateway; the predicted value of a ray is
 Linear is zero-initialised, so at initialisation the model *is* KNN.  (Then ``im`` sits at a stationary
 point of ``|.|`` and keeps a zero gradient; ``re`` alone reaches every amplitude, so nothing is lost.)
 
-**Geometry, the same in every scene**: every position (voxels, target, neighbours) and direction is
+**Geometry, the same in every scene**: every position (voxels, target, neighbors) and direction is
 expressed in the item's *gateway frame* (origin at the receiving array, its axes;
 :func:`graf.geometry.encoding.to_gateway_frame`) in units of ``length_unit`` metres (4 m by default), so one
 unit is the same length in every scene a model is trained or tested on; offsets ``P_l - P`` are rotated into
@@ -33,7 +33,7 @@ Training: ``rays_per_step`` random pixels per step, split evenly across the batc
 without replacement per target, seeded from the global step), per-ray L2 loss; Adam with an exponential
 learning-rate decay by ``lr_decay`` over ``decay_steps`` steps (stepped every optimiser step).
 Inference (:meth:`GRaFModule.predict_spectra`): all 32400 rays in chunks of at most ``chunk_rays`` rays
-(over the whole batch); neighbour tokens are computed once per batch.
+(over the whole batch); neighbor tokens are computed once per batch.
 """
 
 from __future__ import annotations
@@ -52,17 +52,17 @@ from graf.geometry.rays import box_segments, fp32, random_pixels, segment_sample
 from graf.models.base import SpectrumModule, adam_exponential_decay
 from graf.models.graf.attention import CrossAttentionBlock, SelfAttentionBlock
 from graf.models.graf.encoder import ResNetEncoder
-from graf.models.graf.ray_features import RayNeighbourTokens, pad_wrap, pixel_window, sample_wrap
+from graf.models.graf.ray_features import RayNeighborTokens, pad_wrap, pixel_window, sample_wrap
 from graf.models.knn.weights import barycentric_weights, idw_weights
 
 WEIGHTINGS = ("idw", "barycentric")
-# how the rays read the neighbours: pooled (the seed's: one token per neighbour spectrum), ray (per-ray tokens
-# from each neighbour's feature map and pixel values at the ray's own direction), ray_knn (ray, plus a per-ray
-# convex combination of the neighbours' pixel values that equals IDW KNN at initialisation, corrected by the
+# how the rays read the neighbors: pooled (the seed's: one token per neighbor spectrum), ray (per-ray tokens
+# from each neighbor's feature map and pixel values at the ray's own direction), ray_knn (ray, plus a per-ray
+# convex combination of the neighbors' pixel values that equals IDW KNN at initialisation, corrected by the
 # ray tracer), ray_weights (ray, and the output is only that per-ray convex combination, its weights corrected by
-# the neighbour tokens and by the ray tracer's state: never an additive term, so every predicted pixel is a
-# weighted average of what the neighbours measured there): see graf.models.graf.ray_features
-NEIGHBOUR_FEATURES = ("pooled", "ray", "ray_knn", "ray_weights")
+# the neighbor tokens and by the ray tracer's state: never an additive term, so every predicted pixel is a
+# weighted average of what the neighbors measured there): see graf.models.graf.ray_features
+NEIGHBOR_FEATURES = ("pooled", "ray", "ray_knn", "ray_weights")
 KNN_BASED = ("ray_knn", "ray_weights")  # modes equal to IDW KNN at initialisation
 LOSSES = ("mse", "log_mse")
 LOG_MSE_EPS = 1e-6
@@ -72,7 +72,7 @@ SCENE_INDEX_SCALE = (math.sqrt(5.0) - 1.0) / 2.0
 AMPLITUDE_EPS = 1e-12
 ATTENTION_KERNELS = ("auto", "sdpa", "math")
 EVAL_CACHE_ITEMS = 16  # scene voxel tables kept at evaluation
-EVAL_CACHE_FEATURES = 50_000  # encoded neighbour spectra kept at evaluation (x 512 floats at paper size)
+EVAL_CACHE_FEATURES = 50_000  # encoded neighbor spectra kept at evaluation (x 512 floats at paper size)
 SCENE_TABLE_VOXELS = 2_000_000  # scenes with more voxels per spectrum compute them per chunk instead of caching
 SCENE_TABLE_CHUNK = 65_536  # voxels per piece while building a scene's table
 
@@ -135,22 +135,20 @@ class GRaFModule(SpectrumModule):
         voxel_wavelengths: float = 1.0,
         ray_window: int = 0,
         attention: str = "auto",
-        neighbour_features: str = "pooled",
+        neighbor_features: str = "pooled",
         ray_feature_dim: int = 8,
         pixel_window: int = 1,
     ):
         super().__init__()
-        if neighbour_features not in NEIGHBOUR_FEATURES:
-            raise ValueError(
-                f"model.neighbour_features must be one of {NEIGHBOUR_FEATURES}, got {neighbour_features!r}"
-            )
+        if neighbor_features not in NEIGHBOR_FEATURES:
+            raise ValueError(f"model.neighbor_features must be one of {NEIGHBOR_FEATURES}, got {neighbor_features!r}")
         if ray_feature_dim < 1 or pixel_window < 0:
             raise ValueError(
                 f"model.ray_feature_dim must be >= 1 and model.pixel_window >= 0, got {ray_feature_dim}, {pixel_window}"
             )
-        if neighbour_features in KNN_BASED and residual:
+        if neighbor_features in KNN_BASED and residual:
             raise ValueError(
-                f"model.neighbour_features={neighbour_features} already adds its own per-ray KNN base: "
+                f"model.neighbor_features={neighbor_features} already adds its own per-ray KNN base: "
                 "model.residual must be false"
             )
         if weighting not in WEIGHTINGS:
@@ -179,8 +177,8 @@ class GRaFModule(SpectrumModule):
         self.residual, self.weighting, self.use_scene_index = bool(residual), weighting, bool(use_scene_index)
         self.loss_name, self.length_unit = loss, float(length_unit)
         self.sample_spacing, self.ray_window = float(voxel_wavelengths), int(ray_window)
-        self.neighbour_features, self.pixel_window = neighbour_features, int(pixel_window)
-        self.ray_aligned = neighbour_features != "pooled"
+        self.neighbor_features, self.pixel_window = neighbor_features, int(pixel_window)
+        self.ray_aligned = neighbor_features != "pooled"
         self._ray_tables: dict = {}  # geometry only: per scene geometry and band, never stale
         self._eval_cache: dict = {}  # weights-dependent tables of evaluation (see _cached)
         d = self.d_model
@@ -191,7 +189,7 @@ class GRaFModule(SpectrumModule):
         self.encoder = ResNetEncoder(encoder_widths, in_channels=1, downsample=encoder_downsample)
         if self.ray_aligned:  # per-ray tokens (ray_features); no pooled token
             self.ray_proj = nn.Conv2d(self.encoder.out_dim, int(ray_feature_dim), 1)
-            self.ray_tokens = RayNeighbourTokens(int(ray_feature_dim), self.pixel_window, pe_off + 1, mlp_dim, d)
+            self.ray_tokens = RayNeighborTokens(int(ray_feature_dim), self.pixel_window, pe_off + 1, mlp_dim, d)
         else:
             self.mlp1 = _mlp(self.encoder.out_dim + pe_abs + pe_off, mlp_dim, d)
         # Linear(PE(voxel) ⊕ PE(ray direction) ⊕ PE(target)) split in three: the direction's part is computed
@@ -209,13 +207,13 @@ class GRaFModule(SpectrumModule):
         self.ray_blocks = nn.ModuleList(
             SelfAttentionBlock(d, ray_heads, ray_head_dim, ffn_dim, kernel=attention) for _ in range(ray_blocks)
         )
-        if neighbour_features == "ray_weights":  # the ray tracer's state -> a query over the L per-ray tokens
+        if neighbor_features == "ray_weights":  # the ray tracer's state -> a query over the L per-ray tokens
             self.weight_query = nn.Linear(d, d)  # whose scores correct the convex weights (zero at init)
             nn.init.zeros_(self.weight_query.weight)
             nn.init.zeros_(self.weight_query.bias)
         else:
             self.head = nn.Linear(d, 2)
-        if self.residual or neighbour_features == "ray_knn":  # the model starts as (per-ray) KNN
+        if self.residual or neighbor_features == "ray_knn":  # the model starts as (per-ray) KNN
             nn.init.zeros_(self.head.weight)
             nn.init.zeros_(self.head.bias)
         self.register_buffer("ray_dirs", local_directions(dtype=torch.float32), persistent=False)
@@ -223,7 +221,7 @@ class GRaFModule(SpectrumModule):
     @property
     def method(self) -> str:
         name = "graf-residual" if self.residual else "graf"
-        return name if self.neighbour_features == "pooled" else f"{name}-{self.neighbour_features.replace('_', '-')}"
+        return name if self.neighbor_features == "pooled" else f"{name}-{self.neighbor_features.replace('_', '-')}"
 
     # ------------------------------------------------------------------ building blocks
     def _with_scene(self, x: torch.Tensor, scene_index: torch.Tensor) -> torch.Tensor:
@@ -332,8 +330,8 @@ class GRaFModule(SpectrumModule):
         return super().train(mode)
 
     def _spectrum_features(self, spectra: torch.Tensor) -> torch.Tensor:
-        """Encoder features ``[N, C]`` of neighbour spectra ``[N, 90, 360]``.  At evaluation each distinct
-        spectrum is encoded once (keyed by its bytes): a test set's targets share most of their neighbours."""
+        """Encoder features ``[N, C]`` of neighbor spectra ``[N, 90, 360]``.  At evaluation each distinct
+        spectrum is encoded once (keyed by its bytes): a test set's targets share most of their neighbors."""
         if self.training or torch.is_grad_enabled():
             return self.encoder(spectra.unsqueeze(1).float())
         stamp = self._weights_stamp(self.encoder)
@@ -352,8 +350,8 @@ class GRaFModule(SpectrumModule):
         return torch.stack([items[k] for k in keys])
 
     # ------------------------------------------------------------------ a batch
-    def encode_neighbours(self, batch: dict) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(tokens [B, L, d], mask [B, L])``; the encoder sees only the real neighbours' spectra."""
+    def encode_neighbors(self, batch: dict) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(tokens [B, L, d], mask [B, L])``; the encoder sees only the real neighbors' spectra."""
         spectra, mask = batch["src_spectra"], batch["src_mask"].bool()
         B, L = mask.shape
         real = self._spectrum_features(spectra[mask])  # [N_real, C]
@@ -365,8 +363,8 @@ class GRaFModule(SpectrumModule):
         tokens = self.mlp1(torch.cat([feats.float(), pe_pos, pe_off], dim=-1))
         return torch.where(mask[..., None], tokens, torch.zeros_like(tokens)), mask
 
-    def encode_ray_neighbours(self, batch: dict) -> dict:
-        """Ray-aligned mode: each neighbour's projected feature map ``ray_maps [B, L, k, h, w + 2]`` (azimuth-padded,
+    def encode_ray_neighbors(self, batch: dict) -> dict:
+        """Ray-aligned mode: each neighbor's projected feature map ``ray_maps [B, L, k, h, w + 2]`` (azimuth-padded,
         read per ray by :func:`sample_wrap`: bilinear at the ray's pixel, never upsampled whole), the
         spectra ``src [B, L, 90, 360]`` (padded ones zero), the geometry's share of the token MLP ``geo [B, L,
         hidden]`` and, for ``ray_knn``, IDW's log-weights ``idw_logits [B, L]``."""
@@ -384,7 +382,7 @@ class GRaFModule(SpectrumModule):
             "src": spectra.masked_fill(~mask[..., None, None], 0.0),
             "geo": self.ray_tokens.geometry(torch.cat([pe_off, torch.log1p(dist_wl)], dim=-1)),
         }
-        if self.neighbour_features in KNN_BASED:
+        if self.neighbor_features in KNN_BASED:
             ctx["idw_logits"] = torch.log(idw_weights(batch["tgt_pos"], batch["src_pos"], mask).float()).masked_fill(
                 ~mask, float("-inf")
             )
@@ -394,9 +392,9 @@ class GRaFModule(SpectrumModule):
         """Everything about a batch that does not depend on the rays: computed once per batch."""
         if self.ray_aligned:
             mask = batch["src_mask"].bool()
-            tokens, extra = mask.new_zeros(mask.shape[0], 0), self.encode_ray_neighbours(batch)
+            tokens, extra = mask.new_zeros(mask.shape[0], 0), self.encode_ray_neighbors(batch)
         else:
-            (tokens, mask), extra = self.encode_neighbours(batch), {}
+            (tokens, mask), extra = self.encode_neighbors(batch), {}
         B = mask.shape[0]
         ctx = {
             **extra,
@@ -506,27 +504,27 @@ class GRaFModule(SpectrumModule):
         q = q + ctx["target_query"][bi][:, None, :]
         key_mask = ctx["key_mask"]
         base = None
-        if self.ray_aligned:  # each ray's voxels attend to that ray's own neighbour tokens
+        if self.ray_aligned:  # each ray's voxels attend to that ray's own neighbor tokens
             window = pixel_window(ctx["src"], bi, pix, self.pixel_window)  # [n, L, K]
             feats = sample_wrap(ctx["ray_maps"], bi, pix, ctx["ray_maps"].shape[-1] - 2)  # [n, L, k]
             ctx_tokens, logits = self.ray_tokens(feats, window, ctx["geo"][bi])
             x, km = q, None if key_mask is None else key_mask[bi]
-            if self.neighbour_features == "ray_knn":  # convex weights at this pixel: IDW at init, then learned
+            if self.neighbor_features == "ray_knn":  # convex weights at this pixel: IDW at init, then learned
                 w = torch.softmax(ctx["idw_logits"][bi] + logits, dim=-1)
                 base = (w * window[..., window.shape[-1] // 2]).sum(dim=-1)  # [n]
-            elif self.neighbour_features == "ray_weights":
+            elif self.neighbor_features == "ray_weights":
                 logits = ctx["idw_logits"][bi] + logits
-        elif one_item:  # every voxel of the group attends to the same target's neighbours: one long query axis
+        elif one_item:  # every voxel of the group attends to the same target's neighbors: one long query axis
             b = int(bi[0])
             x = q.reshape(1, n * S, self.d_model)
             ctx_tokens, km = ctx["tokens"][b : b + 1], None if key_mask is None else key_mask[b : b + 1]
-        else:  # each ray's voxels attend to its own target's neighbours
+        else:  # each ray's voxels attend to its own target's neighbors
             x, ctx_tokens, km = q, ctx["tokens"][bi], None if key_mask is None else key_mask[bi]
         for blk in self.scene_blocks:
             x = blk(x, ctx_tokens, km)
         v = self.mlp2(x).view(n, S, self.d_model) + code
         v = self._ray_transformer(v)
-        if self.neighbour_features == "ray_weights":  # the ray's state scores its neighbour tokens: the weights'
+        if self.neighbor_features == "ray_weights":  # the ray's state scores its neighbor tokens: the weights'
             state = self.weight_query(v.float().mean(dim=1))  # correction; the value is their convex combination
             scores = (state[:, None, :] * ctx_tokens.float()).sum(dim=-1) / math.sqrt(self.d_model)  # [n, L]
             w = torch.softmax(logits.float() + scores, dim=-1)

@@ -1,18 +1,18 @@
-"""Ray-aligned neighbour features (``model.neighbour_features=ray`` and ``ray_knn``).
+"""Ray-aligned neighbor features (``model.neighbor_features=ray`` and ``ray_knn``).
 
 Every spectrum of a scene is measured by the same array, so ray (elevation, azimuth) of the target is pixel
-(elevation, azimuth) of every neighbour.  Instead of pooling each neighbour's spectrum to one vector, a ray
-reads, for each neighbour l:
+(elevation, azimuth) of every neighbor.  Instead of pooling each neighbor's spectrum to one vector, a ray
+reads, for each neighbor l:
 
-- the neighbour's encoder feature map (projected to ``k`` channels) at the ray's direction, bilinear at the
+- the neighbor's encoder feature map (projected to ``k`` channels) at the ray's direction, bilinear at the
   pixel centre, the azimuth wrapping at 360 degrees and the elevation clamped at its ends
   (:func:`upsample_wrap`),
-- the neighbour's own values in a ``(2r+1) x (2r+1)`` window around that pixel (:func:`pixel_window`; the
+- the neighbor's own values in a ``(2r+1) x (2r+1)`` window around that pixel (:func:`pixel_window`; the
   centre is its value at the pixel),
-- the neighbour's geometry: its offset from the target in the gateway frame (PE) and its distance in
+- the neighbor's geometry: its offset from the target in the gateway frame (PE) and its distance in
   wavelengths (``log1p``).
 
-:class:`RayNeighbourTokens` turns these into L per-ray tokens ``[n, L, d]`` (a two-layer MLP whose geometry
+:class:`RayNeighborTokens` turns these into L per-ray tokens ``[n, L, d]`` (a two-layer MLP whose geometry
 part is computed once per batch), which the voxel queries of that ray cross-attend to.  Its ``weight_logits``
 head (zero at initialisation) corrects IDW's logits per ray: the ``ray_knn`` variant's convex weights.
 """
@@ -28,7 +28,7 @@ from graf.geometry.grid import N_AZIMUTH, N_ELEVATION
 
 def upsample_wrap(maps: torch.Tensor) -> torch.Tensor:
     """``[N, k, h, w]`` maps over the whole 90 x 360 grid -> ``[N, k, 90, 360]``: each spectrum pixel's value
-    bilinear at its centre, with the azimuth periodic (the last map column is the first one's neighbour) and
+    bilinear at its centre, with the azimuth periodic (the last map column is the first one's neighbor) and
     the elevation clamped (no wrap).  A map already at 90 x 360 comes back unchanged."""
     h, w = maps.shape[-2:]
     padded = pad_wrap(maps)  # [N, k, h, w + 2]: one wrapped column each side
@@ -73,7 +73,7 @@ def sample_wrap(padded: torch.Tensor, bi: torch.Tensor, pix: torch.Tensor, w: in
 
 
 def pixel_window(spectra: torch.Tensor, bi: torch.Tensor, pix: torch.Tensor, radius: int) -> torch.Tensor:
-    """Values ``[n, L, (2r+1)^2]`` of every neighbour spectrum (``spectra [B, L, 90, 360]``) in the window of
+    """Values ``[n, L, (2r+1)^2]`` of every neighbor spectrum (``spectra [B, L, 90, 360]``) in the window of
     radius ``r`` around pixel ``pix [n]`` (``row * 360 + col``) of item ``bi [n]``; the azimuth wraps, the
     elevation is clamped.  The window's centre (index ``(2r+1)^2 // 2``) is the pixel itself."""
     r, c = pix // N_AZIMUTH, pix % N_AZIMUTH
@@ -84,14 +84,14 @@ def pixel_window(spectra: torch.Tensor, bi: torch.Tensor, pix: torch.Tensor, rad
     return spectra[bi[:, None], :, rr, cc].permute(0, 2, 1)  # [n, K, L] -> [n, L, K]
 
 
-class RayNeighbourTokens(nn.Module):
-    """Per-ray neighbour tokens: ``MLP(map feature ⊕ pixel window ⊕ geometry) -> d``, the geometry's share of the
+class RayNeighborTokens(nn.Module):
+    """Per-ray neighbor tokens: ``MLP(map feature ⊕ pixel window ⊕ geometry) -> d``, the geometry's share of the
     first layer computed once per batch (:meth:`geometry`), the rest per ray (:meth:`forward`).
 
     Args:
         feature_dim: channels of the projected feature map (``k``).
         window: pixel-window radius r (``(2r+1)^2`` values).
-        geometry_dim: width of a neighbour's geometry input (PE of its offset + 1 for the distance).
+        geometry_dim: width of a neighbor's geometry input (PE of its offset + 1 for the distance).
         hidden / d_model: the MLP's hidden and output widths.
     """
 

@@ -1,4 +1,4 @@
-"""KNN: a weighted mean of the L neighbours' spectra, with nothing to train.
+"""KNN: a weighted mean of the L neighbors' spectra, with nothing to train.
 
 ``weighting: idw`` uses inverse-distance weights 1/d^power; ``weighting: barycentric`` uses the convex
 weights of the interpolation theorem (seed appendix A, see :func:`barycentric_weights`).
@@ -27,7 +27,7 @@ class KNNModule(SpectrumModule):
         return "knn" if self.weighting == "idw" else f"knn-{self.weighting}"
 
     def weights(self, batch: dict) -> torch.Tensor:
-        """``[B, L]`` convex weights of the neighbours."""
+        """``[B, L]`` convex weights of the neighbors."""
         if self.weighting == "idw":
             return idw_weights(batch["tgt_pos"], batch["src_pos"], batch["src_mask"], power=self.power)
         return barycentric_weights(batch["tgt_pos"], batch["src_pos"], batch["src_mask"], ridge=self.ridge)

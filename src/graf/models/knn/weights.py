@@ -1,6 +1,6 @@
-"""Neighbour weights for linear spectrum interpolation (seed appendix A).
+"""Neighbor weights for linear spectrum interpolation (seed appendix A).
 
-Both functions take the target positions ``[T, 3]``, the neighbours' positions ``[T, L, 3]`` and their
+Both functions take the target positions ``[T, 3]``, the neighbors' positions ``[T, L, 3]`` and their
 mask ``[T, L]`` and return weights ``[T, L]`` that are >= 0, zero where masked, and sum to 1.
 """
 
@@ -16,7 +16,7 @@ def idw_weights(
 ) -> torch.Tensor:
     """Inverse-distance weights w_i ~ 1 / d_i^power.
 
-    Neighbours at distance < ``eps`` (co-located with the target) take all the weight, shared equally.
+    Neighbors at distance < ``eps`` (co-located with the target) take all the weight, shared equally.
     """
     d = torch.linalg.vector_norm(nbr.double() - target.double().unsqueeze(1), dim=-1)  # [T, L]
     m = mask.bool()
@@ -35,11 +35,11 @@ def barycentric_weights(
 
         min_w  || sum_i w_i (P_i - P_t) ||^2  +  ridge * sum_i (w_i d_i)^2,   w >= 0,  sum_i w_i = 1
 
-    (lengths scaled by the farthest neighbour's distance).  Inside the neighbours' convex hull the first
+    (lengths scaled by the farthest neighbor's distance).  Inside the neighbors' convex hull the first
     term vanishes, so ``sum_i w_i P_i = P_t`` holds up to the small ridge term, which makes the solution
-    unique when L > 4 and prefers near neighbours (it is the theorem's error-bound term
+    unique when L > 4 and prefers near neighbors (it is the theorem's error-bound term
     ``sum_i w_i ||P_t - P_i||^2`` in quadratic form).  Outside the hull the weights give the closest point
-    of the hull.  A co-located neighbour gets all the weight; L = 1 gives weight 1.
+    of the hull.  A co-located neighbor gets all the weight; L = 1 gives weight 1.
     """
     T, L = mask.shape
     tgt = target.detach().double().cpu().numpy()

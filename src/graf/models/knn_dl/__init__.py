@@ -1,4 +1,4 @@
-"""KNN-DL: neighbour spectra fused with per-pixel weights learned from geometry (see :mod:`.module`)."""
+"""KNN-DL: neighbor spectra fused with per-pixel weights learned from geometry (see :mod:`.module`)."""
 
 from graf.models.knn_dl.module import KNNDLModule
 from graf.models.knn_dl.weightnet import WeightNet, upsample_maps

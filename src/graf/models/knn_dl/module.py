@@ -1,40 +1,40 @@
-"""KNN-DL: the L neighbours' spectra fused with per-pixel weight maps that a small network predicts from
-the geometry of target and neighbours (the learned-weights baseline of seed E.2, built on the linear
+"""KNN-DL: the L neighbors' spectra fused with per-pixel weight maps that a small network predicts from
+the geometry of target and neighbors (the learned-weights baseline of seed E.2, built on the linear
 fusion of appendix A.2).
 
     pred[b, p] = sum_l w[b, l, p] * SS_l[p]
 
-**Weights.** :class:`.weightnet.WeightNet` maps the relative geometry of each (target, neighbour) pair
-(PE of the normalised offset, distance in wavelengths, distance rank, neighbour count, plus a DeepSets
-mean over the target's neighbours) and each ray direction to two coarse maps (``map_size``, default
+**Weights.** :class:`.weightnet.WeightNet` maps the relative geometry of each (target, neighbor) pair
+(PE of the normalised offset, distance in wavelengths, distance rank, neighbor count, plus a DeepSets
+mean over the target's neighbors) and each ray direction to two coarse maps (``map_size``, default
 18 x 72, i.e. 5 deg cells), upsampled bilinearly (circular in azimuth) to 90 x 360:
 
     w = softmax_l( log w_idw + logit )  +  s * (t - mean_real(t)),   t = tanh(correction)
 
-- The **convex part** is a per-pixel softmax over the real neighbours with the log of the IDW weights
+- The **convex part** is a per-pixel softmax over the real neighbors with the log of the IDW weights
   (1/d, :func:`graf.models.knn.idw_weights`) as a fixed bias.  The decoder's last layer is
   zero-initialised, so at step 0 the model *is* IDW KNN and training starts from it.  A convex
   combination keeps the interpolation theorem's guarantee (seed A.1): the error is bounded by the
-  neighbours' spread, whatever the network outputs.
+  neighbors' spread, whatever the network outputs.
 - The **signed correction** (bound ``signed_scale`` = s) lets a weight go negative or above 1, as the
   per-target weight matrices of seed A.2 do (their normalised values span -1..1, Fig 1b), i.e. it allows
-  extrapolation beyond the neighbours' hull along a pixel's dominant trend.  It is centred over the real
-  neighbours, so the weights still sum to 1 (an affine combination: a spectrum common to all neighbours
+  extrapolation beyond the neighbors' hull along a pixel's dominant trend.  It is centred over the real
+  neighbors, so the weights still sum to 1 (an affine combination: a spectrum common to all neighbors
   is reproduced exactly), and bounded, so a badly predicted correction cannot blow a pixel up.
   ``signed_scale: 0`` gives the purely convex model.  (In 300-step CPU runs on rfid_s23 the two were
-  within 0.3 dB PSNR of each other, with dense and with sparse neighbours; the default keeps the signed
+  within 0.3 dB PSNR of each other, with dense and with sparse neighbors; the default keeps the signed
   part because the A.2 weights are signed.)
 
-Padded neighbours (``src_mask`` False) get weight exactly 0 (``-inf`` logit, masked correction).  A
-neighbour at distance 0 from the target takes the whole IDW bias (the others' bias is ``-inf``), so the
-convex part is that neighbour; only the bounded correction can move weight to the others.  With L = 1
+Padded neighbors (``src_mask`` False) get weight exactly 0 (``-inf`` logit, masked correction).  A
+neighbor at distance 0 from the target takes the whole IDW bias (the others' bias is ``-inf``), so the
+convex part is that neighbor; only the bounded correction can move weight to the others.  With L = 1
 the weight is 1.
 
-**Neighbour spectra never enter the weight network**: the weights depend on geometry only, so one
-trained model serves every target of a scene and applies to any set of neighbours.  The network is
-small: with the defaults 14,914 parameters (per-neighbour MLP 42 -> 64, DeepSets 64 -> 64, decoder
+**Neighbor spectra never enter the weight network**: the weights depend on geometry only, so one
+trained model serves every target of a scene and applies to any set of neighbors.  The network is
+small: with the defaults 14,914 parameters (per-neighbor MLP 42 -> 64, DeepSets 64 -> 64, decoder
 32 -> 32 -> 2 per cell); one forward costs B x L x 1,296 cells of a 32-wide MLP plus the upsampling
-(on one CPU core: a training step of 4 targets with up to 10 neighbours ~0.06 s, the 40 test spectra of
+(on one CPU core: a training step of 4 targets with up to 10 neighbors ~0.06 s, the 40 test spectra of
 rfid_s23 with L = 10 ~0.26 s).
 
 **Training**: the whole 90 x 360 map of every target of the batch (cheap here: nothing is rendered per
@@ -59,9 +59,9 @@ from graf.models.knn_dl.weightnet import WeightNet, upsample_maps
 class KNNDLModule(SpectrumModule):
     """Args (all in ``conf/model/knn_dl.yaml``):
     map_size: coarse weight-map grid (h, w); h divides 90, w divides 360.
-    hidden / decoder_hidden: widths of the per-neighbour MLP and of the per-cell decoder.
+    hidden / decoder_hidden: widths of the per-neighbor MLP and of the per-cell decoder.
     pe_freqs / dir_freqs: positional-encoding bands of the offset and of the ray direction.
-    max_rank: scale of the rank and neighbour-count features (the largest L expected).
+    max_rank: scale of the rank and neighbor-count features (the largest L expected).
     signed_scale: bound of the signed, zero-sum weight correction (0: convex weights only).
     idw_power: the IDW bias is log(1 / d^idw_power).
     lr / lr_decay / decay_steps: Adam; the lr is multiplied by lr_decay over decay_steps steps.
@@ -111,7 +111,7 @@ class KNNDLModule(SpectrumModule):
         return "knn-dl"
 
     def fusion_weights(self, batch: dict) -> torch.Tensor:
-        """``[B, L, 90, 360]`` per-pixel weights; 0 for padded neighbours, summing to 1 over l."""
+        """``[B, L, 90, 360]`` per-pixel weights; 0 for padded neighbors, summing to 1 over l."""
         mask = batch["src_mask"].bool()
         tgt, src = batch["tgt_pos"].float(), batch["src_pos"].float()
         offset = src - tgt[:, None, :]

@@ -1,22 +1,22 @@
-"""KNN-DL's weight network: low-resolution per-neighbour fusion maps from the geometry alone.
+"""KNN-DL's weight network: low-resolution per-neighbor fusion maps from the geometry alone.
 
-For each (target, neighbour) pair the network sees only relative geometry, never a spectrum:
+For each (target, neighbor) pair the network sees only relative geometry, never a spectrum:
 
 - ``PE(normalize_offsets(P_l - P_t))`` (``pe_freqs`` bands: 3 -> 3 (1 + 2F) dims),
-- ``log(1 + d_l / wavelength)``, the neighbour's distance rank among the target's real neighbours
-  (``rank / max_rank``) and the number of real neighbours (``n / max_rank``).
+- ``log(1 + d_l / wavelength)``, the neighbor's distance rank among the target's real neighbors
+  (``rank / max_rank``) and the number of real neighbors (``n / max_rank``).
 
-A per-neighbour MLP embeds these, one DeepSets layer adds the masked mean over the target's real
-neighbours (so a neighbour's weight can depend on where the *other* neighbours lie, e.g. whether the
+A per-neighbor MLP embeds these, one DeepSets layer adds the masked mean over the target's real
+neighbors (so a neighbor's weight can depend on where the *other* neighbors lie, e.g. whether the
 target is inside their hull), and the result is decoded on a coarse ``map_size`` grid of ray
 directions: every cell contributes ``PE(its gateway-frame ray direction)`` (``dir_freqs`` bands) and the
-cosine between that ray (in the world frame) and the neighbour's offset direction.  The decoder's first
-layer is a sum of the per-neighbour, per-cell and cosine terms (each computed once), then ReLU ->
+cosine between that ray (in the world frame) and the neighbor's offset direction.  The decoder's first
+layer is a sum of the per-neighbor, per-cell and cosine terms (each computed once), then ReLU ->
 Linear -> ReLU -> Linear to two channels per cell: a fusion logit and a signed correction.  The last
 layer is zero-initialised, so both maps are 0 at initialisation.
 
 :func:`upsample_maps` brings the coarse maps to the 90 x 360 spectrum grid bilinearly, circular in
-azimuth (azimuth 360 deg neighbours 1 deg) and edge-clamped in elevation.
+azimuth (azimuth 360 deg neighbors 1 deg) and edge-clamped in elevation.
 """
 
 from __future__ import annotations
@@ -62,11 +62,11 @@ class WeightNet(nn.Module):
 
     Args:
         map_size: coarse grid (h, w); h must divide 90 and w divide 360.
-        hidden: width of the per-neighbour MLP and the DeepSets layer.
+        hidden: width of the per-neighbor MLP and the DeepSets layer.
         decoder_hidden: width of the per-cell decoder.
         pe_freqs: frequency bands of the offset's positional encoding.
         dir_freqs: frequency bands of the ray direction's positional encoding.
-        max_rank: scale of the rank and neighbour-count features (the largest L expected).
+        max_rank: scale of the rank and neighbor-count features (the largest L expected).
     """
 
     def __init__(
@@ -98,10 +98,10 @@ class WeightNet(nn.Module):
         nn.init.zeros_(self.decoder[-1].bias)
         self.register_buffer("cell_dirs", cell_directions(self.map_size), persistent=False)
 
-    def neighbour_features(self, offset_norm: torch.Tensor, dist_wl: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        """``[B, L, d_in]``: PE of the normalised offset, log(1 + d / wavelength), rank, neighbour count."""
+    def neighbor_features(self, offset_norm: torch.Tensor, dist_wl: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """``[B, L, d_in]``: PE of the normalised offset, log(1 + d / wavelength), rank, neighbor count."""
         rank = torch.where(mask, dist_wl, torch.full_like(dist_wl, float("inf"))).argsort(dim=1, stable=True)
-        rank = rank.argsort(dim=1).to(dist_wl.dtype)  # 0 for the nearest real neighbour
+        rank = rank.argsort(dim=1).to(dist_wl.dtype)  # 0 for the nearest real neighbor
         count = mask.sum(dim=1, keepdim=True).to(dist_wl.dtype).expand_as(dist_wl)
         scalars = torch.stack([torch.log1p(dist_wl), rank / self.max_rank, count / self.max_rank], dim=-1)
         return torch.cat([self.pe_offset(offset_norm), scalars], dim=-1)
@@ -118,7 +118,7 @@ class WeightNet(nn.Module):
         mask ``[B, L]`` bool, gateway rotation (local -> world) ``[B, 3, 3]``."""
         B, L = mask.shape
         dist = torch.linalg.vector_norm(offset_world, dim=-1)  # [B, L]
-        g = self.neighbour_features(offset_norm, dist / wavelength[:, None], mask)
+        g = self.neighbor_features(offset_norm, dist / wavelength[:, None], mask)
         h = F.relu(self.embed(g))
         m = mask[..., None].to(h.dtype)
         ctx = (h * m).sum(dim=1, keepdim=True) / m.sum(dim=1, keepdim=True).clamp_min(1.0)
@@ -126,7 +126,7 @@ class WeightNet(nn.Module):
         per_nbr = self.to_decoder(z)  # [B, L, H]
         per_cell = self.cell(self.pe_dir(self.cell_dirs))  # [C, H]
         dirs = torch.einsum("bij,cj->bci", gw_rot, self.cell_dirs)  # world ray directions [B, C, 3]
-        unit = offset_world / dist[..., None].clamp_min(1e-9)  # zero vector for a co-located neighbour
+        unit = offset_world / dist[..., None].clamp_min(1e-9)  # zero vector for a co-located neighbor
         cos = torch.einsum("bli,bci->blc", unit, dirs)  # [B, L, C]
         x = per_nbr[:, :, None, :] + per_cell[None, None] + cos[..., None] * self.cosine
         out = self.decoder(x)  # [B, L, C, 2]

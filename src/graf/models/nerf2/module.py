@@ -1,5 +1,5 @@
 """NeRF2 (Zhao et al., MobiCom 2023) as a per-scene baseline: a radiance field of the scene queried along
-each spectrum ray, with no neighbour spectra (the batch's ``src_*`` entries are ignored).
+each spectrum ray, with no neighbor spectra (the batch's ``src_*`` entries are ignored).
 
 Each pixel ``p = r * 360 + c`` is a ray from the gateway (directions of :mod:`graf.geometry.grid`, rotated
 by ``gw_rot``).  S samples along it (:func:`.renderer.sample_distances`) go through :class:`.NeRF2Network`
@@ -47,7 +47,7 @@ from graf.models.nerf2.renderer import render_rays, sample_distances
 
 class NeRF2Module(SpectrumModule):
     INFERENCE_SETTINGS = ("chunk_rays",)  # graf-eval may change these on a trained checkpoint
-    uses_neighbours = False  # one scene's field: no neighbour is read, so no reliance to measure
+    uses_neighbors = False  # one scene's field: no neighbor is read, so no reliance to measure
     """Args (all in ``conf/model/nerf2.yaml``):
         depth / width / skips: the attenuation MLP (8 x 256, point encoding re-entered after layer 4).
         pe_freqs: encoding frequencies of points, view directions and transmitter (10: 3 -> 63 dims).

@@ -1,0 +1,267 @@
+"""Building a run from its config: bands, scenes, the neighbor selector and the datamodule that joins them, the
+test scenes' datamodules (with their scene indices, seen or unseen), the model, loggers, callbacks and trainer.
+
+Every object comes from its config node by ``_target_`` (Hydra's ``instantiate``); trainer callbacks, the
+Optuna pruning one included, come from the ``callbacks`` group.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import hydra
+import lightning as L
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from graf.console import is_terminal
+from graf.data.fingerprint import find_scene, next_index, register_scene
+from graf.errors import ConfigError
+from graf.models.base import read_checkpoint
+from graf.run.config import (
+    check_run_settings,
+    hz,
+    load_band_config,
+    output_dir,
+    run_settings,
+    scene_band_config,
+    scene_configs,
+)
+
+log = logging.getLogger("graf")
+
+
+def build_datamodule(cfg: DictConfig, which: str = "scene", scene_indices=None):
+    """Bands, scenes, neighbor selector and the datamodule that joins them (``cfg.data``), for the scenes
+    of ``cfg[which]`` (``scene``: what is trained on; ``eval_scene``: what is tested).  The fine-tuning settings
+    (``cfg.finetune``: measured fraction,
+    its seed, the test neighbor pool) apply to the scenes trained on."""
+    configs = scene_configs(cfg.get(which))
+    if not configs:
+        raise ConfigError(f"{which}= selects no scene")
+    band_cfgs = [scene_band_config(c, cfg.get("band")) for c in configs]
+    bands = [hydra.utils.instantiate(b) for b in band_cfgs]
+    scenes = [hydra.utils.instantiate(c) for c in configs]
+    neighbors = hydra.utils.instantiate(cfg.neighbors)
+    ft = cfg.get("finetune") or {}
+    measured = (
+        {
+            "measured_fraction": ft.get("fraction"),
+            "measured_seed": int(ft.get("seed") or 0),
+            "test_pool": ft.get("test_pool") or "measured",
+        }
+        if which == "scene"
+        else {}
+    )
+    make = hydra.utils.instantiate(cfg.data, _partial_=True)  # lists of objects must not pass through OmegaConf
+    datamodule = make(
+        scene=scenes,
+        band=bands,
+        neighbors=neighbors,
+        data_root=cfg.get("data_root"),
+        scene_indices=scene_indices,
+        **measured,
+    )
+    return bands, scenes, neighbors, datamodule
+
+
+def assign_scene_indices(known: dict[str, int], names: list[str]) -> list[int]:
+    """The scene index of each scene in ``names``: its index in ``known`` (the scenes a model was trained on,
+    name -> index) when there, else a new index after every known one (an unseen scene)."""
+    out, new = [], (max(known.values()) + 1) if known else 0
+    for n in names:
+        if n in known:
+            out.append(int(known[n]))
+        else:
+            out.append(new)
+            new += 1
+    return out
+
+
+def eval_scene_indices(train_names: list[str], eval_names: list[str]) -> list[int]:
+    """The scene index of each test scene: its training index when the model was trained on it, else a new
+    index after the training scenes' (an unseen scene)."""
+    return assign_scene_indices({n: i for i, n in enumerate(train_names)}, eval_names)
+
+
+def checkpoint_scenes(cfg: DictConfig) -> tuple[str | None, dict]:
+    """``(path, {scene name: {"index", "band_hz"}})`` of the checkpoint a run starts from or tests
+    (``finetune.init_from``, else ``ckpt_path``): the scenes it was trained on (empty for a checkpoint written
+    before checkpoints recorded them, or when there is none)."""
+    path = (cfg.get("finetune") or {}).get("init_from") or cfg.get("ckpt_path")
+    if not path:
+        return None, {}
+    ckpt = read_checkpoint(path)
+    return str(path), dict((ckpt.get("graf") or {}).get("scenes") or {})
+
+
+def check_bands(cfg: DictConfig, trained: dict, dm, source: str) -> None:
+    """Refuse a scene at a band the model was not trained at (``trained``: name -> {"band_hz"}) unless
+    ``cross_band=true``: the seed trains one model per band (E.5), so a cross-band run is a transfer study,
+    not an accident."""
+    if not trained or cfg.get("cross_band"):
+        return
+    bands = {round(float(v["band_hz"])) for v in trained.values() if v.get("band_hz")}
+    for d, b in zip(dm.sets, dm.bands):
+        if bands and round(float(b.frequency_hz)) not in bands:
+            raise ConfigError(
+                f"{source} was trained at {', '.join(hz(x) for x in sorted(bands))} (scenes "
+                f"{', '.join(sorted(trained))}), but scene {d.name} is at {hz(b.frequency_hz)} in this run: a "
+                "cross-band transfer.  Set cross_band=true to run it anyway (the bands and unseen_layouts studies "
+                "do), or band=... to match"
+            )
+
+
+def build(cfg: DictConfig, trains: bool = True) -> dict:
+    """Instantiate band, scene, neighbor selector, datamodule (set up), model, loggers and trainer.  ``trains``:
+    whether the run trains the model on its scenes (graf-eval and a zero-shot test do not: a test scene is then
+    "within-scene" only when the checkpoint was trained on its content)."""
+    check_run_settings(cfg)
+    if cfg.get("torch_threads"):
+        torch.set_num_threads(int(cfg.torch_threads))
+    if cfg.get("seed") is not None:
+        L.seed_everything(int(cfg.seed), workers=True, verbose=False)
+    out = output_dir(cfg)
+    out.mkdir(parents=True, exist_ok=True)
+    source, known = checkpoint_scenes(cfg)
+    _, _, neighbors, datamodule = build_datamodule(cfg)
+    datamodule.setup("fit")
+    check_bands(cfg, known, datamodule, source)  # fine-tuning or testing a checkpoint at another band: a transfer
+    # a scene the checkpoint was trained on (the same content, whatever its name) keeps its index; a new one
+    # gets the next; the table is what the checkpoints this run writes record
+    table = dict(known)
+    datamodule.set_scene_indices(
+        [
+            table[register_scene(table, d.name, fp, next_index(table))]["index"]
+            for d, fp in zip(datamodule.sets, datamodule.fingerprints())
+        ]
+    )
+    evaluations = eval_datamodules(cfg, datamodule, table, seen=table if trains or not known else known)
+    for ev in evaluations:
+        if ev["datamodule"] is not datamodule:
+            check_bands(cfg, table, ev["datamodule"], source or "the model")
+    model = hydra.utils.instantiate(cfg.model)
+    model.scene_table = dict(table)  # what the checkpoints it writes record: the checkpoint's and this run's scenes
+    model.run_settings = run_settings(cfg)
+    loggers = [
+        hydra.utils.instantiate(c)
+        for c in (cfg.get("logger") or {}).values()
+        if isinstance(c, DictConfig) and "_target_" in c
+    ]
+    # the callbacks group, composed by Hydra; an entry may make nothing (None: the Optuna pruning callback of a run
+    # that is no search trial)
+    callbacks = [
+        cb
+        for cb in (
+            hydra.utils.instantiate(c)
+            for c in (cfg.get("callbacks") or {}).values()
+            if isinstance(c, DictConfig) and "_target_" in c
+        )
+        if cb is not None
+    ]
+    trainer = hydra.utils.instantiate(trainer_args(cfg), logger=loggers or False, callbacks=callbacks)
+    return {
+        "neighbors": neighbors,
+        "datamodule": datamodule,
+        "evaluations": evaluations,
+        "model": model,
+        "loggers": loggers,
+        "trainer": trainer,
+        "output_dir": out,
+        "scene_table": table,
+    }
+
+
+def eval_datamodules(cfg: DictConfig, train_dm, table: dict | None = None, seen: dict | None = None) -> list[dict]:
+    """What the final evaluations test: ``[{"eval_scene", "datamodule", "within_scene"}]``.  Without
+    ``eval_scene`` (``eval_scene=same``) and ``eval_band`` the training datamodule itself (within-scene).
+    Otherwise one datamodule per test scene (``eval_scene=same`` with an ``eval_band``: the training scenes at
+    that band), its targets from that scene's splits and their neighbors from that scene's training split
+    (all of it: the measured fraction of a fine-tuning run applies to the scenes it trains on).  ``table``:
+    the scenes the model knows (name -> {"index"}; default: the training datamodule's), so a test scene the
+    model was trained on keeps its scene index and is reported as within-scene, and an unseen one gets a new
+    index.  ``seen``: the scenes the model was trained on, by content (default: ``table``); a run that trains
+    nothing (graf-eval of a checkpoint) passes the checkpoint's alone."""
+    configs = scene_configs(cfg.get("eval_scene"))
+    eval_band = cfg.get("eval_band")
+    if not configs and not eval_band:
+        within = seen is None or all(
+            find_scene(seen, d.name, fp) is not None for d, fp in zip(train_dm.sets, train_dm.fingerprints())
+        )
+        return [{"eval_scene": train_dm.scene_name, "datamodule": train_dm, "within_scene": within}]
+    if not configs:
+        configs = scene_configs(cfg.get("scene"))
+    band = load_band_config(str(eval_band)) if eval_band else cfg.get("band")
+    if table is None:
+        table = {}
+        for d, fp, k in zip(train_dm.sets, train_dm.fingerprints(), train_dm.scene_index.tolist()):
+            register_scene(table, d.name, fp, k)
+    names = [str(c.get("name")) for c in configs]
+    out, new = [], next_index(table)
+    for c, name in zip(configs, names):
+        scene = OmegaConf.create({name: OmegaConf.to_container(c, resolve=True)})  # resolved in the run's config
+        sub = OmegaConf.create(
+            {
+                key: OmegaConf.to_container(v, resolve=True) if isinstance(v, DictConfig) else v
+                for key, v in (
+                    ("eval_scene", scene),
+                    ("band", band),
+                    ("neighbors", cfg.neighbors),
+                    ("data", cfg.data),
+                    ("data_root", cfg.get("data_root")),
+                )
+            }
+        )
+        _, _, _, dm = build_datamodule(sub, "eval_scene")
+        dm.setup("test")
+        key = find_scene(table, name, dm.fingerprints()[0])  # by content: another folder of the same name is unseen
+        within = key is not None and (seen is None or find_scene(seen, name, dm.fingerprints()[0]) is not None)
+        if key is not None:
+            k = int(table[key]["index"])
+        else:
+            k, new = new, new + 1
+        dm.set_scene_indices([k])
+        log.info(
+            "test scene %s at %s: %s (scene index %d)",
+            name,
+            dm.bands[0].name,
+            "within-scene (the model was trained on it)" if within else "unseen in training (zero-shot)",
+            k,
+        )
+        out.append({"eval_scene": name, "datamodule": dm, "within_scene": within})
+    return out
+
+
+def trainer_args(cfg: DictConfig) -> DictConfig:
+    """``cfg.trainer`` without the keys that are not Trainer arguments, after applying them:
+    ``float32_matmul_precision`` (``highest`` | ``high`` = TF32 on NVIDIA GPUs | ``medium``; null: torch's)."""
+    t = OmegaConf.to_container(cfg.trainer, resolve=True)
+    fmp = t.pop("float32_matmul_precision", None)
+    if fmp:
+        torch.set_float32_matmul_precision(str(fmp))
+    return OmegaConf.create(t)
+
+
+def evaluation_trainer(cfg: DictConfig, loggers=(), callbacks=()) -> L.Trainer:
+    """The trainer of the final evaluations (validation and test of the final weights).  Both evaluate
+    ``trainer.limit_test_batches`` of their split; validation during training (off by default) is the fit
+    trainer's business.  Their bars are drawn on a terminal only: elsewhere the table that ends the command says
+    what they found."""
+    t = trainer_args(cfg)
+    limit = t.get("limit_test_batches", 1.0)
+    return L.Trainer(
+        accelerator=t.get("accelerator", "auto"),
+        devices=t.get("devices", 1),
+        num_nodes=t.get("num_nodes", 1),
+        strategy=t.get("strategy", "auto"),  # under DDP each rank evaluates its share of the positions
+        use_distributed_sampler=False,  # graf deals the positions itself (no padded duplicates)
+        precision=t.get("precision", "32-true"),
+        logger=list(loggers) or False,
+        callbacks=list(callbacks),
+        enable_progress_bar=bool(t.get("enable_progress_bar", True)) and is_terminal(),
+        enable_model_summary=False,
+        enable_checkpointing=False,
+        limit_val_batches=limit,
+        limit_test_batches=limit,
+        default_root_dir=t.get("default_root_dir"),
+    )

@@ -1,0 +1,230 @@
+"""The run's configuration: where the configs are, the scenes and bands a config selects, layout families and
+held-out layouts, the run's settings, and the wrapper every task runs in.
+
+Nothing here builds a model or touches data: :mod:`graf.run.build` does, from what these functions return.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import os
+from pathlib import Path
+from typing import NamedTuple
+
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+import graf
+from graf.errors import ConfigError, is_user_error, user_message
+
+log = logging.getLogger("graf")
+
+# The configs ship inside the package (src/graf/conf; conf/ in the checkout links to it).  Every
+# @hydra.main reads them as a package resource, so an installed wheel works from any folder; add a
+# folder of your own with Hydra's --config-dir.  CONF_DIR is the same folder on disk.
+CONF_PATH = "pkg://graf.conf"
+CONF_DIR = Path(graf.__file__).resolve().parent / "conf"
+
+
+class Results(NamedTuple):
+    """What a task returns: the run's figures (``val/...``, ``test/...``) and the objects it built and
+    used (``datamodule``, ``model``, ``trainer``, ``output_dir``, ``timing``, ...).  A tuple: ``metrics, objects =
+    train(cfg)``."""
+
+    metrics: dict
+    objects: dict
+
+
+def output_dir(cfg: DictConfig) -> Path:
+    """The run's output folder (``paths.output_dir``; the working folder outside a Hydra app)."""
+    try:
+        return Path(cfg.paths.output_dir)
+    except Exception:  # ${hydra:...} outside a Hydra app
+        return Path.cwd()
+
+
+def task_wrapper(task):
+    """Run a task; on failure log the exception (and the output folder) before re-raising; always close
+    the loggers (wandb included), so a failed run in a sweep leaves a finished, inspectable record."""
+
+    @functools.wraps(task)
+    def wrapped(cfg: DictConfig, *args, **kwargs):
+        try:
+            check_shared_run_folder()
+            return task(cfg, *args, **kwargs)
+        except Exception as exc:
+            if (is_user_error(exc) or hasattr(exc, "exit_code")) and os.environ.get("HYDRA_FULL_ERROR") != "1":
+                log.error(
+                    "%s failed: %s (output folder: %s)",
+                    cfg.get("task_name", "task"),
+                    user_message(exc),
+                    output_dir(cfg),
+                )
+            else:
+                log.exception("%s failed; output folder: %s", cfg.get("task_name", "task"), output_dir(cfg))
+            raise
+        finally:
+            try:
+                import wandb
+
+                if wandb.run is not None:
+                    wandb.finish()
+            except ImportError:  # pragma: no cover
+                pass
+
+    return wrapped
+
+
+def override_key(override: str) -> str:
+    """The key a command-line override sets: ``model`` for ``model=knn``, ``+trainer.x`` and ``~trainer.x`` ->
+    ``trainer.x``."""
+    return override.split("=", 1)[0].lstrip("+~")
+
+
+def launched_ranks() -> int:
+    """How many processes an outside launcher started for this command: torchrun's (and Lightning's children's)
+    ``WORLD_SIZE``, srun's ``SLURM_STEP_NUM_TASKS``; 1 for a plain command."""
+    for key in ("WORLD_SIZE", "SLURM_STEP_NUM_TASKS"):
+        try:
+            n = int(os.environ.get(key) or 1)
+        except ValueError:
+            continue
+        if n > 1:
+            return n
+    return 1
+
+
+def check_shared_run_folder() -> None:
+    """Refuse a run started as several processes (torchrun, srun) without ``hydra.run.dir``: each process would
+    name its own folder after the second it started in, so rank 0 would write the run's files in one folder and
+    the others would look for them (a base model trained on the fly, a checkpoint) in another.  Lightning's own
+    launcher passes its folder to the processes it starts; a multirun's folders are named once by its launcher."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    n = launched_ranks()
+    if n < 2 or not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.RUN:
+        return
+    if any(override_key(o) == "hydra.run.dir" for o in HydraConfig.get().overrides.hydra):
+        return
+    raise ConfigError(
+        f"{n} processes were started for this run (torchrun / srun), and each would name its own output folder "
+        "after the second it started in: give them one, e.g. hydra.run.dir=outputs/ddp_run"
+    )
+
+
+def scene_configs(node) -> list[DictConfig]:
+    """The scene configs a ``scene`` or ``eval_scene`` node selects, in order.  ``scene=conference_v1`` composes
+    to ``scene.conference_v1: {...}`` and ``scene=[conference_v1,office_v1]`` to one entry per scene (Hydra's
+    list selection; each option places ``scene_catalog/<name>`` under its own name); a flat config with a
+    ``_target_`` (graf-bench's ``scenes.<key>``) is one scene."""
+    if node is None:
+        return []
+    if isinstance(node, DictConfig) and "_target_" in node:
+        return [node]
+    return [v for v in node.values() if isinstance(v, DictConfig) and "_target_" in v]
+
+
+def single_scene_config(cfg: DictConfig, command: str) -> DictConfig:
+    """The one scene of a command that works on one scene (graf-simulate, graf-oracle, graf-synthesize)."""
+    scenes = scene_configs(cfg.get("scene"))
+    if len(scenes) != 1:
+        raise ConfigError(
+            f"{command} works on one scene; scene= selects {len(scenes)} "
+            f"({', '.join(str(s.get('name')) for s in scenes) or 'none'})"
+        )
+    return scenes[0]
+
+
+def band_choices() -> list[str]:
+    """The options of the ``band`` config group."""
+    return sorted(p.stem for p in (CONF_DIR / "band").glob("*.yaml"))
+
+
+def load_band_config(name: str) -> DictConfig:
+    path = CONF_DIR / "band" / f"{name}.yaml"
+    if not path.is_file():
+        raise ConfigError(f"unknown band {name!r}: one of {', '.join(band_choices())}")
+    return OmegaConf.load(path)
+
+
+def scene_band_config(scene_cfg: DictConfig, run_band: DictConfig | None) -> DictConfig:
+    """A scene's band: its own when fixed (measured data: rfid_s23 is 915 MHz whatever the run says), else the
+    run's ``band=...``, else the scene's default (simulated scenes: 2.4 GHz, the paper's band)."""
+    own = scene_cfg.get("band")
+    if scene_cfg.get("fixed_band") and own:
+        return load_band_config(own)
+    if run_band is not None:
+        return run_band
+    if own:
+        return load_band_config(own)
+    raise ConfigError(
+        f"scene {scene_cfg.get('name', '?')!r} does not say its carrier frequency: add "
+        f"band=<one of {', '.join(band_choices())}> (the band its spectra were measured at)"
+    )
+
+
+def hz(v: float) -> str:
+    return f"{v / 1e9:.3g} GHz" if v >= 1e9 else f"{v / 1e6:.4g} MHz"
+
+
+def family(scene: str) -> str:
+    """A catalog scene's layout family: ``conference_v2`` -> ``conference`` (a scene without variants is its
+    own family)."""
+    return scene.rsplit("_v", 1)[0] if "_v" in scene and scene.rsplit("_v", 1)[1].isdigit() else scene
+
+
+def heldout_scenes(train: list[str], heldout) -> list[str]:
+    """``eval_scene=heldout``: the catalog scenes of the training scenes' families that the run does not train
+    on (``heldout: auto``), or those of a list that share a family with a training scene."""
+    families = {family(n) for n in train}
+    if heldout == "auto":
+        candidates = sorted(p.stem for p in (CONF_DIR / "scene_catalog").glob("*.yaml"))
+    else:
+        candidates = [str(n) for n in heldout]
+        unknown = [n for n in candidates if not (CONF_DIR / "scene_catalog" / f"{n}.yaml").is_file()]
+        if unknown:
+            raise ConfigError(f"eval_scene.heldout: unknown scene(s) {', '.join(unknown)}")
+    return [n for n in candidates if family(n) in families and n not in train]
+
+
+def expand_heldout(cfg: DictConfig) -> DictConfig:
+    """The run's config with ``eval_scene=heldout`` replaced by the held-out scenes' configs (composed from
+    the catalog; their interpolations resolve in the run's config), or by nothing (a within-scene run) when
+    no training scene has a held-out layout."""
+    ev = cfg.get("eval_scene")
+    if not isinstance(ev, DictConfig) or "heldout" not in ev:
+        return cfg
+    train = [str(c.get("name")) for c in scene_configs(cfg.get("scene"))]
+    names = heldout_scenes(train, ev.heldout)
+    cfg = cfg.copy()
+    with open_dict(cfg):
+        if not names:
+            log.info("eval_scene=heldout: no held-out layout of %s: testing within-scene", ", ".join(train))
+            cfg.eval_scene = None
+            return cfg
+        from hydra import compose
+
+        composed = compose(config_name="train", overrides=[f"eval_scene=[{','.join(names)}]"])
+        cfg.eval_scene = OmegaConf.create(OmegaConf.to_container(composed.eval_scene, resolve=False))
+    log.info("eval_scene=heldout: testing on %s (held out from training on %s)", ", ".join(names), ", ".join(train))
+    return cfg
+
+
+def run_settings(cfg: DictConfig) -> dict:
+    """The settings of a training run that its checkpoints record (``checkpoint["graf"]["run"]``: data,
+    neighbors, seed, trainer), so that resuming with other ones is refused or recorded
+    (:func:`graf.run.train.check_resume`)."""
+    c = OmegaConf.to_container(cfg, resolve=True)
+    trainer = {k: v for k, v in (c.get("trainer") or {}).items() if k not in ("_target_", "default_root_dir")}
+    return {"data": c.get("data"), "neighbors": c.get("neighbors"), "seed": c.get("seed"), "trainer": trainer}
+
+
+def check_run_settings(cfg: DictConfig) -> None:
+    """Top-level settings that must be integers, checked before anything is built (one clear error)."""
+    for key, low in (("seed", None), ("torch_threads", 1)):
+        v = cfg.get(key)
+        if v is None:
+            continue
+        if isinstance(v, bool) or not isinstance(v, int) or (low is not None and v < low):
+            raise ConfigError(f"{key} must be an integer{'' if low is None else f' >= {low}'}, got {v!r}")

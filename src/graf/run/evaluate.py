@@ -1,0 +1,117 @@
+"""graf-eval's task: validate and test a method (or a checkpoint, ckpt_path=...) on a scene; writes results.json.
+
+With ``ckpt_path`` the model that runs is the checkpoint's: its class (recorded in the checkpoint; ``model=``
+is not needed, and one naming another class is refused) with its own hyperparameters.  A ``model.*``
+override on the command line is applied when it is an inference setting of that class
+(``INFERENCE_SETTINGS``, e.g. ``model.chunk_rays``) and refused otherwise, since it would describe a model
+that did not run; ``results.json`` records the checkpoint's hyperparameters (with the applied overrides)
+as ``config.model`` and the checkpoint itself under ``checkpoint``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+
+from hydra.core.hydra_config import HydraConfig
+from hydra.utils import get_class
+from omegaconf import DictConfig, OmegaConf
+
+from graf.models.base import CheckpointError, check_checkpoint, read_checkpoint
+from graf.run.build import build
+from graf.run.config import CONF_DIR, Results, override_key, task_wrapper
+from graf.run.evaluation import test_and_report
+
+
+def _model_overrides(overrides: Sequence[str]) -> tuple[str | None, list[str]]:
+    """``(model group choice or None, [keys overridden under model.])`` from command-line overrides."""
+    choice, keys = None, []
+    for o in overrides:
+        key = override_key(o)
+        if key == "model":
+            choice = o.split("=", 1)[1]
+        elif key.startswith("model."):
+            keys.append(key[len("model.") :])
+    return choice, keys
+
+
+def load_checkpoint_model(cfg: DictConfig, path: str, overrides: Sequence[str]):
+    """The checkpoint's model with the allowed ``model.*`` overrides applied; and what results.json records."""
+    ckpt = read_checkpoint(path)
+    choice, keys = _model_overrides(overrides)
+    target = (ckpt.get("graf") or {}).get("target")
+    if target is None:  # written before checkpoints named their class: trust model=..., check the layout
+        target = cfg.model._target_
+    elif choice is not None and get_class(cfg.model._target_) is not get_class(target):
+        raise CheckpointError(
+            f"{path}: holds a {target} checkpoint, but model={choice} is {cfg.model._target_}; "
+            "drop model=... (graf-eval takes the class from the checkpoint)"
+        )
+    cls = get_class(target)
+    check_checkpoint(ckpt, cls, path)
+    saved = dict(ckpt.get("hyper_parameters") or {})
+    allowed = tuple(getattr(cls, "INFERENCE_SETTINGS", ()))
+    applied = {}
+    for key in keys:
+        value = OmegaConf.select(cfg.model, key)
+        if key in allowed:
+            applied[key] = value
+        elif key not in saved or saved[key] != value:
+            raise CheckpointError(
+                f"model.{key}={value} cannot change the trained checkpoint {path} (it was trained with "
+                f"{key}={saved.get(key, '<not a setting of ' + cls.__name__ + '>')}); only inference settings "
+                f"may be overridden at evaluation: {', '.join('model.' + a for a in allowed) or 'none'}"
+            )
+    model = cls.load_from_checkpoint(path, map_location="cpu", **applied)
+    ran = {"_target_": target, **{k: v for k, v in dict(model.hparams).items()}}
+    info = {
+        "path": str(path),
+        "global_step": int(ckpt.get("global_step", 0)),
+        "class": target,
+        "layout": int((ckpt.get("graf") or {}).get("layout", 1)),
+        "hyper_parameters": saved,
+        "applied_overrides": applied,
+        "model": OmegaConf.to_container(OmegaConf.create(ran), resolve=True),
+    }
+    return model, info
+
+
+@task_wrapper
+def evaluate(cfg: DictConfig, overrides: Sequence[str] | None = None) -> Results:
+    """``overrides``: the command line's overrides (taken from Hydra when run as a command)."""
+    started = time.perf_counter()
+    objects = build(cfg, trains=False)
+    if cfg.get("ckpt_path"):
+        if overrides is None:
+            overrides = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
+        objects["model"], objects["checkpoint"] = load_checkpoint_model(cfg, cfg.ckpt_path, overrides)
+    metrics = test_and_report(cfg, objects, started, task="eval")
+    return Results(metrics, objects)
+
+
+def checkpoint_model_choice(args: Sequence[str]) -> str | None:
+    """``model=<option>`` to add to a command line that tests a checkpoint (``ckpt_path=``) and overrides a
+    ``model.*`` key without naming ``model=``: the model config of the checkpoint's class, so that the key
+    exists when Hydra composes (the default model, KNN, has no ``lr``) and :func:`load_checkpoint_model` can
+    apply or refuse it.  None when nothing is to be added (or the checkpoint cannot be read: the run then
+    reports that itself)."""
+    if not any(a.startswith("ckpt_path=") for a in args) or any(override_key(a) == "model" for a in args):
+        return None
+    if not any(override_key(a).startswith("model.") for a in args):
+        return None
+    path = next(a.split("=", 1)[1] for a in args if a.startswith("ckpt_path="))
+    try:
+        target = (read_checkpoint(path).get("graf") or {}).get("target")
+        cls = get_class(target) if target else None
+    except Exception:
+        return None
+    if cls is None:
+        return None
+    for f in sorted((CONF_DIR / "model").glob("*.yaml")):  # graf before graf_cpu: the base config of a class
+        t = OmegaConf.load(f).get("_target_")
+        try:
+            if t and get_class(str(t)) is cls:
+                return f.stem
+        except Exception:
+            continue
+    return None

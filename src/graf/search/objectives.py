@@ -1,0 +1,107 @@
+"""What a search may optimise (``optimized_metric``: one name, or a list for a multi-objective search).
+
+- ``val/<m>`` (``m`` in mse, psnr, ssim, lpips): the validation figure of the run's first test scene;
+- ``val/<m>@mean``: the mean of that figure over all the run's test scenes (``eval_scene=[...]``: each
+  scene's validation split, its neighbors from that scene's fit part; held out from its test split);
+- ``cost/infer_s_per_spectrum``: seconds per predicted spectrum of the trained model (median over
+  ``COST_BATCHES`` validation batches after one warm-up batch, divided by the batch size; prediction
+  only, no metric).
+
+A test metric is refused: nothing is chosen on the test split.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+from graf.errors import ConfigError
+from graf.metrics.names import METRIC_NAMES
+
+COST_BATCHES = 3
+COSTS = ("cost/infer_s_per_spectrum",)
+
+
+def check_objective_names(names: list[str]) -> None:
+    for n in names:
+        base, _, agg = str(n).partition("@")
+        ok = (base.startswith("val/") and base[4:] in METRIC_NAMES and agg in ("", "mean")) or (str(n) in COSTS)
+        if not ok:
+            raise ConfigError(
+                f"optimized_metric={n}: a search may optimise val/<{'|'.join(METRIC_NAMES)}>, "
+                f"val/<metric>@mean (over the run's test scenes) or {', '.join(COSTS)}; nothing is "
+                "chosen on the test split"
+            )
+
+
+def _evaluation_metrics(metrics: dict, objects: dict) -> list[dict]:
+    per = objects.get("evaluation_metrics")
+    if per:
+        return list(per)
+    out = objects.get("output_dir")  # a study job finished before: its results.json
+    f = Path(out) / "results.json" if out else None
+    if f is not None and f.is_file():
+        r = json.loads(f.read_text())
+        if r.get("evaluations"):
+            return [e["metrics"] for e in r["evaluations"]]
+    return [metrics]
+
+
+def inference_seconds_per_spectrum(model, dm, batches: int = COST_BATCHES) -> float:
+    """Median seconds per spectrum of ``model.predict_spectra`` on validation batches (one warm-up first)."""
+    model.eval()
+    times = []
+    with torch.no_grad():
+        for i, batch in enumerate(dm.val_dataloader()):
+            if i > batches:
+                break
+            batch = {k: v.to(model.device) if torch.is_tensor(v) else v for k, v in batch.items()}
+            if model.device.type == "cuda":
+                torch.cuda.synchronize(model.device)
+            t0 = time.perf_counter()
+            model.predict_spectra(batch)
+            if model.device.type == "cuda":
+                torch.cuda.synchronize(model.device)
+            if i > 0:
+                times.append((time.perf_counter() - t0) / int(batch["tgt_pos"].shape[0]))
+    if not times:
+        raise ConfigError(
+            "cost/infer_s_per_spectrum needs at least 2 validation batches (one to warm up); "
+            "lower data.batch_size or raise data.val_fraction"
+        )
+    return float(statistics.median(times))
+
+
+def objective_values(names: list[str], metrics: dict, objects: dict) -> list[float]:
+    """The values of ``names`` for a finished run (``metrics``: its headline figures; ``objects``: what
+    ``train``/``evaluate`` returned).  A missing figure is NaN."""
+    check_objective_names(names)
+    out = []
+    for n in names:
+        base, _, agg = str(n).partition("@")
+        if n in COSTS:
+            model, evs = objects.get("model"), objects.get("evaluations") or []
+            dm = evs[0]["datamodule"] if evs else objects.get("datamodule")
+            out.append(inference_seconds_per_spectrum(model, dm) if model is not None and dm is not None else math.nan)
+        elif agg == "mean":
+            vals = [m.get(base) for m in _evaluation_metrics(metrics, objects)]
+            vals = [float(v) if v is not None else math.nan for v in vals]
+            out.append(sum(vals) / len(vals) if vals else math.nan)
+        else:
+            v = metrics.get(base)
+            out.append(float(v) if v is not None else math.nan)
+    return out
+
+
+def metrics_mean(evaluations: list[dict]) -> dict[str, float] | None:
+    """Every metric of a run averaged over its evaluated scenes, as ``@mean`` averages one (``best.json``'s
+    ``metrics@mean``): only the metrics every scene has; None for fewer than two scenes."""
+    evals = [e["metrics"] for e in evaluations]
+    if len(evals) < 2:
+        return None
+    return {k: float(statistics.fmean(m[k] for m in evals)) for k in evals[0] if all(k in m for m in evals)}

@@ -1,0 +1,353 @@
+"""graf-curves: learning curves on validation data (``conf/curves.yaml``).
+
+    graf-curves out=sweeps/learning_curves [until=1000] ['only_regimes=[rfid_sparse]'] ['only_methods=[ray]']
+
+For each regime and method, one training trajectory: a ``graf-train`` run per evaluation step of ``steps``
+(up to the regime's ``max_steps``), into ``<out>/<regime>/<method>/step_<N>/``, each resuming the previous
+step's ``checkpoints/last.ckpt`` with a longer ``trainer.max_steps`` (once the next point is done, a point's
+checkpoint is removed unless ``keep_checkpoints=true``: a curve keeps its newest, which a later run resumes) (the
+schedule's length is the regime's
+budget at every point, so the points lie on one run).  Every run validates (``test=false``: the curves choose
+nothing on test data) and measures validation reliance.  KNN, which trains nothing, is validated once per
+regime into ``<out>/<regime>/knn/``.  A point whose results.json exists is skipped, so the command resumes
+where it stopped, and ``until`` runs the curve only so far; a failed run is recorded in ``failed.json`` and
+ends that method's curve (later points need its checkpoint) while the others go on.  A SIGTERM stops the run
+in progress with its state saved (graf-train's ``preempted.json``) and the command with exit code 143; the
+next invocation resumes that point from its own checkpoint (the stopped attempt's training seconds still
+count in ``fit_s``).  Each run also saves its checkpoint every ``checkpoint_every`` steps, so a run killed
+outright (SIGKILL, a lost machine) resumes from its newest one, and the seconds its saved steps cost (written in
+the checkpoint by ``graf.callbacks.AttemptClock``) count too; the steps after it are trained again.
+
+After every run: ``curves.csv``, ``curves.md``, ``results.json`` (``rows``: regime, method, step, val_psnr,
+val_ssim, val_lpips, val_reliance_db, fit_s (cumulative wall seconds of training), s_per_step; and ``knn``:
+each regime's KNN figures) and ``curves.png`` (PSNR, SSIM and LPIPS against steps on a log axis, one row per
+regime, KNN as a dashed line).  A cross-scene regime's figures are the means over its validation scenes.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+from omegaconf import DictConfig
+
+from graf.errors import ConfigError, Preempted
+from graf.io import atomic_write_json, atomic_write_text
+from graf.run.config import output_dir, task_wrapper
+from graf.studies.pareto import _run
+from graf.studies.table import to_csv
+
+log = logging.getLogger("graf")
+
+COLUMNS = (
+    "regime", "method", "step", "val_psnr", "val_ssim", "val_lpips", "val_reliance_db", "fit_s", "s_per_step", "device"
+)  # fmt: skip
+FIGURES = (("val/psnr", "val_psnr", "PSNR (dB)"), ("val/ssim", "val_ssim", "SSIM"), ("val/lpips", "val_lpips", "LPIPS"))
+PREEMPTED_RUNS = "preempted_runs.json"  # a point's pre-empted attempts (their preempted.json records)
+QUIET = ["logger=none", "plot_count=0", "baselines=null", "test=false", "trainer.enable_progress_bar=false"]
+
+
+def _subset(items: dict, keep, what: str) -> dict:
+    if keep is None:
+        return dict(items)
+    unknown = set(keep) - set(items)
+    if unknown:
+        raise ConfigError(f"{what}: unknown keys {sorted(unknown)} (known: {sorted(items)})")
+    return {k: v for k, v in items.items() if k in set(keep)}
+
+
+def val_figures(result: dict) -> dict:
+    """``{val/psnr, val/ssim, val/lpips, val/reliance_db}`` of a run: its own, or the mean over its evaluations
+    (a cross-scene run validates each scene on its own)."""
+    keys = ("val/psnr", "val/ssim", "val/lpips", "val/reliance_db")
+    evals = result.get("evaluations") or [{"metrics": result.get("metrics") or {}}]
+    out = {}
+    for k in keys:
+        v = [e["metrics"].get(k) for e in evals if (e.get("metrics") or {}).get(k) is not None]
+        out[k] = float(np.mean(v)) if v else None
+    return out
+
+
+def points(cfg: DictConfig, regime: DictConfig, until: bool = True) -> list[int]:
+    """The regime's evaluation steps (its budget included); with ``until``, only those at or below ``cfg.until``."""
+    steps = sorted({int(s) for s in cfg.steps if int(s) <= int(regime.max_steps)} | {int(regime.max_steps)})
+    return [s for s in steps if not until or cfg.get("until") is None or s <= int(cfg.until)]
+
+
+def collect(out: Path, cfg: DictConfig) -> tuple[list[dict], dict]:
+    """Every finished point on disk of every configured regime and method, whatever this invocation's
+    ``only_regimes``, ``only_methods`` and ``until`` (a run of a subset must not drop the others' rows)."""
+    rows, knn = [], {}
+    for rname, regime in cfg.regimes.items():
+        f = out / rname / "knn" / "results.json"
+        if f.exists():
+            knn[rname] = val_figures(json.loads(f.read_text()))
+        for mname in cfg.methods:
+            fit_s = 0.0
+            for step in points(cfg, regime, until=False):
+                f = out / rname / mname / f"step_{step}" / "results.json"
+                if not f.exists():
+                    break
+                r = json.loads(f.read_text())
+                t = r.get("timing") or {}
+                # an attempt whose seconds are unknown (killed with a checkpoint older than AttemptClock) makes the
+                # cumulative seconds unknown from there on: n/a, not an undercount
+                parts = [t.get("fit_s"), *(p.get("fit_s") for p in _preempted_runs(f.parent))]
+                fit_s = None if fit_s is None or any(x is None for x in parts) else fit_s + sum(map(float, parts))
+                v = val_figures(r)
+                rows.append(
+                    {
+                        "regime": rname,
+                        "method": mname,
+                        "step": int(r.get("global_step", step)),
+                        "val_psnr": v["val/psnr"],
+                        "val_ssim": v["val/ssim"],
+                        "val_lpips": v["val/lpips"],
+                        "val_reliance_db": v["val/reliance_db"],
+                        "fit_s": None if fit_s is None else round(fit_s, 1),
+                        "s_per_step": t.get("fit_s_per_step"),
+                        # where the point's (last) training attempt ran: seconds differ by orders of magnitude
+                        "device": short_device(r.get("device")),
+                    }
+                )
+    return rows, knn
+
+
+def _preempted_runs(folder: Path) -> list[dict]:
+    """The ``preempted.json`` records of a point's earlier, pre-empted attempts (their training seconds count)."""
+    f = folder / PREEMPTED_RUNS
+    return json.loads(f.read_text()) if f.exists() else []
+
+
+def _resume_preempted(folder: Path, prev: Path | None) -> Path | None:
+    """The checkpoint a point resumes from: its own pre-empted attempt's (``preempted.json``, whose record moves to
+    ``preempted_runs.json``), else the previous point's ``last.ckpt`` (None: the curve's first point)."""
+    f = folder / "preempted.json"
+    if f.exists():
+        record = json.loads(f.read_text())
+        ckpt = _recorded_checkpoint(folder, record.get("checkpoint"))
+        if ckpt is not None:
+            record["checkpoint"] = str(ckpt)
+            atomic_write_json(folder / PREEMPTED_RUNS, [*_preempted_runs(folder), record])
+            f.unlink()
+            log.info("%s: resuming its pre-empted run from step %s (%s)", folder, record.get("global_step"), ckpt)
+            return Path(ckpt)
+        log.warning(
+            "%s: the pre-empted run left no checkpoint (%s); starting the point again", folder, record.get("checkpoint")
+        )
+        f.unlink()
+    killed = _killed_attempt(folder)
+    if killed is not None:
+        # a checkpoint already on record (a pre-emption's, whose resumed run was then killed before its next
+        # save) is resumed from again, and its seconds are not counted twice
+        if not any(r.get("global_step") == killed["global_step"] for r in _preempted_runs(folder)):
+            if killed["fit_s"] is None:
+                log.warning(
+                    "%s: the checkpoint holds no training time of its attempt; the curve's seconds become "
+                    "n/a from this point",
+                    killed["checkpoint"],
+                )
+            atomic_write_json(folder / PREEMPTED_RUNS, [*_preempted_runs(folder), killed])
+        log.info("%s: resuming a killed run from its checkpoint at step %d", folder, killed["global_step"])
+        return Path(killed["checkpoint"])
+    return None if prev is None else prev / "checkpoints" / "last.ckpt"
+
+
+def _recorded_checkpoint(folder: Path, recorded: str | None) -> Path | None:
+    """The checkpoint a ``preempted.json`` names, or the file of that name in the point's own ``checkpoints/`` when
+    the point's folder has moved since (a curve run in one folder and published, resumable, into ``sweeps/``).
+    None if neither exists."""
+    if not recorded:
+        return None
+    path = Path(recorded)
+    if path.exists():
+        return path
+    moved = folder / "checkpoints" / path.name
+    return moved if moved.exists() else None
+
+
+def _killed_attempt(folder: Path) -> dict | None:
+    """The record of an attempt killed outright (no ``preempted.json``, no ``results.json``) that left a periodic
+    ``checkpoints/last.ckpt``: its step and the seconds its saved steps cost (``graf.callbacks.AttemptClock``).
+    None if there is no such checkpoint, or it cannot be read (the point then starts again)."""
+    ckpt = folder / "checkpoints" / "last.ckpt"
+    if (folder / "results.json").exists() or not ckpt.exists():
+        return None
+    import torch
+
+    try:
+        state = torch.load(ckpt, map_location="cpu", weights_only=False)
+        step = int(state["global_step"])
+    except Exception as e:  # noqa: BLE001  (a truncated or foreign file: start the point again, say so)
+        log.warning("%s: its checkpoint cannot be read (%s: %s); starting the point again", ckpt, type(e).__name__, e)
+        return None
+    attempt = state.get("graf_attempt") or {}
+    fit_s = attempt.get("fit_s") if attempt.get("global_step") == step else None
+    return {
+        "killed": True,
+        "global_step": step,
+        "start_step": attempt.get("start_step"),
+        "checkpoint": str(ckpt),
+        "fit_s": fit_s,
+    }
+
+
+def short_device(device: str | None) -> str | None:
+    """``cpu``, or the card's name for a GPU run (``cuda:0 (NVIDIA H200)`` -> ``NVIDIA H200``)."""
+    if not device:
+        return None
+    if "(" in device and device.endswith(")"):
+        return device[device.index("(") + 1 : -1]
+    return device
+
+
+def _fmt(v, spec):
+    return "n/a" if v is None else format(v, spec)
+
+
+def write_outputs(out: Path, rows: list[dict], knn: dict, failed: list[dict]) -> None:
+    lines = [
+        "| regime | method | step | val PSNR | val SSIM | val LPIPS | val reliance dB | train s (cum.) | s/step "
+        "| device |",
+        "|" + "---|" * 10,
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['regime']} | {r['method']} | {r['step']} | {_fmt(r['val_psnr'], '.2f')} | "
+            f"{_fmt(r['val_ssim'], '.3f')} | {_fmt(r['val_lpips'], '.3f')} | {_fmt(r['val_reliance_db'], '.2f')} | "
+            f"{_fmt(r['fit_s'], '.0f')} | {_fmt(r['s_per_step'], '.3f')} | {r.get('device') or 'n/a'} |"
+        )
+    for rname, k in knn.items():
+        lines.append(
+            f"| {rname} | knn (line) | 0 | {_fmt(k['val/psnr'], '.2f')} | {_fmt(k['val/ssim'], '.3f')} | "
+            f"{_fmt(k['val/lpips'], '.3f')} | {_fmt(k['val/reliance_db'], '.2f')} | 0 | n/a | n/a |"
+        )
+    atomic_write_text(out / "curves.md", "\n".join(lines) + "\n")
+    atomic_write_text(out / "curves.csv", to_csv(COLUMNS, [[r[c] for c in COLUMNS] for r in rows]))
+    atomic_write_json(out / "results.json", {"task": "curves", "rows": rows, "knn": knn, "failed": failed})
+    if rows or knn:
+        plot(out / "curves.png", rows, knn)
+
+
+def plot(path: Path, rows: list[dict], knn: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    regimes = sorted({r["regime"] for r in rows} | set(knn))
+    # one colour per method in every panel, so a method reads the same across regimes
+    cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    colour = {m: cycle[k % len(cycle)] for k, m in enumerate(sorted({r["method"] for r in rows}))}
+    fig, axes = plt.subplots(
+        len(regimes), len(FIGURES), figsize=(13, 3.3 * len(regimes)), squeeze=False, constrained_layout=True
+    )
+    for i, rname in enumerate(regimes):
+        for j, (key, col, label) in enumerate(FIGURES):
+            ax = axes[i][j]
+            for m in sorted({r["method"] for r in rows if r["regime"] == rname}):
+                pts = [
+                    (r["step"], r[col])
+                    for r in rows
+                    if r["regime"] == rname and r["method"] == m and r[col] is not None
+                ]
+                if pts:
+                    ax.plot(*zip(*pts), marker="o", label=m, color=colour[m])
+            if rname in knn and knn[rname].get(key) is not None:
+                ax.axhline(knn[rname][key], color="k", ls="--", lw=1, label="knn")
+            ax.set_xscale("log")
+            ax.set_xlabel("training steps")
+            ax.set_ylabel(f"validation {label}")
+            ax.set_title(rname)
+            ax.grid(alpha=0.3)
+        axes[i][0].legend(fontsize=8)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+@task_wrapper
+def curves(cfg: DictConfig) -> dict:
+    out = Path(cfg.out) if cfg.get("out") else output_dir(cfg)
+    out.mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ)
+    if cfg.get("threads"):
+        env["OMP_NUM_THREADS"] = str(int(cfg.threads))
+    py, timeout = sys.executable, float(cfg.run_timeout_s)
+    if int(cfg.checkpoint_every) < 1:  # 0 would switch the periodic saves, and the curve's resume chain, off
+        raise ConfigError(f"checkpoint_every={cfg.checkpoint_every}: must be a positive number of steps")
+    common = [f"data_root={cfg.data_root}"] + ([f"torch_threads={int(cfg.threads)}"] if cfg.get("threads") else [])
+    failed_file = out / "failed.json"
+    failed = json.loads(failed_file.read_text()) if failed_file.exists() else []
+    train = [py, "-m", "graf.cli.train"]
+    for rname, regime in _subset(cfg.regimes, cfg.get("only_regimes"), "only_regimes").items():
+        base = [*regime.overrides, *common, *QUIET]
+        knn_dir = out / rname / "knn"
+        if not (knn_dir / "results.json").exists():
+            ok, tail = _run([*train, *base, "model=knn", f"hydra.run.dir={knn_dir}"], knn_dir, env, timeout)
+            if not ok:
+                failed.append({"regime": rname, "method": "knn", "step": 0, "log": tail})
+        for mname, method in _subset(cfg.methods, cfg.get("only_methods"), "only_methods").items():
+            extra = list((method.get("regimes") or {}).get(rname) or [])
+            prev = None
+            for step in points(cfg, regime):
+                folder = out / rname / mname / f"step_{step}"
+                if (folder / "results.json").exists():
+                    prev = folder
+                    continue
+                cmd = [
+                    *train,
+                    *base,
+                    *method.overrides,
+                    *extra,
+                    f"{method.schedule}={int(regime.max_steps)}",
+                    f"trainer.max_steps={step}",
+                    f"callbacks.model_checkpoint.every_n_train_steps={min(step, int(cfg.checkpoint_every))}",
+                    f"hydra.run.dir={folder}",
+                ]
+                start = _resume_preempted(folder, prev)
+                if start is not None:
+                    cmd.append(f"ckpt_path={start}")
+                log.info(
+                    "%s / %s: training to step %d%s",
+                    rname,
+                    mname,
+                    step,
+                    f" from {start.parent.parent.name}" if start else "",
+                )
+                try:
+                    ok, tail = _run(cmd, folder, env, timeout)
+                    if not ok and (folder / "preempted.json").exists():  # the run alone got the SIGTERM
+                        raise Preempted(
+                            f"SIGTERM: {folder} was pre-empted; run the same command again to resume\n{tail}"
+                        )
+                except Preempted:
+                    rows, knn = collect(out, cfg)
+                    write_outputs(out, rows, knn, failed)
+                    raise
+                if not ok:
+                    failed.append({"regime": rname, "method": mname, "step": step, "log": tail})
+                    log.error("%s / %s step %d failed (the curve stops here):\n%s", rname, mname, step, tail)
+                    atomic_write_json(failed_file, failed)
+                    break
+                if not cfg.get("keep_checkpoints"):  # the curve resumes from its newest last.ckpt only
+                    for f in (folder / "checkpoints").glob("*.ckpt"):
+                        if f.name != "last.ckpt":  # ModelCheckpoint's copy of the same weights
+                            f.unlink()
+                    if prev is not None:
+                        shutil.rmtree(prev / "checkpoints", ignore_errors=True)
+                # a point that now succeeded is no longer a failure (an earlier attempt's record goes)
+                failed = [f for f in failed if (f["regime"], f["method"], f["step"]) != (rname, mname, step)]
+                atomic_write_json(failed_file, failed)
+                prev = folder
+                rows, knn = collect(out, cfg)
+                write_outputs(out, rows, knn, failed)
+    atomic_write_json(failed_file, failed)
+    rows, knn = collect(out, cfg)
+    write_outputs(out, rows, knn, failed)
+    print((out / "curves.md").read_text())
+    return {"rows": rows, "knn": knn, "failed": failed}

@@ -1,0 +1,366 @@
+"""graf-pareto: GRaF's speed/accuracy trade, measured (the knobs of ``conf/pareto.yaml``).
+
+    graf-pareto [out=DIR] [threads=N]
+
+For each scene: one ``graf-train`` run per training point (the base, and each knob changed alone: voxel size
+in wavelengths, rays per step, encoder width and downsampling, precision, training steps), then ``graf-eval``
+of the base checkpoint per evaluation point (L at test).  Each run is a separate process writing its own
+folder ``<out>/<scene>/<point>/`` (results.json, run.log); a point whose results.json exists is skipped, so a
+killed sweep continues where it stopped, and a failed run is recorded in ``failed.json`` while the others go
+on.  A simulated scene whose dataset is missing under ``data_root`` is simulated first.
+
+After every run the tables are rewritten (atomically): ``pareto.md``, ``pareto.csv``, ``results.json`` (a
+list ``rows``: scene, point, knob, value, train_s, train_s_per_step, infer_s_per_spectrum, val_psnr,
+test_psnr, knn_test_psnr, front_infer, front_train) and ``pareto.png`` (test PSNR against inference time and
+against training time, one row of panels per scene).  Times: ``train_s`` is the wall time of the fit
+(``timing.fit_s`` of graf-train; an evaluation point inherits its base's), ``infer_s_per_spectrum`` the test
+loop per spectrum (prediction and the four metrics).  **The Pareto fronts use validation PSNR**: a point is
+on the front when no other point of the scene is at least as fast with a higher validation PSNR; the test
+PSNR is reported beside it, never used to choose.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from graf.errors import Preempted
+from graf.io import atomic_write_json, atomic_write_text
+from graf.run.config import output_dir, task_wrapper
+
+log = logging.getLogger("graf")
+
+COLUMNS = (
+    "scene",
+    "point",
+    "knob",
+    "value",
+    "train_s",
+    "train_s_per_step",
+    "infer_s_per_spectrum",
+    "val_psnr",
+    "test_psnr",
+    "knn_test_psnr",
+    "front_infer",
+    "front_train",
+)
+
+
+def _run(cmd: list[str], folder: Path, env: dict, timeout: float) -> tuple[bool, str]:
+    """Run one graf command into ``folder``; ``(ok, last lines of its log)``.  A SIGTERM to this process while
+    the command runs is passed on to it (graf-train saves its state and writes ``preempted.json``); once it has
+    stopped, :class:`graf.errors.Preempted` is raised, so the calling command stops with exit code 143 instead of
+    going on to its next run, and the same command resumes."""
+    folder.mkdir(parents=True, exist_ok=True)
+    got = []
+    with open(folder / "run.log", "w") as fh:
+        p = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env)
+
+        def forward(signum, frame):
+            got.append(signum)
+            p.send_signal(signum)
+
+        main = threading.current_thread() is threading.main_thread()  # only the main thread may set handlers
+        previous = signal.signal(signal.SIGTERM, forward) if main else None
+        try:
+            try:
+                p.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+        finally:
+            if main:  # None: a handler set outside Python; the default stands in for it
+                signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
+    tail = "\n".join((folder / "run.log").read_text(errors="replace").splitlines()[-5:])
+    if got:
+        raise Preempted(
+            f"SIGTERM: stopped while running into {folder} (exit code {p.returncode}); run the same "
+            f"command again to resume\n{tail}"
+        )
+    return p.returncode == 0 and (folder / "results.json").exists(), tail
+
+
+def _dataset_missing(cfg: DictConfig, sim: list[str]) -> bool:
+    scene = next(o.split("=", 1)[1] for o in sim if o.startswith("scene="))
+    band = next(o.split("=", 1)[1] for o in sim if o.startswith("band="))
+    return not (Path(cfg.data_root) / "sim" / scene / f"{band}.h5").exists()
+
+
+def pareto_front(rows: list[dict], cost: str, score: str = "val_psnr") -> set[int]:
+    """Indices of the rows on the front of (low ``cost``, high ``score``): no other row is at most as costly
+    with a strictly higher score, or strictly cheaper with the same score."""
+    front = set()
+    for i, r in enumerate(rows):
+        if r.get(cost) is None or r.get(score) is None:
+            continue
+        dominated = any(
+            o is not r
+            and o.get(cost) is not None
+            and o.get(score) is not None
+            and o[cost] <= r[cost]
+            and o[score] >= r[score]
+            and (o[cost] < r[cost] or o[score] > r[score])
+            for o in rows
+        )
+        if not dominated:
+            front.add(i)
+    return front
+
+
+def _selected(cfg: DictConfig, group: str, only: str) -> dict:
+    items = dict(cfg.get(group) or {})
+    keep = cfg.get(only)
+    if keep is not None:
+        unknown = set(keep) - set(items) - set(cfg.get("eval_points") or {}) - set(cfg.get("points") or {})
+        if unknown:
+            raise ValueError(f"{only}: unknown keys {sorted(unknown)}")
+        items = {k: v for k, v in items.items() if k in set(keep)}
+    return items
+
+
+def collect(out: Path, cfg: DictConfig) -> list[dict]:
+    """One row per finished run, fronts marked per scene."""
+    rows = []
+    for scene in _selected(cfg, "scenes", "only_scenes"):
+        base_train = None
+        scene_rows = []
+        for kind, points in (
+            ("train", _selected(cfg, "points", "only_points")),
+            ("eval", _selected(cfg, "eval_points", "only_points")),
+        ):
+            for name, p in points.items():
+                f = out / scene / name / "results.json"
+                if not f.exists():
+                    continue
+                r = json.loads(f.read_text())
+                t = r.get("timing") or {}
+                m = r["metrics"]
+                row = {
+                    "scene": scene,
+                    "point": name,
+                    "knob": p.knob,
+                    "value": str(p.value),
+                    "train_s": t.get("fit_s"),
+                    "train_s_per_step": t.get("fit_s_per_step"),
+                    "infer_s_per_spectrum": t.get("test_s_per_spectrum"),
+                    "val_psnr": m.get("val/psnr"),
+                    "test_psnr": m.get("test/psnr"),
+                    "knn_test_psnr": ((r.get("baselines") or {}).get("knn") or {}).get("metrics", {}).get("test/psnr"),
+                }
+                if kind == "train" and name == "base":
+                    base_train = (row["train_s"], row["train_s_per_step"])
+                if kind == "eval" and base_train is not None:  # no training of its own: the base's
+                    row["train_s"], row["train_s_per_step"] = base_train
+                scene_rows.append(row)
+        fi, ft = pareto_front(scene_rows, "infer_s_per_spectrum"), pareto_front(scene_rows, "train_s")
+        for i, row in enumerate(scene_rows):
+            row["front_infer"], row["front_train"] = i in fi, i in ft
+        rows += scene_rows
+    return rows
+
+
+def _fmt(v, spec=".2f"):
+    return "n/a" if v is None else (format(v, spec) if isinstance(v, float) else str(v))
+
+
+def write_tables(out: Path, rows: list[dict], failed: list[dict], meta: dict) -> None:
+    lines = [
+        "| scene | point | knob | value | train s | train s/step | infer s/spectrum | val PSNR | test PSNR | "
+        "KNN test PSNR | front (infer) | front (train) |",
+        "|" + "---|" * 12,
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['scene']} | {r['point']} | {r['knob']} | {r['value']} | {_fmt(r['train_s'], '.1f')} | "
+            f"{_fmt(r['train_s_per_step'], '.3f')} | {_fmt(r['infer_s_per_spectrum'], '.3f')} | "
+            f"{_fmt(r['val_psnr'])} | {_fmt(r['test_psnr'])} | {_fmt(r['knn_test_psnr'])} | "
+            f"{'yes' if r['front_infer'] else ''} | {'yes' if r['front_train'] else ''} |"
+        )
+    lines.append("")
+    lines.append(
+        "Fronts on validation PSNR; test PSNR reported, never used to choose. Times: "
+        f"{meta['device']}, {meta['threads']} threads."
+    )
+    atomic_write_text(out / "pareto.md", "\n".join(lines) + "\n")
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=COLUMNS)
+    w.writeheader()
+    w.writerows(rows)
+    atomic_write_text(out / "pareto.csv", buf.getvalue())
+    atomic_write_json(out / "results.json", {**meta, "rows": rows, "failed": failed})
+    if rows:
+        plot(out / "pareto.png", rows)
+
+
+def plot(path: Path, rows: list[dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import matplotlib.ticker
+
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    knobs = list(dict.fromkeys(r["knob"] for r in rows))
+    markers = dict(zip(knobs, "o^sDvP*Xh<>"))
+    fig, axes = plt.subplots(len(scenes), 2, figsize=(11, 4.2 * len(scenes)), squeeze=False)
+    for i, scene in enumerate(scenes):
+        sr = [r for r in rows if r["scene"] == scene]
+        for j, (cost, label, front) in enumerate(
+            (
+                ("infer_s_per_spectrum", "inference s / spectrum", "front_infer"),
+                ("train_s", "training s (whole fit)", "front_train"),
+            )
+        ):
+            ax = axes[i][j]
+            for r in sr:
+                if r[cost] is None or r["test_psnr"] is None:
+                    continue
+                ax.scatter(
+                    r[cost],
+                    r["test_psnr"],
+                    marker=markers[r["knob"]],
+                    s=60 if r[front] else 30,
+                    edgecolors="k" if r[front] else "none",
+                    label=r["knob"],
+                )
+                ax.annotate(
+                    f"{r['value']}", (r[cost], r["test_psnr"]), fontsize=7, xytext=(3, 3), textcoords="offset points"
+                )
+            fr = sorted((r for r in sr if r[front] and r[cost] is not None), key=lambda r: r[cost])
+            if fr:
+                ax.plot(
+                    [r[cost] for r in fr],
+                    [r["test_psnr"] for r in fr],
+                    "k--",
+                    lw=0.8,
+                    label="front (chosen on val PSNR)",
+                )
+            knn = next((r["knn_test_psnr"] for r in sr if r["knn_test_psnr"] is not None), None)
+            if knn is not None:
+                ax.axhline(knn, color="gray", lw=1, ls=":", label="KNN")
+            ax.set_xscale("log")
+            ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+            ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+            ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+            ax.set_xlabel(label)
+            ax.set_ylabel("test PSNR (dB)")
+            ax.set_title(f"{scene}")
+            handles, labels = ax.get_legend_handles_labels()
+            uniq = dict(zip(labels, handles))
+            ax.legend(uniq.values(), uniq.keys(), fontsize=7)
+    fig.tight_layout()
+    tmp = path.with_suffix(".tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    os.replace(tmp, path)
+
+
+def _device() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip() + f" ({os.cpu_count()} cores)"
+    except OSError:
+        pass
+    return "cpu"
+
+
+@task_wrapper
+def sweep(cfg: DictConfig) -> dict:
+    out = Path(cfg.out) if cfg.get("out") else output_dir(cfg)
+    out.mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ)
+    if cfg.get("threads"):
+        env["OMP_NUM_THREADS"] = str(int(cfg.threads))
+    env["GRAF_DATA_ROOT"] = str(Path(cfg.data_root).resolve())
+    py = sys.executable
+    failed_path = out / "failed.json"
+    failed = json.loads(failed_path.read_text()) if failed_path.exists() else []
+    meta = {
+        "device": _device(),
+        "threads": cfg.get("threads") or "default",
+        "config": OmegaConf.to_container(cfg, resolve=True),
+    }
+    started = time.perf_counter()
+    for scene, sc in _selected(cfg, "scenes", "only_scenes").items():
+        sim = list(sc.get("simulate") or [])
+        if sim and _dataset_missing(cfg, sim):
+            log.info("%s: dataset missing under %s, simulating it first", scene, cfg.data_root)
+            ok, tail = _run(
+                [
+                    py,
+                    "-m",
+                    "graf.cli.simulate",
+                    *sim,
+                    f"data_root={env['GRAF_DATA_ROOT']}",
+                    f"hydra.run.dir={out / scene / '_simulate'}",
+                ],
+                out / scene / "_simulate",
+                env,
+                cfg.run_timeout_s,
+            )
+            if not ok or _dataset_missing(cfg, sim):
+                failed.append({"scene": scene, "point": "_simulate", "log": tail})
+                atomic_write_json(failed_path, failed)
+                continue
+        common = list(sc.get("common") or [])
+        skip = set(sc.get("skip_points") or [])
+        jobs = [
+            (name, p, [py, "-m", "graf.cli.train", *sc.get("train", []), *common, *cfg.base, *p.overrides])
+            for name, p in _selected(cfg, "points", "only_points").items()
+        ]
+        ckpt = out / scene / "base" / "checkpoints" / "last.ckpt"
+        jobs += [
+            (
+                name,
+                p,
+                [
+                    py,
+                    "-m",
+                    "graf.cli.evaluate",
+                    f"ckpt_path={ckpt}",
+                    *common,
+                    "logger=none",
+                    "plot_count=0",
+                    *p.overrides,
+                ],
+            )
+            for name, p in _selected(cfg, "eval_points", "only_points").items()
+        ]
+        for name, _p, cmd in jobs:
+            folder = out / scene / name
+            if name in skip:
+                log.info("%s / %s: skipped (scenes.%s.skip_points)", scene, name, scene)
+                continue
+            if (folder / "results.json").exists():
+                log.info("%s / %s: done before, skipped", scene, name)
+                continue
+            if "graf.cli.evaluate" in cmd and not ckpt.exists():
+                failed.append({"scene": scene, "point": name, "log": f"no base checkpoint {ckpt}"})
+                atomic_write_json(failed_path, failed)
+                continue
+            log.info("%s / %s: %s", scene, name, " ".join(cmd[3:]))
+            t0 = time.perf_counter()
+            ok, tail = _run(cmd + [f"hydra.run.dir={folder}"], folder, env, cfg.run_timeout_s)
+            log.info("%s / %s: %s in %.0f s", scene, name, "done" if ok else "FAILED", time.perf_counter() - t0)
+            if not ok:
+                failed = [f for f in failed if not (f["scene"] == scene and f["point"] == name)]
+                failed.append({"scene": scene, "point": name, "command": cmd[1:], "log": tail})
+                atomic_write_json(failed_path, failed)
+            write_tables(out, collect(out, cfg), failed, meta)
+    rows = collect(out, cfg)
+    write_tables(out, rows, failed, meta)
+    print((out / "pareto.md").read_text() if (out / "pareto.md").exists() else "no finished runs")
+    log.info("graf-pareto: %d rows, %d failed, %.0f s; %s", len(rows), len(failed), time.perf_counter() - started, out)
+    return {"rows": rows, "failed": failed}
