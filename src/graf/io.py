@@ -10,11 +10,12 @@ from pathlib import Path
 
 import numpy as np
 
+from graf.errors import ConfigError
+
 
 def writable_dir(path: str | os.PathLike, setting: str) -> Path:
     """``path`` made if missing and checked writable (a probe file is made and removed), or a
     :class:`graf.errors.ConfigError` naming ``setting`` and the reason: before a long job writes into it."""
-    from graf.errors import ConfigError
 
     path = Path(path)
     try:

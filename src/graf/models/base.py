@@ -21,6 +21,7 @@ from pathlib import Path
 import lightning as L
 import torch
 
+from graf.data.fingerprint import register_scene
 from graf.errors import UserError
 from graf.metrics import spectrum_metrics
 
@@ -99,7 +100,6 @@ class SpectrumModule(L.LightningModule):
         and band each had (those of the checkpoint it was fine-tuned from, ``scene_table``, and the training
         datamodule's).  Checkpoints record it, so a later run gives a known scene its index back and an
         unseen one a new index, and can tell a cross-band transfer."""
-        from graf.data.fingerprint import register_scene
 
         table = dict(getattr(self, "scene_table", None) or {})
         trainer = getattr(self, "_trainer", None)
