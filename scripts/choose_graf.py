@@ -6,6 +6,7 @@ each validation figure (PSNR, SSIM, LPIPS; higher PSNR and SSIM, lower LPIPS is 
 the best mean rank over the figures of the regimes considered, ties broken by the higher mean PSNR.  It prints
 the choice per regime and over all regimes together: the studies (cross-scene, on simulated layouts) take
 regime (b)'s choice, ``cross_family``, the regime they run in; the main job takes regime (a)'s, ``rfid_sparse``.
+The rule is :func:`graf.studies.published.choose` (the site's table of the choice uses it too).
 
     python scripts/choose_graf.py [sweeps/learning_curves/curves.csv] [--modes pooled ray ray_knn ray_weights]
 """
@@ -15,52 +16,10 @@ from __future__ import annotations
 import argparse
 import csv
 import sys
-from collections import defaultdict
 from pathlib import Path
 
-METRICS = (("val_psnr", True), ("val_ssim", True), ("val_lpips", False))
-
-
-def choose(rows: list[dict], modes: list[str]) -> tuple[str, list[dict]]:
-    """``rows`` of curves.csv -> (chosen mode, one record per (mode, regime) it compared)."""
-    by = defaultdict(dict)  # (regime, mode) -> step -> row
-    for r in rows:
-        if r["method"] in modes:
-            by[(r["regime"], r["method"])][int(r["step"])] = r
-    regimes = sorted({reg for reg, _ in by})
-    if not regimes:
-        raise SystemExit(f"error: no rows of the modes {modes} in the curves")
-    ranks, psnr, table = defaultdict(list), defaultdict(list), []
-    for reg in regimes:
-        missing = [m for m in modes if (reg, m) not in by]
-        if missing:
-            raise SystemExit(f"error: regime {reg} has no points of {missing}")
-        step = min(max(by[(reg, m)]) for m in modes)  # the largest step every mode reached
-        common = [m for m in modes if step in by[(reg, m)]]
-        if len(common) < len(modes):
-            raise SystemExit(f"error: regime {reg}: not every mode has a point at step {step}")
-        for key, higher in METRICS:
-            vals = {m: float(by[(reg, m)][step][key]) for m in modes}
-            order = sorted(modes, key=lambda m: -vals[m] if higher else vals[m])
-            for i, m in enumerate(order):
-                ranks[m].append(i + 1)
-        for m in modes:
-            r = by[(reg, m)][step]
-            psnr[m].append(float(r["val_psnr"]))
-            table.append(
-                {
-                    "regime": reg,
-                    "step": step,
-                    "mode": m,
-                    **{k: float(r[k]) for k, _ in METRICS},
-                    "reliance": float(r["val_reliance_db"]),
-                }
-            )
-    score = {m: sum(ranks[m]) / len(ranks[m]) for m in modes}
-    chosen = min(modes, key=lambda m: (score[m], -sum(psnr[m]) / len(psnr[m])))
-    for t in table:
-        t["mean_rank"] = score[t["mode"]]
-    return chosen, table
+from graf.errors import UserError
+from graf.studies.published import choose
 
 
 def main() -> None:
@@ -75,7 +34,11 @@ def main() -> None:
         rows = list(csv.DictReader(f))
     regimes = sorted({r["regime"] for r in rows if r["method"] in args.modes})
     for regime in regimes + [None]:
-        chosen, table = choose([r for r in rows if regime is None or r["regime"] == regime], args.modes)
+        try:
+            chosen, table = choose([r for r in rows if regime is None or r["regime"] == regime], args.modes)
+        except UserError as e:
+            print(f"error: {path}: {e}", file=sys.stderr)
+            sys.exit(2)
         print(f"\n### {regime or 'all regimes together'}\n")
         print("| regime | step | mode | val PSNR | val SSIM | val LPIPS | val reliance dB | mean rank |")
         print("|---|---|---|---|---|---|---|---|")

@@ -1,15 +1,12 @@
-"""scripts/choose_graf.py: the studies' GRaF is chosen from validation curves by a fixed rule."""
+"""graf.studies.published.choose (scripts/choose_graf.py, the site): the studies' GRaF is chosen from validation
+curves by a fixed rule."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 
-spec = importlib.util.spec_from_file_location("choose_graf", Path(__file__).parents[1] / "scripts" / "choose_graf.py")
-choose_graf = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(choose_graf)
+from graf.errors import UserError
+from graf.studies import published as choose_graf
 
 
 def _row(regime, method, step, psnr, ssim, lpips):
@@ -50,7 +47,7 @@ def test_a_tie_in_rank_goes_to_the_higher_mean_psnr():
 
 
 def test_a_mode_missing_from_a_regime_is_an_error():
-    with pytest.raises(SystemExit, match="no points of"):
+    with pytest.raises(UserError, match="no points of"):
         choose_graf.choose(
             [_row("a", "x", 100, 20, 0.7, 0.3), _row("b", "y", 100, 20, 0.7, 0.3), _row("a", "y", 100, 20, 0.7, 0.3)],
             ["x", "y"],

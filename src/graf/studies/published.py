@@ -1,0 +1,244 @@
+"""Markdown views of the published records in ``sweeps/``, nothing recomputed: a study's tables (its
+``report.json`` and ``rows.json``, written by graf-report) and GRaF's neighbor-feature mode chosen on validation
+from the learning curves (``curves.csv``, written by graf-curves).
+
+The site (``docs_hooks/hooks.py``) and the command-line views (``scripts/study_tables.py``,
+``scripts/choose_graf.py``) both read the records through this module, so they show the same figures.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+
+from graf.errors import UserError
+
+METRICS = (
+    ("test/mse", "MSE", "{:.4f}"),
+    ("test/lpips", "LPIPS", "{:.3f}"),
+    ("test/psnr", "PSNR", "{:.2f}"),
+    ("test/ssim", "SSIM", "{:.3f}"),
+)
+FRACTIONS = ("-", "none", "f05", "f10", "f20", "f50", "f100")
+VALIDATION_FIGURES = (("val_psnr", True), ("val_ssim", True), ("val_lpips", False))  # (key, higher is better)
+
+
+def md(header: list[str], body: list[list]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in body]
+    return "\n".join(lines)
+
+
+def fmt(v, f: str) -> str:
+    return "-" if v is None else f.format(v)
+
+
+def reliance_matrix(rows: list[dict]) -> str:
+    """Test reliance (dB) per trained-on x tested-on cell, from the rows (methods that measured it)."""
+    rel = [r for r in rows if r.get("test/reliance_db") is not None and r.get("steps") != "0"]
+    if not rel:
+        return ""
+    cols = sorted({r["eval_scene"] for r in rel})
+    body = []
+    for (method, trained), rs in sorted(_group(rel, ("method", "trained_on")).items()):
+        cell = {r["eval_scene"]: r["test/reliance_db"] for r in rs}
+        body.append([method, trained, *[fmt(cell.get(c), "{:.2f}") for c in cols]])
+    return "**reliance dB** (rows: trained on; columns: tested on)\n\n" + md(["method", "trained on", *cols], body)
+
+
+def _group(rows: list[dict], keys: tuple[str, ...]) -> dict:
+    out = defaultdict(list)
+    for r in rows:
+        out[tuple(r[k] for k in keys)].append(r)
+    return out
+
+
+def per_pair(rows: list[dict]) -> str:
+    """Test PSNR per (trained on -> tested on) pair and L, for every method, from the rows."""
+    rs = [r for r in rows if r.get("L") not in (None, "", "-") and not r.get("within_scene")]
+    ls = sorted({int(r["L"]) for r in rs})
+    body = []
+    for (scene, method, trained), g in sorted(_group(rs, ("eval_scene", "method", "trained_on")).items()):
+        by_l = {int(r["L"]): r.get("test/psnr") for r in g}
+        body.append([scene, method, trained, *[fmt(by_l.get(x), "{:.2f}") for x in ls]])
+    header = ["tested on", "method", "trained on", *[f"L = {x}" for x in ls]]
+    return "**PSNR per pair** (zero-shot, each test layout)\n\n" + md(header, body)
+
+
+def matrix(report: dict, rows: list[dict] | None = None) -> str:
+    out = []
+    for _, name, f in METRICS:
+        cols = None
+        body = []
+        for method, mats in report["matrix"].items():
+            m = mats[name]
+            cols = m["cols"]
+            for r, vals in zip(m["rows"], m["values"]):
+                body.append([method, r, *[fmt(v, f) for v in vals]])
+        out.append(f"**{name}** (rows: trained on; columns: tested on)\n\n" + md(["method", "trained on", *cols], body))
+    if rows and reliance_matrix(rows):
+        out.append(reliance_matrix(rows))
+    return "\n\n".join(out)
+
+
+def pairs(rows: list[dict]) -> str:
+    """'conference_v1 -> v2/v3 and office_v1 -> v2/v3': the (trained on -> tested on) pairs the rows average."""
+    by = {}
+    for r in rows:
+        if r.get("L") not in (None, "") and not r.get("within_scene") and r.get("trained_on") not in (None, "", "-"):
+            by.setdefault(str(r["trained_on"]), set()).add(str(r["eval_scene"]).rsplit("_", 1)[-1])
+    return " and ".join(f"{t} -> {'/'.join(sorted(v))}" for t, v in sorted(by.items()))
+
+
+def vs_l(report: dict, rows: list[dict]) -> str:
+    data = report["vs_L"]
+    ls = sorted({int(x) for pts in data.values() for x in pts})
+    out = []
+    for _, name, f in METRICS:
+        body = [[m, *[fmt(pts.get(str(x), {}).get(name), f) for x in ls]] for m, pts in data.items()]
+        out.append(f"**{name}** vs L (mean over {pairs(rows)})\n\n" + md(["method", *[f"L = {x}" for x in ls]], body))
+    return "\n\n".join(out)
+
+
+def unseen(rows: list[dict]) -> str:
+    out = []
+    keys = sorted({(r["eval_scene"], r["train_band"]) for r in rows if r["steps"] != "0"})
+    for scene, band in keys:
+        sub = [r for r in rows if r["eval_scene"] == scene and r["train_band"] in (band, "-")]
+        for ft, title in (("none", "zero-shot"), ("f20", "fine-tuned on 20%")):
+            body = [
+                [r["method"], r["n_test"], r["steps"], *[fmt(r.get(k), f) for k, _, f in METRICS]]
+                for r in sorted(sub, key=lambda r: r["method"])
+                if r["finetune"] in ((ft, "zero-shot", "-") if ft == "none" else (ft, "-"))
+            ]
+            out.append(
+                f"**{scene}**, models trained at {band}, {title} (test neighbors: "
+                f"{'the whole training split' if ft == 'none' else 'the measured 20%'})\n\n"
+                + md(["method", "test spectra", "steps", *[n for _, n, _ in METRICS]], body)
+            )
+        by = defaultdict(dict)
+        for r in sub:
+            if r["steps"] != "0":
+                by[r["method"]]["none" if r["finetune"] == "zero-shot" else r["finetune"]] = r.get("test/psnr")
+        fr = [x for x in FRACTIONS[1:] if any(x in v for v in by.values())]
+        out.append(
+            f"PSNR vs fine-tuned fraction, **{scene}** (models trained at {band})\n\n"
+            + md(
+                ["method", *["zero-shot" if x == "none" else x for x in fr]],
+                [[m, *[fmt(v.get(x), "{:.2f}") for x in fr]] for m, v in sorted(by.items())],
+            )
+        )
+    return "\n\n".join(out)
+
+
+def density(report: dict, rows: list[dict]) -> str:
+    """Per scene: each method's test PSNR (reliance dB) and LPIPS against the survey (fraction of the training
+    split measured, trained from scratch on it; its spacing: the median nearest-neighbor distance of the
+    measured positions), and the largest spacing at which each method reaches X dB (report.json)."""
+    out = []
+    for scene in sorted({r["eval_scene"] for r in rows}):
+        sub = [r for r in rows if r["eval_scene"] == scene]
+        fr = [x for x in FRACTIONS if any(r["finetune"] == x for r in sub)]
+        spacing = {r["finetune"]: r.get("spacing_m") for r in sub}
+        head = ["method", *[f"{x} ({fmt(spacing.get(x) and spacing[x] * 100, '{:.1f}')} cm)" for x in fr]]
+        by = defaultdict(dict)
+        for r in sub:
+            by[r["method"]][r["finetune"]] = r
+        for key, name, f, rel in (
+            ("test/psnr", "PSNR (reliance dB)", "{:.2f}", True),
+            ("test/lpips", "LPIPS", "{:.3f}", False),
+        ):
+            body = []
+            for m, cells in sorted(by.items()):
+                row = [m]
+                for x in fr:
+                    r = cells.get(x) or {}
+                    v = fmt(r.get(key), f)
+                    if rel and r.get("test/reliance_db") is not None:
+                        v += f" ({r['test/reliance_db']:.1f})"
+                    row.append(v)
+                body.append(row)
+            out.append(
+                f"**{scene}**: test {name} against the survey (fraction measured, its spacing)\n\n" + md(head, body)
+            )
+        answer = (report.get("spacing_for_psnr") or {}).get(scene) or {}
+        if answer:
+            th = sorted({t for v in answer.values() for t in v}, key=float)
+            body = [[m, *[fmt(v.get(t) and v[t] * 100, "{:.1f}") for t in th]] for m, v in sorted(answer.items())]
+            out.append(
+                f"**{scene}**: the largest survey spacing (cm) at which each method reaches X dB (- : not reached)\n\n"
+                + md(["method", *[f"{t} dB" for t in th]], body)
+            )
+    return "\n\n".join(out)
+
+
+def bands(report: dict) -> str:
+    out = []
+    for m, d in report["band_matrix"].items():
+        body = [[r, *[fmt(v if v == v else None, "{:.2f}") for v in vals]] for r, vals in zip(d["rows"], d["psnr"])]
+        out.append(
+            f"**{m}**: test PSNR (rows: train band; columns: test band)\n\n" + md(["train \\ test", *d["cols"]], body)
+        )
+    return "\n\n".join(out)
+
+
+def study_tables(report: dict, rows: list[dict]) -> list[str]:
+    """Every table a study's record holds, by the keys of its ``report.json``: a train x test matrix, figures
+    against L (and per pair), against the survey's density or the fine-tuned fraction, a band matrix."""
+    parts = []
+    if "matrix" in report:
+        parts.append(matrix(report, rows))
+    if "vs_L" in report:
+        parts += [vs_l(report, rows), per_pair(rows)]
+    if "vs_spacing" in report:  # the density study: surveys trained from scratch, not fine-tuned fractions
+        parts.append(density(report, rows))
+    elif "vs_fraction" in report:
+        parts.append(unseen(rows))
+    if "band_matrix" in report:
+        parts.append(bands(report))
+    return parts
+
+
+def choose(rows: list[dict], modes: list[str]) -> tuple[str, list[dict]]:
+    """``rows`` of curves.csv -> (chosen mode, one record per (mode, regime) it compared).
+
+    The rule: among ``modes``, at the largest step that every mode has reached in a regime, rank the modes on each
+    validation figure (higher PSNR and SSIM, lower LPIPS is better); the chosen mode has the best mean rank over
+    the figures of the regimes in ``rows``, ties broken by the higher mean PSNR."""
+    by = defaultdict(dict)  # (regime, mode) -> step -> row
+    for r in rows:
+        if r["method"] in modes:
+            by[(r["regime"], r["method"])][int(r["step"])] = r
+    regimes = sorted({reg for reg, _ in by})
+    if not regimes:
+        raise UserError(f"curves: no rows of the modes {modes} in the curves")
+    ranks, psnr, table = defaultdict(list), defaultdict(list), []
+    for reg in regimes:
+        missing = [m for m in modes if (reg, m) not in by]
+        if missing:
+            raise UserError(f"curves: regime {reg} has no points of {missing}")
+        step = min(max(by[(reg, m)]) for m in modes)  # the largest step every mode reached
+        common = [m for m in modes if step in by[(reg, m)]]
+        if len(common) < len(modes):
+            raise UserError(f"curves: regime {reg}: not every mode has a point at step {step}")
+        for key, higher in VALIDATION_FIGURES:
+            vals = {m: float(by[(reg, m)][step][key]) for m in modes}
+            order = sorted(modes, key=lambda m: -vals[m] if higher else vals[m])
+            for i, m in enumerate(order):
+                ranks[m].append(i + 1)
+        for m in modes:
+            r = by[(reg, m)][step]
+            psnr[m].append(float(r["val_psnr"]))
+            table.append(
+                {
+                    "regime": reg,
+                    "step": step,
+                    "mode": m,
+                    **{k: float(r[k]) for k, _ in VALIDATION_FIGURES},
+                    "reliance": float(r["val_reliance_db"]),
+                }
+            )
+    score = {m: sum(ranks[m]) / len(ranks[m]) for m in modes}
+    chosen = min(modes, key=lambda m: (score[m], -sum(psnr[m]) / len(psnr[m])))
+    for t in table:
+        t["mean_rank"] = score[t["mode"]]
+    return chosen, table
