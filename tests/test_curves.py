@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
@@ -67,50 +66,6 @@ def test_curves_run_resume_and_validate_only(tmp_path, make_scene):
     assert p.returncode == 0, p.stderr[-3000:]
     again = json.loads((out / "results.json").read_text())
     assert again["rows"] == res["rows"] and "| ray_knn | 3 |" in (out / "curves.md").read_text()
-
-
-def test_a_sigterm_is_passed_to_the_run_and_stops_the_command_with_code_143(tmp_path):
-    """graf-curves and graf-pareto run graf-train one job after another: a SIGTERM to them reaches the job in
-    progress (which saves its state), and the command stops with Preempted instead of going on to its next job."""
-    import os
-    import signal
-    import threading
-
-    from graf.errors import PREEMPTED_EXIT_CODE, Preempted
-    from graf.studies.pareto import _run
-
-    child = tmp_path / "child.py"
-    child.write_text(
-        "import signal, sys, time, pathlib\n"
-        "def stop(*a):\n"
-        f"    pathlib.Path({str(tmp_path / 'got_sigterm')!r}).write_text('saved')\n"
-        "    sys.exit(143)\n"
-        "signal.signal(signal.SIGTERM, stop)\n"
-        "print('started', flush=True)\n"
-        "time.sleep(60)\n"
-    )
-    started = tmp_path / "job" / "run.log"
-    before = signal.getsignal(signal.SIGTERM)
-    t = threading.Thread(target=lambda: (_wait_for(started, "started"), os.kill(os.getpid(), signal.SIGTERM)))
-    t.start()
-    with pytest.raises(Preempted) as exc:
-        _run([sys.executable, str(child)], tmp_path / "job", dict(os.environ), timeout=60)
-    t.join()
-    assert exc.value.exit_code == PREEMPTED_EXIT_CODE and "exit code 143" in str(exc.value)
-    assert (tmp_path / "got_sigterm").read_text() == "saved"
-    assert signal.getsignal(signal.SIGTERM) is before  # the handler before _run is back
-    ok, _ = _run([sys.executable, "-c", "print('done')"], tmp_path / "job2", dict(os.environ), timeout=60)
-    assert not ok  # it wrote no results.json; an ordinary failure, not a pre-emption
-
-
-def _wait_for(path: Path, text: str, timeout: float = 30.0) -> None:
-    import time
-
-    end = time.time() + timeout
-    while time.time() < end:
-        if path.exists() and text in path.read_text():
-            return
-        time.sleep(0.05)
 
 
 def test_a_preempted_point_resumes_from_its_own_checkpoint_and_its_seconds_count(tmp_path):

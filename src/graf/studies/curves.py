@@ -39,7 +39,7 @@ from omegaconf import DictConfig
 from graf.errors import ConfigError, Preempted
 from graf.io import atomic_write_json, atomic_write_text
 from graf.run.config import output_dir, task_wrapper
-from graf.studies.pareto import _run
+from graf.studies.runner import run_command
 from graf.studies.table import to_csv
 
 log = logging.getLogger("graf")
@@ -49,6 +49,7 @@ COLUMNS = (
 )  # fmt: skip
 FIGURES = (("val/psnr", "val_psnr", "PSNR (dB)"), ("val/ssim", "val_ssim", "SSIM"), ("val/lpips", "val_lpips", "LPIPS"))
 PREEMPTED_RUNS = "preempted_runs.json"  # a point's pre-empted attempts (their preempted.json records)
+TRAIN = [sys.executable, "-m", "graf.cli.train"]
 QUIET = ["logger=none", "plot_count=0", "baselines=null", "test=false", "trainer.enable_progress_bar=false"]
 
 
@@ -178,7 +179,7 @@ def _killed_attempt(folder: Path) -> dict | None:
     ckpt = folder / "checkpoints" / "last.ckpt"
     if (folder / "results.json").exists() or not ckpt.exists():
         return None
-    import torch
+    import torch  # lazy: torch adds seconds to the command's start-up, and only a killed attempt needs it
 
     try:
         state = torch.load(ckpt, map_location="cpu", weights_only=False)
@@ -235,6 +236,8 @@ def write_outputs(out: Path, rows: list[dict], knn: dict, failed: list[dict]) ->
 
 
 def plot(path: Path, rows: list[dict], knn: dict) -> None:
+    """PSNR, SSIM and LPIPS against steps on a log axis, one row of panels per regime, KNN as a dashed line."""
+    # lazy: pyplot adds about 0.4 s to the command's start-up, and only the figure needs it
     import matplotlib
 
     matplotlib.use("Agg")
@@ -272,82 +275,97 @@ def plot(path: Path, rows: list[dict], knn: dict) -> None:
 
 @task_wrapper
 def curves(cfg: DictConfig) -> dict:
+    """Run every selected regime's KNN line and methods' curves as far as ``until``, then write and print the
+    tables (resumable: a finished point is skipped)."""
     out = Path(cfg.out) if cfg.get("out") else output_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ)
     if cfg.get("threads"):
         env["OMP_NUM_THREADS"] = str(int(cfg.threads))
-    py, timeout = sys.executable, float(cfg.run_timeout_s)
     if int(cfg.checkpoint_every) < 1:  # 0 would switch the periodic saves, and the curve's resume chain, off
         raise ConfigError(f"checkpoint_every={cfg.checkpoint_every}: must be a positive number of steps")
     common = [f"data_root={cfg.data_root}"] + ([f"torch_threads={int(cfg.threads)}"] if cfg.get("threads") else [])
     failed_file = out / "failed.json"
     failed = json.loads(failed_file.read_text()) if failed_file.exists() else []
-    train = [py, "-m", "graf.cli.train"]
     for rname, regime in _subset(cfg.regimes, cfg.get("only_regimes"), "only_regimes").items():
         base = [*regime.overrides, *common, *QUIET]
         knn_dir = out / rname / "knn"
         if not (knn_dir / "results.json").exists():
-            ok, tail = _run([*train, *base, "model=knn", f"hydra.run.dir={knn_dir}"], knn_dir, env, timeout)
+            cmd = [*TRAIN, *base, "model=knn", f"hydra.run.dir={knn_dir}"]
+            ok, tail = run_command(cmd, knn_dir, env, float(cfg.run_timeout_s))
             if not ok:
                 failed.append({"regime": rname, "method": "knn", "step": 0, "log": tail})
-        for mname, method in _subset(cfg.methods, cfg.get("only_methods"), "only_methods").items():
-            extra = list((method.get("regimes") or {}).get(rname) or [])
-            prev = None
-            for step in points(cfg, regime):
-                folder = out / rname / mname / f"step_{step}"
-                if (folder / "results.json").exists():
-                    prev = folder
-                    continue
-                cmd = [
-                    *train,
-                    *base,
-                    *method.overrides,
-                    *extra,
-                    f"{method.schedule}={int(regime.max_steps)}",
-                    f"trainer.max_steps={step}",
-                    f"callbacks.model_checkpoint.every_n_train_steps={min(step, int(cfg.checkpoint_every))}",
-                    f"hydra.run.dir={folder}",
-                ]
-                start = _resume_preempted(folder, prev)
-                if start is not None:
-                    cmd.append(f"ckpt_path={start}")
-                log.info(
-                    "%s / %s: training to step %d%s",
-                    rname,
-                    mname,
-                    step,
-                    f" from {start.parent.parent.name}" if start else "",
-                )
-                try:
-                    ok, tail = _run(cmd, folder, env, timeout)
-                    if not ok and (folder / "preempted.json").exists():  # the run alone got the SIGTERM
-                        raise Preempted(
-                            f"SIGTERM: {folder} was pre-empted; run the same command again to resume\n{tail}"
-                        )
-                except Preempted:
-                    rows, knn = collect(out, cfg)
-                    write_outputs(out, rows, knn, failed)
-                    raise
-                if not ok:
-                    failed.append({"regime": rname, "method": mname, "step": step, "log": tail})
-                    log.error("%s / %s step %d failed (the curve stops here):\n%s", rname, mname, step, tail)
-                    atomic_write_json(failed_file, failed)
-                    break
-                if not cfg.get("keep_checkpoints"):  # the curve resumes from its newest last.ckpt only
-                    for f in (folder / "checkpoints").glob("*.ckpt"):
-                        if f.name != "last.ckpt":  # ModelCheckpoint's copy of the same weights
-                            f.unlink()
-                    if prev is not None:
-                        shutil.rmtree(prev / "checkpoints", ignore_errors=True)
-                # a point that now succeeded is no longer a failure (an earlier attempt's record goes)
-                failed = [f for f in failed if (f["regime"], f["method"], f["step"]) != (rname, mname, step)]
-                atomic_write_json(failed_file, failed)
-                prev = folder
-                rows, knn = collect(out, cfg)
-                write_outputs(out, rows, knn, failed)
+        for mname in _subset(cfg.methods, cfg.get("only_methods"), "only_methods"):
+            failed = _run_curve(cfg, out, env, rname, mname, base, failed)
     atomic_write_json(failed_file, failed)
     rows, knn = collect(out, cfg)
     write_outputs(out, rows, knn, failed)
     print((out / "curves.md").read_text())
     return {"rows": rows, "knn": knn, "failed": failed}
+
+
+def _run_curve(cfg: DictConfig, out: Path, env: dict, rname: str, mname: str, base: list, failed: list) -> list:
+    """Train method ``mname``'s points of regime ``rname`` not done before, each resuming the previous one, the
+    outputs rewritten after each; the failures, updated (a failed point ends the curve)."""
+    regime, method = cfg.regimes[rname], cfg.methods[mname]
+    extra = list((method.get("regimes") or {}).get(rname) or [])
+    prev = None
+    for step in points(cfg, regime):
+        folder = out / rname / mname / f"step_{step}"
+        if (folder / "results.json").exists():
+            prev = folder
+            continue
+        cmd = [
+            *TRAIN,
+            *base,
+            *method.overrides,
+            *extra,
+            f"{method.schedule}={int(regime.max_steps)}",
+            f"trainer.max_steps={step}",
+            f"callbacks.model_checkpoint.every_n_train_steps={min(step, int(cfg.checkpoint_every))}",
+            f"hydra.run.dir={folder}",
+        ]
+        start = _resume_preempted(folder, prev)
+        if start is not None:
+            cmd.append(f"ckpt_path={start}")
+        log.info(
+            "%s / %s: training to step %d%s", rname, mname, step, f" from {start.parent.parent.name}" if start else ""
+        )
+        ok, tail = _run_point(cmd, folder, env, cfg, out, failed)
+        if not ok:
+            failed.append({"regime": rname, "method": mname, "step": step, "log": tail})
+            log.error("%s / %s step %d failed (the curve stops here):\n%s", rname, mname, step, tail)
+            atomic_write_json(out / "failed.json", failed)
+            break
+        if not cfg.get("keep_checkpoints"):  # the curve resumes from its newest last.ckpt only
+            _remove_checkpoints(folder, prev)
+        # a point that now succeeded is no longer a failure (an earlier attempt's record goes)
+        failed = [f for f in failed if (f["regime"], f["method"], f["step"]) != (rname, mname, step)]
+        atomic_write_json(out / "failed.json", failed)
+        prev = folder
+        rows, knn = collect(out, cfg)
+        write_outputs(out, rows, knn, failed)
+    return failed
+
+
+def _run_point(cmd: list[str], folder: Path, env: dict, cfg: DictConfig, out: Path, failed: list) -> tuple[bool, str]:
+    """Run one point; a pre-emption (of this command, or of the run alone) writes the outputs and stops the command
+    with :class:`graf.errors.Preempted`."""
+    try:
+        ok, tail = run_command(cmd, folder, env, float(cfg.run_timeout_s))
+        if not ok and (folder / "preempted.json").exists():  # the run alone got the SIGTERM
+            raise Preempted(f"SIGTERM: {folder} was pre-empted; run the same command again to resume\n{tail}")
+    except Preempted:
+        rows, knn = collect(out, cfg)
+        write_outputs(out, rows, knn, failed)
+        raise
+    return ok, tail
+
+
+def _remove_checkpoints(folder: Path, prev: Path | None) -> None:
+    """Keep only the newest point's ``last.ckpt``: its ModelCheckpoint copies and the previous point's go."""
+    for f in (folder / "checkpoints").glob("*.ckpt"):
+        if f.name != "last.ckpt":  # ModelCheckpoint's copy of the same weights
+            f.unlink()
+    if prev is not None:
+        shutil.rmtree(prev / "checkpoints", ignore_errors=True)

@@ -26,18 +26,15 @@ import io
 import json
 import logging
 import os
-import signal
-import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from graf.errors import Preempted
 from graf.io import atomic_write_json, atomic_write_text
 from graf.run.config import output_dir, task_wrapper
+from graf.studies.runner import run_command
 
 log = logging.getLogger("graf")
 
@@ -55,40 +52,6 @@ COLUMNS = (
     "front_infer",
     "front_train",
 )
-
-
-def _run(cmd: list[str], folder: Path, env: dict, timeout: float) -> tuple[bool, str]:
-    """Run one graf command into ``folder``; ``(ok, last lines of its log)``.  A SIGTERM to this process while
-    the command runs is passed on to it (graf-train saves its state and writes ``preempted.json``); once it has
-    stopped, :class:`graf.errors.Preempted` is raised, so the calling command stops with exit code 143 instead of
-    going on to its next run, and the same command resumes."""
-    folder.mkdir(parents=True, exist_ok=True)
-    got = []
-    with open(folder / "run.log", "w") as fh:
-        p = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env)
-
-        def forward(signum, frame):
-            got.append(signum)
-            p.send_signal(signum)
-
-        main = threading.current_thread() is threading.main_thread()  # only the main thread may set handlers
-        previous = signal.signal(signal.SIGTERM, forward) if main else None
-        try:
-            try:
-                p.wait(timeout=timeout)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
-        finally:
-            if main:  # None: a handler set outside Python; the default stands in for it
-                signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
-    tail = "\n".join((folder / "run.log").read_text(errors="replace").splitlines()[-5:])
-    if got:
-        raise Preempted(
-            f"SIGTERM: stopped while running into {folder} (exit code {p.returncode}); run the same "
-            f"command again to resume\n{tail}"
-        )
-    return p.returncode == 0 and (folder / "results.json").exists(), tail
 
 
 def _dataset_missing(cfg: DictConfig, sim: list[str]) -> bool:
@@ -203,7 +166,15 @@ def write_tables(out: Path, rows: list[dict], failed: list[dict], meta: dict) ->
         plot(out / "pareto.png", rows)
 
 
+PANELS = (
+    ("infer_s_per_spectrum", "inference s / spectrum", "front_infer"),
+    ("train_s", "training s (whole fit)", "front_train"),
+)  # (cost column, axis label, front column) of each panel
+
+
 def plot(path: Path, rows: list[dict]) -> None:
+    """Test PSNR against inference and training time, one row of panels per scene; written atomically."""
+    # lazy: pyplot adds about 0.4 s to the command's start-up, and only the figure needs it
     import matplotlib
 
     matplotlib.use("Agg")
@@ -216,39 +187,9 @@ def plot(path: Path, rows: list[dict]) -> None:
     fig, axes = plt.subplots(len(scenes), 2, figsize=(11, 4.2 * len(scenes)), squeeze=False)
     for i, scene in enumerate(scenes):
         sr = [r for r in rows if r["scene"] == scene]
-        for j, (cost, label, front) in enumerate(
-            (
-                ("infer_s_per_spectrum", "inference s / spectrum", "front_infer"),
-                ("train_s", "training s (whole fit)", "front_train"),
-            )
-        ):
+        for j, (cost, label, front) in enumerate(PANELS):
             ax = axes[i][j]
-            for r in sr:
-                if r[cost] is None or r["test_psnr"] is None:
-                    continue
-                ax.scatter(
-                    r[cost],
-                    r["test_psnr"],
-                    marker=markers[r["knob"]],
-                    s=60 if r[front] else 30,
-                    edgecolors="k" if r[front] else "none",
-                    label=r["knob"],
-                )
-                ax.annotate(
-                    f"{r['value']}", (r[cost], r["test_psnr"]), fontsize=7, xytext=(3, 3), textcoords="offset points"
-                )
-            fr = sorted((r for r in sr if r[front] and r[cost] is not None), key=lambda r: r[cost])
-            if fr:
-                ax.plot(
-                    [r[cost] for r in fr],
-                    [r["test_psnr"] for r in fr],
-                    "k--",
-                    lw=0.8,
-                    label="front (chosen on val PSNR)",
-                )
-            knn = next((r["knn_test_psnr"] for r in sr if r["knn_test_psnr"] is not None), None)
-            if knn is not None:
-                ax.axhline(knn, color="gray", lw=1, ls=":", label="KNN")
+            _draw_points(ax, sr, cost, front, markers)
             ax.set_xscale("log")
             ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
             ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
@@ -266,6 +207,28 @@ def plot(path: Path, rows: list[dict]) -> None:
     os.replace(tmp, path)
 
 
+def _draw_points(ax, sr: list[dict], cost: str, front: str, markers: dict) -> None:
+    """One scene's points, its front (chosen on validation PSNR) and the KNN line, against one cost."""
+    for r in sr:
+        if r[cost] is None or r["test_psnr"] is None:
+            continue
+        ax.scatter(
+            r[cost],
+            r["test_psnr"],
+            marker=markers[r["knob"]],
+            s=60 if r[front] else 30,
+            edgecolors="k" if r[front] else "none",
+            label=r["knob"],
+        )
+        ax.annotate(f"{r['value']}", (r[cost], r["test_psnr"]), fontsize=7, xytext=(3, 3), textcoords="offset points")
+    fr = sorted((r for r in sr if r[front] and r[cost] is not None), key=lambda r: r[cost])
+    if fr:
+        ax.plot([r[cost] for r in fr], [r["test_psnr"] for r in fr], "k--", lw=0.8, label="front (chosen on val PSNR)")
+    knn = next((r["knn_test_psnr"] for r in sr if r["knn_test_psnr"] is not None), None)
+    if knn is not None:
+        ax.axhline(knn, color="gray", lw=1, ls=":", label="KNN")
+
+
 def _device() -> str:
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -276,15 +239,82 @@ def _device() -> str:
     return "cpu"
 
 
-@task_wrapper
-def sweep(cfg: DictConfig) -> dict:
-    out = Path(cfg.out) if cfg.get("out") else output_dir(cfg)
-    out.mkdir(parents=True, exist_ok=True)
+def _child_env(cfg: DictConfig) -> dict:
+    """The environment of every run: this one, with ``threads`` and an absolute ``GRAF_DATA_ROOT``."""
     env = dict(os.environ)
     if cfg.get("threads"):
         env["OMP_NUM_THREADS"] = str(int(cfg.threads))
     env["GRAF_DATA_ROOT"] = str(Path(cfg.data_root).resolve())
+    return env
+
+
+def _simulated(cfg: DictConfig, scene: str, sc: DictConfig, out: Path, env: dict, failed: list[dict]) -> bool:
+    """Whether the scene's dataset is there, simulated first if it was missing (a failure is added to ``failed``
+    and written)."""
+    sim = list(sc.get("simulate") or [])
+    if not sim or not _dataset_missing(cfg, sim):
+        return True
+    log.info("%s: dataset missing under %s, simulating it first", scene, cfg.data_root)
+    folder = out / scene / "_simulate"
+    cmd = [sys.executable, "-m", "graf.cli.simulate", *sim, f"data_root={env['GRAF_DATA_ROOT']}"]
+    ok, tail = run_command([*cmd, f"hydra.run.dir={folder}"], folder, env, cfg.run_timeout_s)
+    if ok and not _dataset_missing(cfg, sim):
+        return True
+    failed.append({"scene": scene, "point": "_simulate", "log": tail})
+    atomic_write_json(out / "failed.json", failed)
+    return False
+
+
+def _jobs(cfg: DictConfig, sc: DictConfig, ckpt: Path) -> list[tuple[str, list[str]]]:
+    """``(point, command)`` of a scene: a graf-train per training point, then a graf-eval of the base checkpoint
+    ``ckpt`` per evaluation point."""
     py = sys.executable
+    common = list(sc.get("common") or [])
+    jobs = [
+        (name, [py, "-m", "graf.cli.train", *sc.get("train", []), *common, *cfg.base, *p.overrides])
+        for name, p in _selected(cfg, "points", "only_points").items()
+    ]
+    evaluate = [py, "-m", "graf.cli.evaluate", f"ckpt_path={ckpt}", *common, "logger=none", "plot_count=0"]
+    jobs += [(name, [*evaluate, *p.overrides]) for name, p in _selected(cfg, "eval_points", "only_points").items()]
+    return jobs
+
+
+def _run_scene(
+    cfg: DictConfig, scene: str, sc: DictConfig, out: Path, env: dict, failed: list[dict], meta: dict
+) -> list[dict]:
+    """Run the scene's points not done before (tables rewritten after each); the failures, updated."""
+    skip = set(sc.get("skip_points") or [])
+    ckpt = out / scene / "base" / "checkpoints" / "last.ckpt"
+    for name, cmd in _jobs(cfg, sc, ckpt):
+        folder = out / scene / name
+        if name in skip:
+            log.info("%s / %s: skipped (scenes.%s.skip_points)", scene, name, scene)
+            continue
+        if (folder / "results.json").exists():
+            log.info("%s / %s: done before, skipped", scene, name)
+            continue
+        if "graf.cli.evaluate" in cmd and not ckpt.exists():
+            failed.append({"scene": scene, "point": name, "log": f"no base checkpoint {ckpt}"})
+            atomic_write_json(out / "failed.json", failed)
+            continue
+        log.info("%s / %s: %s", scene, name, " ".join(cmd[3:]))
+        t0 = time.perf_counter()
+        ok, tail = run_command(cmd + [f"hydra.run.dir={folder}"], folder, env, cfg.run_timeout_s)
+        log.info("%s / %s: %s in %.0f s", scene, name, "done" if ok else "FAILED", time.perf_counter() - t0)
+        if not ok:
+            failed = [f for f in failed if not (f["scene"] == scene and f["point"] == name)]
+            failed.append({"scene": scene, "point": name, "command": cmd[1:], "log": tail})
+            atomic_write_json(out / "failed.json", failed)
+        write_tables(out, collect(out, cfg), failed, meta)
+    return failed
+
+
+@task_wrapper
+def sweep(cfg: DictConfig) -> dict:
+    """Run every selected scene's points not done before, then write and print the tables."""
+    out = Path(cfg.out) if cfg.get("out") else output_dir(cfg)
+    out.mkdir(parents=True, exist_ok=True)
+    env = _child_env(cfg)
     failed_path = out / "failed.json"
     failed = json.loads(failed_path.read_text()) if failed_path.exists() else []
     meta = {
@@ -294,71 +324,8 @@ def sweep(cfg: DictConfig) -> dict:
     }
     started = time.perf_counter()
     for scene, sc in _selected(cfg, "scenes", "only_scenes").items():
-        sim = list(sc.get("simulate") or [])
-        if sim and _dataset_missing(cfg, sim):
-            log.info("%s: dataset missing under %s, simulating it first", scene, cfg.data_root)
-            ok, tail = _run(
-                [
-                    py,
-                    "-m",
-                    "graf.cli.simulate",
-                    *sim,
-                    f"data_root={env['GRAF_DATA_ROOT']}",
-                    f"hydra.run.dir={out / scene / '_simulate'}",
-                ],
-                out / scene / "_simulate",
-                env,
-                cfg.run_timeout_s,
-            )
-            if not ok or _dataset_missing(cfg, sim):
-                failed.append({"scene": scene, "point": "_simulate", "log": tail})
-                atomic_write_json(failed_path, failed)
-                continue
-        common = list(sc.get("common") or [])
-        skip = set(sc.get("skip_points") or [])
-        jobs = [
-            (name, p, [py, "-m", "graf.cli.train", *sc.get("train", []), *common, *cfg.base, *p.overrides])
-            for name, p in _selected(cfg, "points", "only_points").items()
-        ]
-        ckpt = out / scene / "base" / "checkpoints" / "last.ckpt"
-        jobs += [
-            (
-                name,
-                p,
-                [
-                    py,
-                    "-m",
-                    "graf.cli.evaluate",
-                    f"ckpt_path={ckpt}",
-                    *common,
-                    "logger=none",
-                    "plot_count=0",
-                    *p.overrides,
-                ],
-            )
-            for name, p in _selected(cfg, "eval_points", "only_points").items()
-        ]
-        for name, _p, cmd in jobs:
-            folder = out / scene / name
-            if name in skip:
-                log.info("%s / %s: skipped (scenes.%s.skip_points)", scene, name, scene)
-                continue
-            if (folder / "results.json").exists():
-                log.info("%s / %s: done before, skipped", scene, name)
-                continue
-            if "graf.cli.evaluate" in cmd and not ckpt.exists():
-                failed.append({"scene": scene, "point": name, "log": f"no base checkpoint {ckpt}"})
-                atomic_write_json(failed_path, failed)
-                continue
-            log.info("%s / %s: %s", scene, name, " ".join(cmd[3:]))
-            t0 = time.perf_counter()
-            ok, tail = _run(cmd + [f"hydra.run.dir={folder}"], folder, env, cfg.run_timeout_s)
-            log.info("%s / %s: %s in %.0f s", scene, name, "done" if ok else "FAILED", time.perf_counter() - t0)
-            if not ok:
-                failed = [f for f in failed if not (f["scene"] == scene and f["point"] == name)]
-                failed.append({"scene": scene, "point": name, "command": cmd[1:], "log": tail})
-                atomic_write_json(failed_path, failed)
-            write_tables(out, collect(out, cfg), failed, meta)
+        if _simulated(cfg, scene, sc, out, env, failed):
+            failed = _run_scene(cfg, scene, sc, out, env, failed, meta)
     rows = collect(out, cfg)
     write_tables(out, rows, failed, meta)
     print((out / "pareto.md").read_text() if (out / "pareto.md").exists() else "no finished runs")
