@@ -1,0 +1,2 @@
+"""The methods, one LightningModule each (KNN, GRaF, KNN-DL, NeRF2), on the evaluation protocol they share
+(:mod:`.base`)."""
