@@ -18,7 +18,7 @@ BAND = Band("915mhz", 915e6)
 
 def _dm(scene=S23, band=BAND, **kw) -> SpectrumDataModule:
     kw.setdefault("batch_size", 8)
-    dm = SpectrumDataModule(scene, band, kw.pop("neighbors", NeighborSelector()), **kw)
+    dm = SpectrumDataModule(scene, band, kw.pop("neighbors", NeighborSelector(L=10, L_train=(3, 10), radius=10.0)), **kw)
     dm.setup()
     return dm
 

@@ -25,7 +25,7 @@ S23, BAND = NeRF2Scene("rfid_s23", "embedded:rfid_s23_200"), Band("915mhz", 915e
 
 
 def _dm(trainer=None) -> SpectrumDataModule:
-    dm = SpectrumDataModule(S23, BAND, NeighborSelector(), batch_size=4)
+    dm = SpectrumDataModule(S23, BAND, NeighborSelector(L=10, L_train=(3, 10), radius=10.0), batch_size=4)
     dm.setup()
     if trainer is not None:
         dm.trainer = trainer

@@ -85,7 +85,7 @@ def test_bad_inputs_raise_clear_errors():
     with pytest.raises(ValueError, match="L must be >= 1"):
         select_neighbors(torch.zeros(1, 3), torch.zeros(4, 3), 0)
     with pytest.raises(ValueError, match="L_train"):
-        NeighborSelector(L=4, L_train=(5, 3))
+        NeighborSelector(L=4, L_train=(5, 3), radius=10.0)
 
 
 def test_selector_units_are_wavelengths_and_training_draws_L_in_range():
@@ -106,4 +106,4 @@ def test_selector_warns_when_widening_or_short():
     with pytest.warns(UserWarning, match="widened"):
         sel.select(torch.zeros(1, 3), cp, wavelength=1.0)
     with pytest.warns(UserWarning, match="only 2 candidates"):
-        NeighborSelector(L=5, radius=None).select(torch.zeros(1, 3), cp[:2], wavelength=1.0)
+        NeighborSelector(L=5, L_train=(3, 10), radius=None).select(torch.zeros(1, 3), cp[:2], wavelength=1.0)

@@ -44,7 +44,7 @@ def _dm(num_workers=0):
     return SpectrumDataModule(
         NeRF2Scene("rfid_s23", "embedded:rfid_s23_200"),
         Band("915mhz", 915e6),
-        NeighborSelector(L_train=(3, 10)),
+        NeighborSelector(L=10, L_train=(3, 10), radius=10.0),
         batch_size=8,
         num_workers=num_workers,
     )

@@ -34,7 +34,7 @@ def _graf(**kw):
 @pytest.fixture
 def dm(make_scene):
     d = SpectrumDataModule(
-        NeRF2Scene("tiny", str(make_scene(n=24))), UHF, NeighborSelector(L=4, L_train=(1, 4)), batch_size=2
+        NeRF2Scene("tiny", str(make_scene(n=24))), UHF, NeighborSelector(L=4, L_train=(1, 4), radius=10.0), batch_size=2
     )
     d.setup()
     return d
@@ -85,7 +85,7 @@ def test_one_neighbor_and_more_asked_than_there_are(make_scene):
         d = SpectrumDataModule(
             NeRF2Scene("tiny", str(make_scene(n=24, name=f"t{L}"))),
             UHF,
-            NeighborSelector(L=L, L_train=(L, L)),
+            NeighborSelector(L=L, L_train=(L, L), radius=10.0),
             batch_size=2,
         )
         d.setup()

@@ -23,7 +23,7 @@ def _dm(L=4):
     return SpectrumDataModule(
         NeRF2Scene("rfid_s23", "embedded:rfid_s23_200"),
         Band("915mhz", 915e6),
-        NeighborSelector(L=L, L_train=(L, L)),
+        NeighborSelector(L=L, L_train=(L, L), radius=10.0),
         batch_size=8,
     )
 

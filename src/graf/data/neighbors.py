@@ -10,6 +10,13 @@ deterministic.
 
 :func:`select_neighbors` is the pure function; :class:`NeighborSelector` is the configured object
 (``conf/neighbors``) that converts lengths given in wavelengths and draws L at training time.
+
+**Where the settings are decided.**  The presets in ``conf/neighbors`` are the one source of the values:
+``random_3_10.yaml`` states the paper's protocol (L = 10, L_train = [3, 10], radius 10 wavelengths, nothing
+excluded) and the other presets extend it, stating only what they change (``fixed``: L_train = [L, L];
+``sparse``: exclude_within 0.25).  :class:`NeighborSelector` has no defaults of its own for L, L_train and
+radius, so code that builds one names them; ``exclude_within`` defaults to 0 there, the plain nearest-neighbor
+rule (nothing excluded), as in :func:`select_neighbors`.
 """
 
 from __future__ import annotations
@@ -52,6 +59,27 @@ class NoNeighborsError(UserError):
     """No candidate is left for a target (after excluding itself and those within ``exclude_within``)."""
 
 
+def _per_target_counts(target_pos: torch.Tensor, cand_pos: torch.Tensor, L: int | torch.Tensor) -> torch.Tensor:
+    """The checked inputs' neighbor count of each target: long ``[T]`` (each >= 1)."""
+    if target_pos.ndim != 2 or target_pos.shape[-1] != 3:
+        raise ValueError(f"target_pos must be [T, 3], got {tuple(target_pos.shape)}")
+    if cand_pos.ndim != 2 or cand_pos.shape[-1] != 3:
+        raise ValueError(f"cand_pos must be [M, 3], got {tuple(cand_pos.shape)}")
+    if not (torch.isfinite(target_pos).all() and torch.isfinite(cand_pos).all()):
+        raise ValueError("positions must be finite")
+    T, device = target_pos.shape[0], target_pos.device
+    Ls = (
+        torch.as_tensor(L, dtype=torch.long, device=device).expand(T)
+        if not torch.is_tensor(L) or L.ndim == 0
+        else L.to(device=device, dtype=torch.long)
+    )
+    if Ls.shape != (T,):
+        raise ValueError(f"L must be an int or a [T] tensor, got shape {tuple(Ls.shape)} for T={T}")
+    if T and int(Ls.min()) < 1:
+        raise ValueError(f"L must be >= 1, got {int(Ls.min())}")
+    return Ls
+
+
 def select_neighbors(
     target_pos: torch.Tensor,
     cand_pos: torch.Tensor,
@@ -72,29 +100,13 @@ def select_neighbors(
         radius: keep candidates with distance <= radius; widened per target when fewer than L lie inside.
         exclude_within: drop candidates with distance < exclude_within (0 disables).
     """
-    if target_pos.ndim != 2 or target_pos.shape[-1] != 3:
-        raise ValueError(f"target_pos must be [T, 3], got {tuple(target_pos.shape)}")
-    if cand_pos.ndim != 2 or cand_pos.shape[-1] != 3:
-        raise ValueError(f"cand_pos must be [M, 3], got {tuple(cand_pos.shape)}")
-    if not (torch.isfinite(target_pos).all() and torch.isfinite(cand_pos).all()):
-        raise ValueError("positions must be finite")
-    T, M = target_pos.shape[0], cand_pos.shape[0]
-    device = target_pos.device
-    Ls = (
-        torch.as_tensor(L, dtype=torch.long, device=device).expand(T)
-        if not torch.is_tensor(L) or L.ndim == 0
-        else L.to(device=device, dtype=torch.long)
-    )
-    if Ls.shape != (T,):
-        raise ValueError(f"L must be an int or a [T] tensor, got shape {tuple(Ls.shape)} for T={T}")
-    if T and int(Ls.min()) < 1:
-        raise ValueError(f"L must be >= 1, got {int(Ls.min())}")
-
+    T, M, device = target_pos.shape[0], cand_pos.shape[0], target_pos.device
+    Ls = _per_target_counts(target_pos, cand_pos, L)
+    if (target_ids is None) != (cand_ids is None):
+        raise ValueError("give both target_ids and cand_ids, or neither")
     pos64 = target_pos.to(torch.float64)
     d = torch.cdist(pos64, cand_pos.to(device=device, dtype=torch.float64))  # [T, M]
     allowed = torch.ones((T, M), dtype=torch.bool, device=device)
-    if (target_ids is None) != (cand_ids is None):
-        raise ValueError("give both target_ids and cand_ids, or neither")
     if target_ids is not None:
         allowed &= target_ids.to(device).view(T, 1) != cand_ids.to(device).view(1, M)
     if exclude_within > 0:
@@ -135,9 +147,7 @@ class NeighborSelector:
         exclude_within: drop candidates closer than this many wavelengths to the target.
     """
 
-    def __init__(
-        self, L: int = 10, L_train: Sequence[int] = (3, 10), radius: float | None = 10.0, exclude_within: float = 0.0
-    ):
+    def __init__(self, L: int, L_train: Sequence[int], radius: float | None, exclude_within: float = 0.0):
         lo, hi = (int(v) for v in L_train)
         if int(L) < 1 or lo < 1 or hi < lo:
             raise ConfigError(f"neighbors: need L >= 1 and 1 <= L_train[0] <= L_train[1], got L={L}, L_train={L_train}")
