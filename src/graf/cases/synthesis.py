@@ -35,9 +35,9 @@ from graf.run.config import output_dir, single_scene_config, task_wrapper
 def read_query_positions(path: Path):
     """The query positions ``[N, 3]`` (x,y,z; header optional) and whether a header was found: at least one,
     every one finite, or a :class:`DataFormatError` naming the file and line."""
-    from graf.data.nerf2_format import _read_positions
+    from graf.data.nerf2_files import read_positions
 
-    positions, had_header = _read_positions(path)
+    positions, had_header = read_positions(path)
     if len(positions) == 0:
         raise DataFormatError(
             path, "holds no positions (a header row alone): give one x,y,z row per spectrum to synthesize"

@@ -31,14 +31,13 @@ When *both* index files are missing, a seeded split is made (``split_seed``, ``t
 itself uses an unseeded 80/20 shuffle) and recorded in :attr:`SpectrumSet.split_source`.  Everything else
 is strict: a problem raises :class:`DataFormatError` naming the file and what is wrong with it.  Constant
 (e.g. all-zero) spectra are read but warned about (:func:`graf.data.spectrum_set.warn_flat_spectra`).
+The reader of each file is in :mod:`graf.data.nerf2_files`.
 """
 
 from __future__ import annotations
 
-import csv
 import io
 import logging
-import math
 import os
 from pathlib import Path
 
@@ -47,8 +46,9 @@ import torch
 import yaml
 from PIL import Image
 
+from graf.data.nerf2_files import read_gateway, read_index, read_positions, read_spectrum_png, scan_spectra
 from graf.data.spectrum_set import DataFormatError, SpectrumSet, warn_flat_spectra
-from graf.geometry.grid import N_AZIMUTH, N_ELEVATION, SPECTRUM_SHAPE
+from graf.geometry.grid import SPECTRUM_SHAPE
 from graf.io import atomic_write_bytes
 
 log = logging.getLogger(__name__)
@@ -60,236 +60,6 @@ _ROW_RULE = (
     "count must equal the largest id; a duplicated, missing or extra row would shift every later id's "
     "position"
 )
-
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-# leading bytes of formats that turn up under a .png name, to say what a refused file looks like
-_OTHER_SIGNATURES = (
-    (b"\xff\xd8\xff", "a JPEG file"),
-    (b"GIF87a", "a GIF file"),
-    (b"GIF89a", "a GIF file"),
-    (b"BM", "a BMP file"),
-    (b"II*\x00", "a TIFF file"),
-    (b"MM\x00*", "a TIFF file"),
-    (b"RIFF", "a RIFF (e.g. WebP) file"),
-)
-
-
-def _read_text(path: Path) -> str:
-    """A text file decoded as UTF-8 with a leading byte-order mark stripped."""
-    try:
-        return path.read_bytes().decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise DataFormatError(path, f"is not UTF-8 text ({exc})") from None
-
-
-def _parse_id(text: str, where: str | Path) -> int:
-    try:
-        value = int(text.strip())
-    except ValueError:
-        raise DataFormatError(where, f"spectrum id {text.strip()!r} is not an integer") from None
-    if value < 1:
-        raise DataFormatError(where, f"spectrum id {value} is invalid: ids start at 1 (id k is tx_pos row k)")
-    return value
-
-
-def _scan_spectra(spectrum_dir: Path) -> dict[int, Path]:
-    if not spectrum_dir.is_dir():
-        raise DataFormatError(spectrum_dir, "folder of spectrum PNGs is missing")
-    files: dict[int, Path] = {}
-    for f in sorted(spectrum_dir.iterdir()):
-        if f.suffix.lower() != ".png":
-            continue
-        k = _parse_id(f.stem, f)
-        if k in files:
-            raise DataFormatError(f, f"duplicate spectrum id {k}: also {files[k].name}")
-        files[k] = f
-    if not files:
-        raise DataFormatError(spectrum_dir, "contains no .png spectra")
-    return files
-
-
-def _read_index(path: Path) -> list[int]:
-    ids: list[int] = []
-    seen: set[int] = set()
-    for line_no, line in enumerate(_read_text(path).splitlines(), start=1):
-        if not line.strip():
-            continue
-        k = _parse_id(line, f"{path} line {line_no}")
-        if k in seen:
-            raise DataFormatError(path, f"duplicate id {k} at line {line_no}")
-        seen.add(k)
-        ids.append(k)
-    if not ids:
-        raise DataFormatError(path, "lists no ids")
-    return ids
-
-
-def read_spectrum_png(path: Path) -> np.ndarray:
-    """One spectrum PNG as float32 ``[90, 360]`` in [0, 1] (pixel / 255).
-
-    The file must start with the PNG signature: bytes of another format under a ``.png`` name are refused.
-    """
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(len(PNG_SIGNATURE))
-    except OSError as exc:
-        raise DataFormatError(path, f"cannot be read ({exc})") from None
-    if head != PNG_SIGNATURE:
-        if not head:
-            what = "the file is empty"
-        else:
-            what = next((f"it is {name}" for sig, name in _OTHER_SIGNATURES if head.startswith(sig)), None)
-            what = what or "not a PNG file"
-            what += f" (signature {head!r}, expected {PNG_SIGNATURE!r})"
-        raise DataFormatError(path, f"cannot be read as a PNG image: {what}")
-    try:
-        with Image.open(path, formats=["PNG"]) as im:
-            mode, size = im.mode, im.size
-            if mode != "L":
-                raise DataFormatError(path, f"spectrum is not 8-bit grayscale (PIL mode {mode!r}, expected 'L')")
-            if size != (N_AZIMUTH, N_ELEVATION):
-                raise DataFormatError(
-                    path, f"spectrum is {size[1]}x{size[0]} (rows x columns), expected {N_ELEVATION}x{N_AZIMUTH}"
-                )
-            arr = np.asarray(im, dtype=np.float32)
-    except DataFormatError:
-        raise
-    except Exception as exc:  # truncated or corrupt PNG content
-        raise DataFormatError(path, f"cannot be read as a PNG image ({exc})") from None
-    return arr / 255.0
-
-
-def _is_number(cell: str) -> bool:
-    try:
-        float(cell)
-    except ValueError:
-        return False
-    return True
-
-
-_XYZ = ("x", "y", "z")
-
-
-def _header_problem(cells: list[str]) -> str | None:
-    """None when ``cells`` name the columns x, y, z (each once, any order, any case, spaces around);
-    otherwise what is wrong with them as a header."""
-    if len(cells) != 3:
-        return f"has {len(cells)} cells; expected 3 (x, y, z in any order)"
-    names = [c.strip().lower() for c in cells]
-    if sorted(names) == list(_XYZ):
-        return None
-    unknown = [c.strip() for c, n in zip(cells, names) if n not in _XYZ]
-    repeated = sorted({n for n in names if n in _XYZ and names.count(n) > 1})
-    missing = [n for n in _XYZ if n not in names]
-    parts = []
-    if unknown:
-        parts.append(f"unknown name{'s' if len(unknown) > 1 else ''} {', '.join(map(repr, unknown))}")
-    if repeated:
-        parts.append(f"repeated {', '.join(map(repr, repeated))}")
-    if missing:
-        parts.append(f"missing {', '.join(map(repr, missing))}")
-    return f"found names {[c.strip() for c in cells]!r} ({'; '.join(parts)}), expected x, y, z in any order"
-
-
-def _csv_rows(path: Path) -> list[tuple[int, list[str]]]:
-    """(line number, cells) of each non-blank line of a CSV text file; a line of separators only (``,,``) is
-    a row of empty cells, not a blank line, so it is never skipped (that would shift every later row)."""
-    text = _read_text(path).replace("\r\n", "\n").replace("\r", "\n")
-    out = []
-    for line_no, line in enumerate(text.split("\n"), start=1):
-        if not line.strip():
-            continue
-        try:
-            cells = next(csv.reader([line]))
-        except csv.Error as exc:
-            raise DataFormatError(path, f"line {line_no} is not valid CSV ({exc}): {line!r}") from None
-        out.append((line_no, cells))
-    return out
-
-
-def _read_positions(path: Path) -> tuple[np.ndarray, bool]:
-    """Returns (rows [M, 3] as x, y, z, had_header).
-
-    Decoded as UTF-8 with a byte-order mark stripped; LF, CRLF or CR line ends; blank lines are skipped.
-    The first non-blank row is a header only when its cells, stripped and lower-cased, are x, y, z in some
-    order, and columns are then taken by name (``z,y,x`` is read correctly).  A first row with no numeric
-    cell that is not such a header (``NA,NA,NA``, ``x,y,w``) is refused, and so is one that is partly
-    numeric; a fully numeric first row is the position of spectrum id 1 (no header).  Every other row must
-    be 3 numbers.  So no spectrum is ever matched to the next row's position by a guess about line 1.
-    """
-    if not path.is_file():
-        raise DataFormatError(path, "transmitter position file is missing")
-    rows = _csv_rows(path)
-    if not rows:
-        raise DataFormatError(path, "is empty")
-    first_no, first = rows[0]
-    numeric = [_is_number(c) for c in first]
-    if any(numeric) and not all(numeric):
-        raise DataFormatError(
-            path,
-            f"line {first_no} {','.join(first)!r} is neither a header (no numeric cell) nor a numeric x,y,z "
-            f"row: cells {[c for c, n in zip(first, numeric) if not n]!r} are not numbers, the others are",
-        )
-    had_header = not any(numeric)
-    order = [0, 1, 2]  # column of x, y, z
-    if had_header:
-        problem = _header_problem(first)
-        if problem is not None:
-            raise DataFormatError(
-                path,
-                f"line {first_no} {','.join(first)!r} looks like a header (no numeric cell) but is not one: "
-                f"{problem}; a header names the columns x, y, z, and a file without one starts with the "
-                "numeric position of spectrum id 1",
-            )
-        names = [c.strip().lower() for c in first]
-        order = [names.index(n) for n in _XYZ]
-        rows = rows[1:]
-    log.info(
-        "%s: %s",
-        path,
-        f"header row {','.join(first)!r} found and skipped" if had_header else "no header row; first row is id 1",
-    )
-    out = np.full((len(rows), 3), np.nan)
-    for i, (line_no, r) in enumerate(rows):
-        if len(r) != 3:
-            raise DataFormatError(path, f"line {line_no} has {len(r)} columns, expected 3 (x,y,z)")
-        try:
-            values = [float(c) for c in r]
-        except ValueError:
-            raise DataFormatError(path, f"line {line_no} is not numeric: {','.join(r)!r}") from None
-        out[i] = [values[j] for j in order]
-    return out, had_header
-
-
-def _read_gateway(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    if not path.is_file():
-        raise DataFormatError(path, "gateway file is missing")
-    try:
-        info = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise DataFormatError(path, f"is not valid YAML ({exc})") from None
-    gw = info.get("gateway1") if isinstance(info, dict) else None
-    if not isinstance(gw, dict):
-        raise DataFormatError(path, "has no 'gateway1' section")
-    values = {}
-    for key, n in (("position", 3), ("orientation", 4)):
-        if key not in gw or gw[key] is None:
-            raise DataFormatError(path, f"gateway1 has no {key}")
-        try:
-            v = np.asarray(gw[key], dtype=np.float64).reshape(-1)
-        except (TypeError, ValueError):
-            raise DataFormatError(path, f"gateway1.{key} is not a list of numbers: {gw[key]!r}") from None
-        if v.shape != (n,) or not np.all(np.isfinite(v)):
-            raise DataFormatError(path, f"gateway1.{key} must be {n} finite numbers, got {gw[key]!r}")
-        values[key] = v
-    q = values["orientation"]
-    # The norm as a correctly rounded sum (math.fsum), not np.linalg.norm: BLAS's dot product rounds differently
-    # on other CPUs and numpy builds, and the normalised pose enters the scene's content fingerprint, which must
-    # be the same on every machine (a checkpoint made on a CPU is resumed on a GPU machine).
-    norm = math.sqrt(math.fsum(float(v) * float(v) for v in q))
-    if not math.isclose(norm, 1.0, abs_tol=1e-3):
-        raise DataFormatError(path, f"gateway1.orientation is not a unit quaternion (norm {norm:.4f})")
-    return values["position"], q / norm
 
 
 def seeded_split(ids: list[int], seed: int, train_fraction: float) -> tuple[list[int], list[int]]:
@@ -330,10 +100,45 @@ def read_nerf2_folder(
     root = Path(path)
     if not root.is_dir():
         raise DataFormatError(root, "scene folder does not exist")
-    files = _scan_spectra(root / "spectrum")
+    files = scan_spectra(root / "spectrum")
+    train_ids, test_ids, split_source = read_split(root, files, split_seed, train_fraction)
+    positions_all, had_header = read_positions(root / "tx_pos.csv")
+    gw_pos, gw_quat = read_gateway(root / "gateway_info.yml")
+    all_ids = np.asarray(train_ids + test_ids, dtype=np.int64)
+    positions = positions_of(root / "tx_pos.csv", positions_all, had_header, all_ids, files, position_rows)
+    spectra = torch.empty((len(all_ids), *SPECTRUM_SHAPE), dtype=torch.float32)
+    for i, k in enumerate(all_ids.tolist()):
+        spectra[i] = torch.from_numpy(read_spectrum_png(files[k]))
+    warn_flat_spectra(spectra, all_ids, root)
+    n_train = len(train_ids)
+    return SpectrumSet(
+        name=name or root.name,
+        spectra=spectra,
+        positions=positions,
+        ids=all_ids,
+        train_idx=np.arange(n_train, dtype=np.int64),
+        test_idx=np.arange(n_train, len(all_ids), dtype=np.int64),
+        gateway_position=gw_pos,
+        gateway_orientation=gw_quat,
+        frequency_hz=float(frequency_hz),
+        source=str(root),
+        split_source=split_source,
+        meta={
+            "tx_pos_header": had_header,
+            "unused_spectra": len(files) - len(all_ids),
+            "position_rows": {"rows": len(positions_all), "largest_id": max(files), "rule": position_rows},
+        },
+    )
+
+
+def read_split(
+    root: Path, files: dict[int, Path], split_seed: int, train_fraction: float
+) -> tuple[list[int], list[int], str]:
+    """``(train ids, test ids, where the split comes from)``: the index files when both are there (disjoint, every
+    id with its PNG in ``files``), else a seeded split of every spectrum (an error when only one is there)."""
     train_file, test_file = root / "train_index.txt", root / "test_index.txt"
     if train_file.is_file() and test_file.is_file():
-        train_ids, test_ids = _read_index(train_file), _read_index(test_file)
+        train_ids, test_ids = read_index(train_file), read_index(test_file)
         both = sorted(set(train_ids) & set(test_ids))
         if both:
             raise DataFormatError(test_file, f"ids also in {train_file.name}: {both[:10]}")
@@ -362,76 +167,66 @@ def read_nerf2_folder(
     for which, ids in (("training", train_ids), ("test", test_ids)):
         if not ids:  # index files listing no ids are refused above; this guards the seeded split
             raise DataFormatError(root, f"the {which} split is empty ({len(files)} spectra, {split_source})")
+    return train_ids, test_ids, split_source
 
-    positions_all, had_header = _read_positions(root / "tx_pos.csv")
-    gw_pos, gw_quat = _read_gateway(root / "gateway_info.yml")
 
-    all_ids = np.asarray(train_ids + test_ids, dtype=np.int64)
-    pos_file = root / "tx_pos.csv"
-    rows = all_ids - 1
+def positions_of(
+    pos_file: Path,
+    positions_all: np.ndarray,
+    had_header: bool,
+    ids: np.ndarray,
+    files: dict[int, Path],
+    position_rows: str,
+) -> np.ndarray:
+    """The positions ``[len(ids), 3]`` of ``ids`` (data row k is id k) in the rows ``positions_all`` of
+    ``pos_file``, after the row-count rule (``position_rows``, against the largest id of the spectrum PNGs
+    ``files``) and a check that each is finite."""
+    rows = ids - 1
     if rows.max() >= len(positions_all):
-        k = int(all_ids[rows.argmax()])
+        k = int(ids[rows.argmax()])
         note = " (not counting the header row)" if had_header else " (the file has no header row)"
         raise DataFormatError(
             pos_file, f"has {len(positions_all)} position rows but spectrum id {k} needs row {k}{note}; {_ROW_RULE}"
         )
-    n_rows, largest = len(positions_all), max(files)
-    if n_rows != largest:
-        counts = (
-            f"has {n_rows} position rows but the largest spectrum id in spectrum/ is {largest} ({files[largest].name})"
-        )
-        if n_rows < largest or position_rows == "exact":
-            raise DataFormatError(
-                pos_file,
-                f"{counts}; {_ROW_RULE}"
-                + (
-                    ". If this file holds a larger dataset's rows (a slice of it), read with position_rows='at_least'"
-                    if n_rows > largest
-                    else ""
-                ),
-            )
-        extra = n_rows - largest
-        log.warning(
-            "%s %s: %d row%s more than the spectra need, accepted because position_rows='at_least' "
-            "(rows 1..%d are taken as ids 1..%d; if a row was duplicated or inserted, every later id's "
-            "position is WRONG)",
-            pos_file,
-            counts,
-            extra,
-            "" if extra == 1 else "s",
-            largest,
-            largest,
-        )
+    check_row_count(pos_file, len(positions_all), files, position_rows)
     positions = positions_all[rows]
     bad = ~np.isfinite(positions).all(axis=1)
     if bad.any():
-        k = int(all_ids[np.argmax(bad)])
+        k = int(ids[np.argmax(bad)])
         raise DataFormatError(
             pos_file, f"position of spectrum id {k} (data row {k}) is not finite: {positions[np.argmax(bad)].tolist()}"
         )
+    return positions
 
-    spectra = torch.empty((len(all_ids), *SPECTRUM_SHAPE), dtype=torch.float32)
-    for i, k in enumerate(all_ids.tolist()):
-        spectra[i] = torch.from_numpy(read_spectrum_png(files[k]))
-    warn_flat_spectra(spectra, all_ids, root)
-    n_train = len(train_ids)
-    return SpectrumSet(
-        name=name or root.name,
-        spectra=spectra,
-        positions=positions,
-        ids=all_ids,
-        train_idx=np.arange(n_train, dtype=np.int64),
-        test_idx=np.arange(n_train, len(all_ids), dtype=np.int64),
-        gateway_position=gw_pos,
-        gateway_orientation=gw_quat,
-        frequency_hz=float(frequency_hz),
-        source=str(root),
-        split_source=split_source,
-        meta={
-            "tx_pos_header": had_header,
-            "unused_spectra": len(files) - len(all_ids),
-            "position_rows": {"rows": n_rows, "largest_id": largest, "rule": position_rows},
-        },
+
+def check_row_count(pos_file: Path, n_rows: int, files: dict[int, Path], position_rows: str) -> None:
+    """Refuse ``n_rows`` position rows other than the largest spectrum id of ``files`` (more are accepted, with a
+    warning, under ``position_rows="at_least"``)."""
+    largest = max(files)
+    if n_rows == largest:
+        return
+    counts = f"has {n_rows} position rows but the largest spectrum id in spectrum/ is {largest} ({files[largest].name})"
+    if n_rows < largest or position_rows == "exact":
+        raise DataFormatError(
+            pos_file,
+            f"{counts}; {_ROW_RULE}"
+            + (
+                ". If this file holds a larger dataset's rows (a slice of it), read with position_rows='at_least'"
+                if n_rows > largest
+                else ""
+            ),
+        )
+    extra = n_rows - largest
+    log.warning(
+        "%s %s: %d row%s more than the spectra need, accepted because position_rows='at_least' "
+        "(rows 1..%d are taken as ids 1..%d; if a row was duplicated or inserted, every later id's "
+        "position is WRONG)",
+        pos_file,
+        counts,
+        extra,
+        "" if extra == 1 else "s",
+        largest,
+        largest,
     )
 
 
