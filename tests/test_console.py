@@ -120,10 +120,10 @@ def test_true_and_predicted_spectra_share_one_scale_with_a_colour_bar(monkeypatc
 
 
 def test_a_studys_matrices_share_one_scale_across_methods(tmp_path, monkeypatch):
-    from graf.studies import report
+    from graf.studies import report_figures
 
     figs = []
-    real_plt = report._plt()
+    real_plt = report_figures.plt
 
     class Capture:
         def __getattr__(self, name):
@@ -134,12 +134,12 @@ def test_a_studys_matrices_share_one_scale_across_methods(tmp_path, monkeypatch)
             figs.append(fig)
             real_plt.close(fig)
 
-    monkeypatch.setattr(report, "_plt", lambda: Capture())
+    monkeypatch.setattr(report_figures, "plt", Capture())
     rows = [
         {"method": "graf", "steps": "300", "trained_on": "a", "eval_scene": e, "test/psnr": p, "test/ssim": 0.5}
         for e, p in (("a", 20.0), ("b", 18.0))
     ] + [{"method": "knn", "steps": "0", "trained_on": "-", "eval_scene": e, "test/psnr": p} for e, p in (("a", 16.0),)]
-    report.matrix_figures(rows, tmp_path)
+    report_figures.matrix_figures(rows, tmp_path)
     psnr = next(f for f in figs if "PSNR" in f._suptitle.get_text())
     clims = {ax.images[0].get_clim() for ax in psnr.axes if ax.images}
     assert clims == {(16.0, 20.0)}  # graf's and knn's cells on the same scale

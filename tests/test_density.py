@@ -8,9 +8,11 @@ import json
 import pytest
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
+from omegaconf import OmegaConf
 
 from graf.run.config import CONF_DIR
-from graf.studies.report import make_report, spacing_for
+from graf.studies.report import make_report
+from graf.studies.report_rows import spacing_for
 
 
 def test_the_density_experiment_trains_from_scratch_on_a_measured_fraction():
@@ -50,7 +52,8 @@ def test_graf_report_draws_a_density_study_against_the_survey_spacing(tmp_path):
         job = runs / f"model=graf,finetune=f{round(100 * f):02d}"
         job.mkdir(parents=True)
         (job / "results.json").write_text(json.dumps(_result("graf-ray-weights", f, sp, p, kp)))
-    summary = make_report(runs, tmp_path / "out")
+    reference = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "report.yaml").reference)
+    summary = make_report(runs, tmp_path / "out", reference)
     assert "vs_spacing_rfid_s23.png" in summary["figures"]
     curve = summary["vs_spacing"]["rfid_s23"]
     assert sorted(curve["graf-ray-weights"]) == [0.007, 0.023, 0.05] and sorted(curve["knn"]) == [0.007, 0.023, 0.05]

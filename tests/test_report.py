@@ -8,12 +8,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 
 from graf.errors import ConfigError
 from graf.io import atomic_write_json
-from graf.studies.report import make_report
+from graf.run.config import CONF_DIR
+from graf.studies.report import make_report, report
 
 GHZ24, MHZ915 = 2.412e9, 915e6
+REFERENCE = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "report.yaml").reference)  # the spectra grids' jobs
 
 
 def _metrics(psnr: float) -> dict:
@@ -70,7 +74,7 @@ def test_cross_scene_matrix_tables_heatmaps_and_spectra(tmp_path):
     _result(tmp_path / "base" / "x", "graf", ["zzz"], [("zzz", 99.0, GHZ24)])  # a study's base model: left out
     _samples(tmp_path / "j0", "a_v2", "graf", 110)
     _samples(tmp_path / "j0", "a_v2", "knn", 150)
-    s = make_report(tmp_path, tmp_path / "out")
+    s = make_report(tmp_path, tmp_path / "out", REFERENCE)
     assert s["n_results"] == 3 and s["axes"] == ["trained_on", "eval_scene"]
     m = s["matrix"]
     assert m["graf"]["PSNR"]["rows"] == ["a_v1", "b_v1"] and m["graf"]["PSNR"]["cols"] == ["a_v1", "a_v2", "b_v1"]
@@ -102,12 +106,27 @@ def test_neighbor_count_curve_averages_the_same_family_pairs(tmp_path):
             [("conference_v2", c2, GHZ24), ("conference_v3", c3, GHZ24), ("office_v2", o2, GHZ24)],
             L=L,
         )
-    s = make_report(tmp_path, tmp_path)
+    s = make_report(tmp_path, tmp_path, REFERENCE)
     assert s["axes"] == ["L", "eval_scene"]
     assert s["vs_L"]["graf"][2]["PSNR"] == pytest.approx(11.0)
     assert s["vs_L"]["graf"][10]["PSNR"] == pytest.approx(21.0)
     assert s["vs_L"]["graf"][10]["n_pairs"] == 2
     assert (tmp_path / "vs_L.png").stat().st_size > 5000
+
+
+def test_the_spectra_grids_show_the_reference_setting_of_conf_report(tmp_path):
+    """Which job's spectra the grids show is conf/report.yaml's ``reference`` (L = 10 there), not a constant."""
+    for L in (2, 10):
+        _result(tmp_path / f"L{L}", "graf", ["conference_v1"], [("conference_v2", 20.0, GHZ24)], L=L)
+    _samples(tmp_path / "L2", "conference_v2", "graf", 110)  # only the L = 2 job saved spectra
+
+    def run(*overrides):
+        with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+            cfg = compose("report", overrides=[f"runs={tmp_path}", f"paths.output_dir={tmp_path}", *overrides])
+        return report(cfg)["figures"]
+
+    assert REFERENCE["L"] == 10 and "spectra_conference_v2.png" not in run()
+    assert "spectra_conference_v2.png" in run("reference.L=2")
 
 
 def test_finetune_fraction_curves_and_band_matrix(tmp_path):
@@ -122,7 +141,7 @@ def test_finetune_fraction_curves_and_band_matrix(tmp_path):
             "test_pool": "measured",
         }
         _result(tmp_path / "ft" / label, "graf", ["bedroom"], [("bedroom", psnr, GHZ24)], finetune=ft)
-    s = make_report(tmp_path / "ft", tmp_path / "ft")
+    s = make_report(tmp_path / "ft", tmp_path / "ft", REFERENCE)
     curve = s["vs_fraction"]["bedroom | trained at 2.412 GHz"]["graf"]
     assert {k: v["PSNR"] for k, v in curve.items()} == {0.0: 5.0, 0.2: 12.0, 1.0: 16.0}
     assert "| f20 | graf | 30 | 300+100 |" in (tmp_path / "ft" / "report.md").read_text()
@@ -136,7 +155,7 @@ def test_finetune_fraction_curves_and_band_matrix(tmp_path):
             [("conference_v1", 20.0 - 5 * i, MHZ915), ("conference_v1", 10.0 + 5 * i, GHZ24)],
             train_hz=th,
         )
-    s = make_report(bands, bands)
+    s = make_report(bands, bands, REFERENCE)
     bm = s["band_matrix"]["graf"]
     assert bm["rows"] == ["915 MHz", "2.412 GHz"] and bm["cols"] == ["915 MHz", "2.412 GHz"]
     assert bm["psnr"] == [[20.0, 10.0], [15.0, 15.0]]
@@ -145,6 +164,6 @@ def test_finetune_fraction_curves_and_band_matrix(tmp_path):
 
 def test_a_folder_without_results_is_a_clear_error(tmp_path):
     with pytest.raises(ConfigError, match="no results.json under"):
-        make_report(tmp_path, tmp_path)
+        make_report(tmp_path, tmp_path, REFERENCE)
     with pytest.raises(ConfigError, match="does not exist"):
-        make_report(tmp_path / "nope", tmp_path)
+        make_report(tmp_path / "nope", tmp_path, REFERENCE)
