@@ -1,48 +1,50 @@
-"""MkDocs hooks: the study, search and curve tables of the site are generated at build time from the records in
-``sweeps/`` (never copied by hand), and the figures there are published beside the pages.
+"""MkDocs hooks: the pages that describe the code and the records are generated at build time from the tree
+(never copied by hand), and the figures of ``sweeps/`` are published beside the pages.
+
+Generated pages (:mod:`tree_pages`): one API reference page per room of the package (``api/<room>.md``, every
+public module as a ``::: graf.x.y`` block) and their index (``api/index.md``); the navigation's "API reference"
+entry is replaced by them.
 
 A page asks for a generated block with a directive on a line of its own:
 
 - ``<!-- gen: study NAME -->``: the tables of study ``sweeps/NAME`` (its ``report.json`` and ``rows.json``,
-  written by graf-report), by ``scripts/study_tables.py``;
+  written by graf-report), by :func:`graf.studies.published.study_tables` (as ``scripts/study_tables.py``);
 - ``<!-- gen: search NAME -->``: the trials of search ``sweeps/NAME`` (``trials.csv``) and the chosen
   configuration's test beside its baselines (``best/best.json``, ``best/results.json``);
 - ``<!-- gen: include PATH -->``: a markdown table a command wrote (``sweeps/learning_curves/curves.md``,
   ``sweeps/compare_rfid_s23/table.md``, ...), included as it is;
-- ``<!-- gen: choose PATH -->``: GRaF's modes ranked on validation from a ``curves.csv`` (``scripts/choose_graf.py``);
-- ``<!-- gen: page PATH -->``: a markdown file of the repository (``CONTRIBUTING.md``) as the page's text.
+- ``<!-- gen: choose PATH -->``: GRaF's modes ranked on validation from a ``curves.csv``
+  (:func:`graf.studies.published.choose`, as ``scripts/choose_graf.py``);
+- ``<!-- gen: page PATH -->``: a markdown file of the repository (``CONTRIBUTING.md``) as the page's text;
+- ``<!-- gen: layout src -->``: the map of the package (floors, rooms, modules, commands, scripts).
 
 A directive whose record is missing fails the build (``mkdocs build --strict`` in CI), so a page never shows a
 table its records do not hold.  Figures: every ``*.png`` of ``sweeps/`` (three folders deep) is published at
 ``sweeps/...``, so a page links ``![](sweeps/NAME/figure.png)`` (from a page in ``docs/``).
+
+This folder is outside ``docs/``, so the hooks are not published with the site; MkDocs loads this file and puts
+its folder on ``sys.path`` while it does, which is how ``tree_pages`` is imported.
 """
 
 from __future__ import annotations
 
 import csv
-import importlib.util
 import json
 import math
 import re
 from pathlib import Path
 
+import tree_pages
 from mkdocs.exceptions import PluginError
 from mkdocs.structure.files import File
 
+from graf.errors import UserError
+from graf.studies import published
+
 ROOT = Path(__file__).resolve().parents[1]
 SWEEPS = ROOT / "sweeps"
-DIRECTIVE = re.compile(r"^<!-- gen: (study|search|include|page|choose) (\S+) -->$", re.M)
-
-
-def _script(name: str):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def _study_tables():
-    return _script("study_tables")
+API_NAV = "API reference"
+DIRECTIVE = re.compile(r"^<!-- gen: (study|search|include|page|choose|layout) (\S+) -->$", re.M)
 
 
 def _record(path: Path) -> Path:
@@ -52,20 +54,10 @@ def _record(path: Path) -> Path:
 
 
 def study(name: str) -> str:
-    st = _study_tables()
     folder = SWEEPS / name
     report = json.loads(_record(folder / "report.json").read_text())
     rows = json.loads(_record(folder / "rows.json").read_text())["rows"]
-    parts = []
-    if "matrix" in report:
-        parts.append(st.matrix(report, rows))
-    if "vs_L" in report:
-        parts.append(st.vs_l(report, rows))
-        parts.append(st.per_pair(rows))
-    if "vs_fraction" in report:
-        parts.append(st.unseen(rows))
-    if "band_matrix" in report:
-        parts.append(st.bands(report))
+    parts = published.study_tables(report, rows)
     if not parts:
         raise PluginError(f"docs: {folder.relative_to(ROOT)}/report.json holds no table this site knows")
     return "\n\n".join(parts) + f"\n\n*Generated from `sweeps/{name}/report.json` and `rows.json`.*"
@@ -77,11 +69,6 @@ def _f(v, spec: str = ".3f") -> str:
     except (TypeError, ValueError):
         return "-"
     return "-" if math.isnan(x) else format(x, spec)
-
-
-def _md(header: list[str], body: list[list]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    return "\n".join(lines + ["| " + " | ".join(str(c) for c in row) + " |" for row in body])
 
 
 def search(name: str) -> str:
@@ -118,7 +105,7 @@ def search(name: str) -> str:
         )
     header = ["trial", *[p[len("param ") :] for p in params], "state", *[v[len("value ") :] for v in values]]
     header += ["last val PSNR in training (step)", "wall s", "note"]
-    out = [_md(header, body)]
+    out = [published.md(header, body)]
     res = json.loads(_record(folder / "best" / "results.json").read_text())
     evals = res.get("evaluations") or [{"eval_scene": res["eval_scene"], "metrics": res["metrics"],
                                         "baselines": res.get("baselines") or {}}]  # fmt: skip
@@ -135,7 +122,7 @@ def search(name: str) -> str:
     chosen = " ".join(f"`{k}={_param(str(v))}`" for k, v in best["params"].items())
     out.append(
         f"Chosen on validation: trial {best['trial']}, {chosen}; tested once (`best/`):\n\n"
-        + _md(["test scene", "method", "PSNR", "SSIM", "LPIPS", "reliance dB", "val PSNR"], rows)
+        + published.md(["test scene", "method", "PSNR", "SSIM", "LPIPS", "reliance dB", "val PSNR"], rows)
     )
     return "\n\n".join(out) + f"\n\n*Generated from `sweeps/{name}/trials.csv` and `best/`.*"
 
@@ -164,21 +151,24 @@ def include(path: str) -> str:
 
 
 def choose(path: str) -> str:
-    """GRaF's neighbor-feature mode ranked on validation by ``scripts/choose_graf.py``, per regime and over all."""
-    cg = _script("choose_graf")
+    """GRaF's neighbor-feature mode ranked on validation (:func:`graf.studies.published.choose`), per regime and
+    over all."""
     with open(_record(ROOT / path), newline="") as fh:
         rows = list(csv.DictReader(fh))
     modes = ["pooled", "ray", "ray_knn", "ray_weights"]
     out = []
     for regime in sorted({r["regime"] for r in rows if r["method"] in modes}) + [None]:
-        chosen, table = cg.choose([r for r in rows if regime is None or r["regime"] == regime], modes)
+        try:
+            chosen, table = published.choose([r for r in rows if regime is None or r["regime"] == regime], modes)
+        except UserError as e:
+            raise PluginError(f"docs: {path}: {e}") from e
         body = [
             [t["regime"], t["step"], f"**{t['mode']}**" if t["mode"] == chosen else t["mode"], _f(t["val_psnr"], ".2f"),
              _f(t["val_ssim"]), _f(t["val_lpips"]), _f(t["reliance"], ".2f"), _f(t["mean_rank"], ".2f")]
             for t in table
         ]  # fmt: skip
         head = ["regime", "step", "mode", "val PSNR", "val SSIM", "val LPIPS", "val reliance dB", "mean rank"]
-        out.append(f"**{regime or 'all regimes together'}**: chosen `{chosen}`\n\n" + _md(head, body))
+        out.append(f"**{regime or 'all regimes together'}**: chosen `{chosen}`\n\n" + published.md(head, body))
     return "\n\n".join(out) + f"\n\n*Generated from `{path}` by `scripts/choose_graf.py`.*"
 
 
@@ -187,10 +177,38 @@ def page_file(path: str) -> str:
     return _record(ROOT / path).read_text().replace("](docs/", "](")
 
 
+def layout(src: str) -> str:
+    """The map of the package in ``src`` (the directive names the tree for the reader; there is only that one)."""
+    if src != "src":
+        raise PluginError(f"docs: <!-- gen: layout {src} -->: the layout is made from src")
+    note = "*Generated from `src/`, `pyproject.toml`, `scripts/` and `tests/test_import_graph.py`.*"
+    return tree(tree_pages.layout, ROOT) + "\n\n" + note
+
+
+def tree(make, *args):
+    """``make(*args)`` of :mod:`tree_pages`, its refusal as the build's error."""
+    try:
+        return make(*args)
+    except tree_pages.TreeError as e:
+        raise PluginError(f"docs: {e}") from e
+
+
+def on_config(config):
+    """The navigation's "API reference" entry becomes the generated pages, the index first."""
+    pages = [{title: path} for path, (title, _) in tree(tree_pages.api_pages, ROOT).items()]
+    for i, item in enumerate(config["nav"]):
+        if isinstance(item, dict) and API_NAV in item:
+            config["nav"][i] = {API_NAV: pages}
+            return config
+    raise PluginError(f"docs: mkdocs.yml's nav has no {API_NAV!r} entry for the generated API pages")
+
+
 def on_page_markdown(markdown: str, page, config, files) -> str:
     def expand(m: re.Match) -> str:
         kind, arg = m.group(1), m.group(2)
-        return {"study": study, "search": search, "include": include, "page": page_file, "choose": choose}[kind](arg)
+        makers = {"study": study, "search": search, "include": include, "page": page_file, "choose": choose,
+                  "layout": layout}  # fmt: skip
+        return makers[kind](arg)
 
     return DIRECTIVE.sub(expand, markdown)
 
@@ -202,4 +220,6 @@ def on_files(files, config):
             continue
         uri = png.relative_to(ROOT).as_posix()
         files.append(File(uri, src_dir=str(ROOT), dest_dir=site, use_directory_urls=config["use_directory_urls"]))
+    for path, (_, text) in tree(tree_pages.api_pages, ROOT).items():
+        files.append(File.generated(config, path, content=text))
     return files
