@@ -15,7 +15,8 @@ from hydra.errors import HydraException
 import graf.studies.bench as bench_cli
 from graf.errors import ConfigError
 from graf.run.config import CONF_DIR
-from graf.studies.bench import add_ratios, bench, ensure_simulated, scene_and_band
+from graf.studies.bench import bench, ensure_simulated, scene_and_band
+from graf.studies.bench_report import add_ratios
 
 REQUIRED = {
     "method",
