@@ -106,9 +106,11 @@ COLLECTED = ("table", "pareto")
 
 
 def read_run_result(f: Path) -> dict | None:
-    """A run's ``results.json`` as a dict, None for a collecting command's own output
-    (``task`` in :data:`COLLECTED`, or a table's ``{"rows", "sources"}`` written before it said its task), or a
-    :class:`ConfigError` naming the file when it is unreadable or not a run's results."""
+    """A run's ``results.json`` as a dict (a run's holds its ``metrics`` or its ``evaluations``); None for
+    another command's output (a collecting command's: ``task`` in :data:`COLLECTED`, or a table's ``{"rows",
+    "sources"}`` written before it said its task; or one whose config names its command, ``config.task_name``:
+    graf-simulate's beside a graf-pareto sweep's runs); a :class:`ConfigError` naming the file when it is
+    unreadable or holds no run's results."""
     try:
         r = json.loads(Path(f).read_text())
     except (json.JSONDecodeError, OSError, UnicodeDecodeError) as exc:
@@ -119,6 +121,10 @@ def read_run_result(f: Path) -> dict | None:
         )
     if r.get("task") in COLLECTED or ("rows" in r and "metrics" not in r):
         return None
+    if not isinstance(r.get("metrics"), dict) and not isinstance(r.get("evaluations"), list):
+        if isinstance(r.get("config"), dict) and r["config"].get("task_name"):
+            return None
+        raise ConfigError(f"{f}: not a run's results.json (it holds neither metrics nor evaluations)")
     return r
 
 
@@ -138,7 +144,7 @@ def collect(paths: list[str | Path]) -> list[dict]:
     for f in files:
         r = read_run_result(f)
         if r is None:
-            log.info("%s: a table's own output, not a run: left out", f)
+            log.info("%s: another command's output, not a run: left out", f)
             continue
         r["_file"] = str(f)
         rows.append(r)
