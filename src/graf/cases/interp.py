@@ -28,8 +28,10 @@ import time
 import zlib
 from pathlib import Path
 
+import matplotlib.pyplot as plt  # on the Agg backend: graf.plotting (below) sets it
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
+from scipy import stats
 
 from graf.analysis.interpolation import (
     cluster_errors,
@@ -101,8 +103,6 @@ def _scene_trace(scene_obj, band):
 
 
 def _plot(path, name, data, fine, kpart, kmap, objects, wavelength) -> None:
-    import matplotlib.pyplot as plt
-
     n = 1 + (fine is not None) + (kmap is not None)
     fig, axes = plt.subplots(1, n, figsize=(5.2 * n, 4.2), squeeze=False, constrained_layout=True)
     ax = axes[0, 0]
@@ -199,12 +199,74 @@ def _summary_line(name: str, rec: dict, lam: float) -> str:
     return line
 
 
+def _kept(prev: dict | None, band, n_positions: int, scene_obj, ic: DictConfig) -> dict | None:
+    """A scene's record finished by an earlier invocation with the same settings, band and positions (the command
+    is resumable per scene), brought up to date; None when there is none."""
+    if prev is None or prev.get("band_hz") != float(band.frequency_hz) or prev.get("n_positions") != n_positions:
+        return None
+    if "kmap_near_far" not in prev and prev.get("kmap"):  # added after the record was made: no tracing
+        prev["kmap_near_far"] = near_far(prev["kmap"], scene_obj, float(ic.kmap_spacing_m))
+    return prev
+
+
+def _curvature(trace, anchors, fine: dict, scales: list[float], h: float, lam: float, ic: DictConfig) -> dict:
+    """K by finite differences at the anchors against error / dP^2 at one cluster scale (the finest unless
+    interp.ratio_scale_wavelengths names another: at the finest, both it and K by finite differences can be ruled
+    by the tracer's noise floor)."""
+    K = curvature_map(trace, anchors, h)
+    rs = ic.get("ratio_scale_wavelengths")
+    at = scales[0] if rs is None else min(scales, key=lambda x: abs(x - float(rs) * lam))
+    first = np.isclose(np.array(fine["scale"]), at)
+    ratio = np.array(fine["barycentric"]["rmse"])[first] / at**2
+    rho, p = stats.spearmanr(K, ratio)
+    return {"K": K.tolist(), "ratio": ratio.tolist(), "scale_m": at, "fd_step_m": h,
+            "spearman_rho": float(rho), "spearman_p": float(p), "fit_ratio_vs_K": _fit(K, ratio)}  # fmt: skip
+
+
+def _kmap(trace, scene_obj, h: float, ic: DictConfig) -> dict:
+    """K over the transmitters' floor plan at one height (``kmap_height``, default: mid-range)."""
+    lo, hi = np.asarray(scene_obj.transmitters["min"], float), np.asarray(scene_obj.transmitters["max"], float)
+    z = float(ic.kmap_height) if ic.get("kmap_height") is not None else float((lo[2] + hi[2]) / 2)
+    step = float(ic.kmap_spacing_m)
+    xs, ys = np.arange(lo[0], hi[0] + 1e-9, step), np.arange(lo[1], hi[1] + 1e-9, step)
+    gx, gy = np.meshgrid(xs, ys, indexing="xy")
+    pts = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, z)], -1)
+    return {"x": xs.tolist(), "y": ys.tolist(), "z": z, "K": curvature_map(trace, pts, h).reshape(gx.shape).tolist()}
+
+
+def _scene_record(cfg: DictConfig, d, band, scene_obj, out: Path) -> dict:
+    """One scene's parts (dataset; fine scales and curvature when simulated) and its figure."""
+    t0 = time.perf_counter()
+    ic, lam = cfg.interp, float(band.wavelength)
+    # each scene's anchors from its own seeded stream: the same whichever scenes run with it, or resume
+    rng = np.random.default_rng([int(cfg.get("seed") or 0), zlib.crc32(d.name.encode())])
+    spectra = d.spectra.reshape(len(d.positions), -1).numpy()
+    rec = {"band_hz": float(band.frequency_hz), "wavelength_m": lam, "n_positions": int(len(d.positions))}
+    rec["dataset"] = dataset_part(d.positions, spectra, list(ic.L), list(ic.weightings))
+    fine = kpart = kmap = None
+    simulated = hasattr(scene_obj, "tracer") and int(ic.anchors) > 0
+    if simulated:
+        trace = _scene_trace(scene_obj, band)
+        pick = rng.choice(len(d.positions), size=min(int(ic.anchors), len(d.positions)), replace=False)
+        anchors = np.asarray(d.positions)[np.sort(pick)]
+        scales = sorted(float(s) * lam for s in ic.scales_wavelengths)
+        fine = fine_part(trace, anchors, scales, float(ic.threshold_slope), int(cfg.get("seed") or 0))
+        h = float(ic.fd_step_wavelengths) * lam
+        kpart = _curvature(trace, anchors, fine, scales, h, lam, ic)
+        kmap = _kmap(trace, scene_obj, h, ic)
+        rec.update(fine=fine, curvature=kpart, kmap=kmap)
+        rec["kmap_near_far"] = near_far(kmap, scene_obj, float(ic.kmap_spacing_m))
+    objects = footprints(scene_obj) if simulated else []
+    fig = out / f"interp_{d.name}.png"
+    _plot(fig, d.name, rec["dataset"], fine, kpart, kmap, objects, lam)
+    rec["figure"], rec["seconds"] = fig.name, round(time.perf_counter() - t0, 3)
+    return rec
+
+
 @task_wrapper
 def run(cfg: DictConfig) -> dict:
-    from scipy import stats
-
+    """graf-interp: each scene's record (resumable per scene), written after each; printed one line per scene."""
     started = time.perf_counter()
-    ic = cfg.interp
     configs = scene_configs(cfg.get("scene"))
     if not configs:
         raise ConfigError("graf-interp: scene= selects no scene")
@@ -215,65 +277,14 @@ def run(cfg: DictConfig) -> dict:
     done = _finished_scenes(out / "results.json", results["config"])
     lines = []
     for d, band, scene_obj in zip(dm.sets, bands, scenes):
-        t0 = time.perf_counter()
-        lam = float(band.wavelength)
-        prev = done.get(d.name)
-        if (
-            prev is not None
-            and prev.get("band_hz") == float(band.frequency_hz)
-            and prev.get("n_positions") == len(d.positions)
-        ):  # finished by an earlier invocation with the same settings: kept (the command is resumable per scene)
+        kept = _kept(done.get(d.name), band, len(d.positions), scene_obj, cfg.interp)
+        if kept is not None:
             log.info("%s: kept from the earlier run (%s)", d.name, out / "results.json")
-            if "kmap_near_far" not in prev and prev.get("kmap"):  # added after the record was made: no tracing
-                prev["kmap_near_far"] = near_far(prev["kmap"], scene_obj, float(ic.kmap_spacing_m))
-            results["scenes"][d.name] = prev
-            lines.append(_summary_line(d.name, prev, lam))
-            continue
-        # each scene's anchors from its own seeded stream: the same whichever scenes run with it, or resume
-        rng = np.random.default_rng([int(cfg.get("seed") or 0), zlib.crc32(d.name.encode())])
-        spectra = d.spectra.reshape(len(d.positions), -1).numpy()
-        rec = {"band_hz": float(band.frequency_hz), "wavelength_m": lam, "n_positions": int(len(d.positions))}
-        rec["dataset"] = dataset_part(d.positions, spectra, list(ic.L), list(ic.weightings))
-        fine = kpart = kmap = None
-        simulated = hasattr(scene_obj, "tracer") and int(ic.anchors) > 0
-        if simulated:
-            trace = _scene_trace(scene_obj, band)
-            pick = rng.choice(len(d.positions), size=min(int(ic.anchors), len(d.positions)), replace=False)
-            anchors = np.asarray(d.positions)[np.sort(pick)]
-            scales = sorted(float(s) * lam for s in ic.scales_wavelengths)
-            fine = fine_part(trace, anchors, scales, float(ic.threshold_slope), int(cfg.get("seed") or 0))
-            h = float(ic.fd_step_wavelengths) * lam
-            K = curvature_map(trace, anchors, h)
-            # error / dP^2 at one cluster scale (the finest unless interp.ratio_scale_wavelengths names another:
-            # at the finest, both it and K by finite differences can be ruled by the tracer's noise floor)
-            rs = ic.get("ratio_scale_wavelengths")
-            at = scales[0] if rs is None else min(scales, key=lambda x: abs(x - float(rs) * lam))
-            first = np.isclose(np.array(fine["scale"]), at)
-            ratio = np.array(fine["barycentric"]["rmse"])[first] / at**2
-            rho, p = stats.spearmanr(K, ratio)
-            kpart = {"K": K.tolist(), "ratio": ratio.tolist(), "scale_m": at, "fd_step_m": h,
-                     "spearman_rho": float(rho), "spearman_p": float(p), "fit_ratio_vs_K": _fit(K, ratio)}  # fmt: skip
-            lo, hi = np.asarray(scene_obj.transmitters["min"], float), np.asarray(scene_obj.transmitters["max"], float)
-            z = float(ic.kmap_height) if ic.get("kmap_height") is not None else float((lo[2] + hi[2]) / 2)
-            step = float(ic.kmap_spacing_m)
-            xs, ys = np.arange(lo[0], hi[0] + 1e-9, step), np.arange(lo[1], hi[1] + 1e-9, step)
-            gx, gy = np.meshgrid(xs, ys, indexing="xy")
-            pts = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, z)], -1)
-            kmap = {
-                "x": xs.tolist(),
-                "y": ys.tolist(),
-                "z": z,
-                "K": curvature_map(trace, pts, h).reshape(gx.shape).tolist(),
-            }
-            rec.update(fine=fine, curvature=kpart, kmap=kmap)
-            rec["kmap_near_far"] = near_far(kmap, scene_obj, float(ic.kmap_spacing_m))
-        objects = footprints(scene_obj) if simulated else []
-        fig = out / f"interp_{d.name}.png"
-        _plot(fig, d.name, rec["dataset"], fine, kpart, kmap, objects, lam)
-        rec["figure"], rec["seconds"] = fig.name, round(time.perf_counter() - t0, 3)
+        rec = kept if kept is not None else _scene_record(cfg, d, band, scene_obj, out)
         results["scenes"][d.name] = rec
-        lines.append(_summary_line(d.name, rec, lam))
-        atomic_write_json(out / "results.json", {**results, "complete": False})  # each finished scene is kept
+        lines.append(_summary_line(d.name, rec, float(band.wavelength)))
+        if kept is None:
+            atomic_write_json(out / "results.json", {**results, "complete": False})  # each finished scene is kept
     results["seconds"] = round(time.perf_counter() - started, 3)
     results["complete"] = True
     atomic_write_json(out / "results.json", results)
