@@ -163,8 +163,8 @@ def test_barycentric_and_sparse_neighbors_change_the_result(compose_cfg):
 
 def test_train_with_knn_skips_fit_and_tests(compose_cfg):
     cfg = compose_cfg("train", ("model=knn",))
-    metrics, objects = train(cfg)
-    assert objects["trainer"].global_step == 0
+    metrics, run = train(cfg)
+    assert run.built.trainer.global_step == 0
     assert _results(cfg)["task"] == "train" and np.isfinite(metrics["test/psnr"])
 
 

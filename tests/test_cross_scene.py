@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from graf.run.build import build_datamodule, eval_scene_indices
+from graf.run.build import build_datamodule
 from graf.run.evaluate import evaluate
 from graf.run.train import train
 
@@ -111,6 +111,3 @@ def test_a_checkpoint_is_tested_zero_shot_on_a_scene_it_was_not_trained_on(compo
     assert ev["scene_index"] == 1 and ev["band_hz"] == 2.412e9 and ev["n_test"] > 0
     assert r["band_hz"] == 2.412e9 and all(v == v for v in ev["metrics"].values())
 
-
-def test_test_scene_indices_keep_training_indices_and_give_unseen_scenes_new_ones():
-    assert eval_scene_indices(["a", "b"], ["b", "c", "a", "d"]) == [1, 2, 0, 3]

@@ -35,7 +35,7 @@ def test_graf_train_two_steps_through_the_real_configs(compose_cfg):
         (("model=graf_cpu", "model.residual=true"), "graf-residual"),
     ):
         cfg = compose_cfg("train", ("experiment=graf_rfid_s23", "trainer.max_steps=2", *extra, *FAST))
-        metrics, objects = train(cfg)
+        metrics, _ = train(cfg)
         r = json.loads((Path(cfg.paths.output_dir) / "results.json").read_text())
         assert r["method"] == method
         assert r["global_step"] == 2 and r["trainable_parameters"] > 100_000
@@ -92,7 +92,7 @@ def test_finetune_starts_from_a_checkpoints_weights_and_rejects_another_architec
 
     from hydra.utils import instantiate
 
-    from graf.run.train import load_weights
+    from graf.run.finetune import load_weights
 
     fresh = instantiate(cfg.model)
     assert not all(torch.equal(fresh.state_dict()[k], v) for k, v in trained.items())

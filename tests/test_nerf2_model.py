@@ -30,7 +30,7 @@ def _batch(path, n=2) -> dict:
         NeRF2Scene(name="tiny", path=str(path)), UHF, NeighborSelector(L=2, L_train=(1, 2), radius=10.0), batch_size=n
     )
     dm.setup()
-    return dm._collate_eval(list(range(n)))
+    return dm.eval_batch(list(range(n)))
 
 
 @pytest.fixture(autouse=True)
@@ -219,14 +219,14 @@ def test_two_training_steps_through_the_real_configs_and_checkpoint(compose_cfg)
             "trainer.limit_test_batches=1",
         ),
     )
-    metrics, objects = train(cfg)
+    metrics, run = train(cfg)
     out = Path(cfg.paths.output_dir)
     r = json.loads((out / "results.json").read_text())
     assert r["method"] == "nerf2" and r["global_step"] == 2
     assert all(math.isfinite(float(v)) for k, v in metrics.items() if "swapped" not in k and "reliance" not in k)
     assert metrics["test/reliance_db"] is None  # NeRF2 reads no neighbors: no reliance to measure
     loaded = NeRF2Module.load_from_checkpoint(out / "checkpoints" / "last.ckpt", map_location="cpu")
-    model = objects["model"]
+    model = run.built.model
     assert loaded.hparams == model.hparams and loaded.method == "nerf2"
     state = model.state_dict()
     assert all(torch.equal(v, state[k].cpu()) for k, v in loaded.state_dict().items())

@@ -45,9 +45,9 @@ def test_max_steps_governs_training_whatever_the_epoch_length(compose_cfg):
     default trainer set max_epochs=1."""
     cfg = compose_cfg("train", ("model=knn_dl", "scene=rfid_s23", "trainer.max_steps=40", "baselines=null", *QUIET))
     assert cfg.trainer.max_epochs == -1
-    _, objects = train(cfg)
+    _, run = train(cfg)
     res = json.loads((Path(cfg.paths.output_dir) / "results.json").read_text())
-    assert objects["datamodule"].batches_per_epoch == 36
+    assert run.built.datamodule.batches_per_epoch == 36
     assert res["global_step"] == 40
     assert res["training"] == {
         "max_steps": 40,
@@ -192,8 +192,8 @@ def test_a_checkpoint_tested_on_another_folder_of_the_same_name_is_zero_shot(com
             *common,
         ),
     )
-    _, objects = train(ft)
-    assert objects["datamodule"].scene_index.tolist() == [1]
+    _, run = train(ft)
+    assert run.built.datamodule.scene_index.tolist() == [1]
     table = torch.load(tmp_path / "ft" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)["graf"][
         "scenes"
     ]

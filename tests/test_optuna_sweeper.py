@@ -273,8 +273,8 @@ def test_objectives_refuse_test_metrics_and_average_over_test_scenes():
         with pytest.raises(ConfigError, match="test split"):
             check_objective_names([bad])
     metrics = {"val/psnr": 20.0, "test/psnr": 99.0}
-    objects = {"evaluation_metrics": [{"val/psnr": 20.0, "test/psnr": 99.0}, {"val/psnr": 10.0, "test/psnr": 98.0}]}
-    assert objective_values(["val/psnr", "val/psnr@mean"], metrics, objects) == [20.0, 15.0]
+    per_scene = [{"val/psnr": 20.0, "test/psnr": 99.0}, {"val/psnr": 10.0, "test/psnr": 98.0}]
+    assert objective_values(["val/psnr", "val/psnr@mean"], metrics, per_scene) == [20.0, 15.0]
 
 
 def test_best_json_means_are_the_means_over_the_evaluated_scenes():

@@ -148,13 +148,13 @@ def test_ray_options_compose_train_and_round_trip_a_checkpoint(compose_cfg, feat
             f"paths.output_dir={tmp_path / 'run'}",
         ),
     )
-    _, objects = train(cfg)
+    _, run = train(cfg)
     res = json.loads((tmp_path / "run" / "results.json").read_text())
     assert res["method"] == "graf-" + features.replace("_", "-") and res["global_step"] == 2
-    model = objects["model"].eval()
+    model = run.built.model.eval()
     loaded = GRaFModule.load_from_checkpoint(tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu").eval()
     assert loaded.hparams.neighbor_features == features
-    batch = next(iter(objects["datamodule"].test_dataloader()))
+    batch = next(iter(run.built.datamodule.test_dataloader()))
     with torch.no_grad():
         assert torch.equal(model.predict_spectra(batch), loaded.predict_spectra(batch))
 

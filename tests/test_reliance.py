@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 import torch
 
-from graf.data.datamodule import derangement
+from graf.data.splits import derangement
 from graf.models.base import SpectrumModule
 from graf.run.build import build
 from graf.run.evaluate import evaluate
-from graf.run.evaluation import evaluate_model, format_metrics_table
+from graf.run.evaluation import evaluate_model
+from graf.run.report import format_metrics_table
 
 
 @pytest.mark.parametrize("n", [2, 3, 7, 40])
@@ -27,7 +28,7 @@ def test_derangement_moves_every_index_and_is_seeded(n):
 
 def test_swapped_neighbors_are_another_targets_of_the_same_scene(compose_cfg):
     cfg = compose_cfg("eval", ("model=knn",))
-    dm = build(cfg, trains=False)["datamodule"]
+    dm = build(cfg, trains=False).datamodule
     rows, idx, mask = dm.split_neighbors("test")
     s_rows, s_idx, s_mask = dm.swapped_neighbors("test", seed=0)
     assert torch.equal(rows, s_rows)
@@ -65,8 +66,8 @@ class _IgnoresNeighbors(SpectrumModule):
 
 def test_a_model_that_ignores_its_neighbors_has_zero_reliance(compose_cfg):
     cfg = compose_cfg("eval", ("model=knn",))
-    dm = build(cfg, trains=False)["datamodule"]
-    metrics, _ = evaluate_model(cfg, _IgnoresNeighbors(), dm)
+    dm = build(cfg, trains=False).datamodule
+    metrics, _, _ = evaluate_model(cfg, _IgnoresNeighbors(), dm)
     assert metrics["test/reliance_db"] == pytest.approx(0.0, abs=1e-6)
 
 
@@ -81,7 +82,8 @@ def test_knn_dl_and_the_baselines_report_reliance_and_nerf2_none(compose_cfg):
     nerf = compose_cfg(
         "eval", ("model=nerf2_cpu", "model.chunk_rays=32400", "trainer.limit_test_batches=1", "validate=false")
     )
-    m, _ = evaluate_model(nerf, build(nerf, trains=False)["model"], build(nerf, trains=False)["datamodule"])
+    built = build(nerf, trains=False)
+    m, _, _ = evaluate_model(nerf, built.model, built.datamodule)
     assert m["test/reliance_db"] is None and m["test/psnr_swapped"] is None
 
 

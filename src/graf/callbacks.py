@@ -2,8 +2,14 @@
 
 from __future__ import annotations
 
+import signal
+import threading
+import time
+from pathlib import Path
+
 import numpy as np
 import torch
+import torch.distributed as dist
 from lightning.pytorch.callbacks import Callback
 
 from graf.geometry.grid import SPECTRUM_SHAPE
@@ -29,8 +35,6 @@ class PredictionCollector(Callback):
         """The test predictions, targets and ids in the split's order.  Under data-parallel evaluation each rank
         holds every ``world_size``-th spectrum (:meth:`SpectrumDataModule.eval_positions`): the ranks' shares
         are gathered (every rank must call this) and dealt back into order."""
-        import torch.distributed as dist
-
         if dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1:
             mine = self._local()
             parts: list = [None] * dist.get_world_size()
@@ -55,24 +59,53 @@ class PredictionCollector(Callback):
         }
 
 
+class TrainingInterrupted(Exception):
+    """Ctrl+C (SIGINT) stopped training after the step in progress, its state saved (:attr:`Preemption.saved`)."""
+
+
 class Preemption(Callback):
-    """A SIGTERM during training (a cluster pre-empting the job) stops the run after the step in progress with
-    its state saved: Lightning notices the signal (its signal connector sets ``trainer.received_sigterm``) and
-    raises ``SIGTERMException`` at the end of that step; this callback first saves ``<dirpath>/last.ckpt`` (the
-    file ``ckpt_path=`` resumes from, optimiser and step count included) and records where it stopped in
-    :attr:`saved`.  graf-train then writes ``preempted.json`` and exits with code 143 (128 + SIGTERM)."""
+    """A SIGTERM during training (a cluster pre-empting the job) or a Ctrl+C (SIGINT) stops the run after the step
+    in progress with its state saved.  SIGTERM: Lightning notices the signal (its signal connector sets
+    ``trainer.received_sigterm``) and raises ``SIGTERMException`` at the end of that step.  SIGINT: this callback's
+    handler, installed for the fit, notes it (a second Ctrl+C stops at once, as Python's own handler does) and
+    raises :class:`TrainingInterrupted` at the end of that step.  Either way this callback first saves
+    ``<dirpath>/last.ckpt`` (the file ``ckpt_path=`` resumes from, optimiser and step count included) and records
+    where it stopped in :attr:`saved`.  graf-train then says how to resume and exits with code 143 (128 + SIGTERM;
+    it writes ``preempted.json``) or 130 (128 + SIGINT)."""
 
     def __init__(self, dirpath: str):
         self.dirpath = str(dirpath)
         self.saved: dict | None = None
+        self.interrupted = False
+        self.previous_handler = None
+
+    def on_train_start(self, trainer, pl_module) -> None:
+        self.interrupted = False
+        if threading.current_thread() is threading.main_thread():
+            self.previous_handler = signal.signal(signal.SIGINT, self.on_sigint)
+
+    def on_sigint(self, signum, frame) -> None:
+        self.interrupted = True
+        self.restore_handler()
+
+    def restore_handler(self) -> None:
+        if self.previous_handler is not None:
+            signal.signal(signal.SIGINT, self.previous_handler)
+            self.previous_handler = None
+
+    def on_train_end(self, trainer, pl_module) -> None:
+        self.restore_handler()
+
+    def on_exception(self, trainer, pl_module, exception: BaseException) -> None:
+        self.restore_handler()
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
-        if trainer.received_sigterm and self.saved is None:
-            from pathlib import Path
-
+        if (trainer.received_sigterm or self.interrupted) and self.saved is None:
             path = Path(self.dirpath) / "last.ckpt"
             trainer.save_checkpoint(str(path))
             self.saved = {"checkpoint": str(path), "global_step": int(trainer.global_step)}
+        if self.interrupted and not trainer.received_sigterm:
+            raise TrainingInterrupted(f"SIGINT at step {int(trainer.global_step)}")
 
 
 class AttemptClock(Callback):
@@ -86,13 +119,9 @@ class AttemptClock(Callback):
         self._step0 = 0
 
     def on_train_start(self, trainer, pl_module) -> None:
-        import time
-
         self._t0, self._step0 = time.perf_counter(), int(trainer.global_step)
 
     def on_save_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:
-        import time
-
         if self._t0 is not None:
             checkpoint["graf_attempt"] = {
                 "start_step": self._step0,

@@ -30,6 +30,7 @@ from graf.io import atomic_write_json, atomic_write_text
 from graf.plotting import save_figure
 from graf.run.build import build_datamodule
 from graf.run.config import output_dir, task_wrapper
+from graf.run.evaluation import test_baseline
 
 log = logging.getLogger("graf")
 
@@ -105,8 +106,6 @@ def run_errors(folder: Path, data_root: str | None) -> dict:
 def knn_errors(folder: Path, data_root: str | None) -> dict | None:
     """AoA errors of the KNN baseline the run was tested beside (its ``baselines.knn``), re-evaluated on the run's
     own test positions, survey and neighbors (a study job keeps only its model's predictions)."""
-    from graf.run.evaluation import _test_baseline
-
     res, cfg, dm, d = _load_run(folder, data_root)
     bcfg = (cfg.get("baselines") or {}).get("knn")
     if bcfg is None:
@@ -114,10 +113,10 @@ def knn_errors(folder: Path, data_root: str | None) -> dict | None:
         return None
     cfg.save_predictions = False
     cfg.validate = False
-    out = _test_baseline(cfg, "knn", bcfg, dm)
-    arr = out["_arrays"]
+    out = test_baseline(cfg, "knn", bcfg, dm)
+    arr = out.arrays
     errs = _errors(d, arr["pred"], arr["target"], arr["ids"], folder)
-    return _row(f"{folder} (baselines.knn)", out["method"], d, res.get("splits"), out["metrics"], arr["ids"], errs)
+    return _row(f"{folder} (baselines.knn)", out.method, d, res.get("splits"), out.metrics, arr["ids"], errs)
 
 
 def markdown(rows: list[dict]) -> str:

@@ -20,8 +20,8 @@ from graf.run.evaluation import sweep_value
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="eval")
 @cli_errors
 def _hydra_main(cfg: DictConfig) -> float:
-    metrics, objects = evaluate(cfg)
-    return sweep_value(cfg, metrics, objects)
+    metrics, run = evaluate(cfg)
+    return sweep_value(cfg, metrics, run)
 
 
 def main() -> None:

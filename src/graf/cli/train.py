@@ -17,8 +17,8 @@ from graf.run.train import train
 @hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="train")
 @cli_errors
 def main(cfg: DictConfig) -> float:
-    metrics, objects = train(cfg)
-    return sweep_value(cfg, metrics, objects)
+    metrics, run = train(cfg)
+    return sweep_value(cfg, metrics, run)
 
 
 if __name__ == "__main__":

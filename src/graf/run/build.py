@@ -8,14 +8,18 @@ Optuna pruning one included, come from the ``callbacks`` group.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
+from pathlib import Path
 
 import hydra
 import lightning as L
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from graf.console import is_terminal
+from graf.data.datamodule import SpectrumDataModule
 from graf.data.fingerprint import find_scene, next_index, register_scene
+from graf.data.neighbors import NeighborSelector
 from graf.errors import ConfigError
 from graf.models.base import read_checkpoint
 from graf.run.config import (
@@ -65,25 +69,6 @@ def build_datamodule(cfg: DictConfig, which: str = "scene", scene_indices=None):
     return bands, scenes, neighbors, datamodule
 
 
-def assign_scene_indices(known: dict[str, int], names: list[str]) -> list[int]:
-    """The scene index of each scene in ``names``: its index in ``known`` (the scenes a model was trained on,
-    name -> index) when there, else a new index after every known one (an unseen scene)."""
-    out, new = [], (max(known.values()) + 1) if known else 0
-    for n in names:
-        if n in known:
-            out.append(int(known[n]))
-        else:
-            out.append(new)
-            new += 1
-    return out
-
-
-def eval_scene_indices(train_names: list[str], eval_names: list[str]) -> list[int]:
-    """The scene index of each test scene: its training index when the model was trained on it, else a new
-    index after the training scenes' (an unseen scene)."""
-    return assign_scene_indices({n: i for i, n in enumerate(train_names)}, eval_names)
-
-
 def checkpoint_scenes(cfg: DictConfig) -> tuple[str | None, dict]:
     """``(path, {scene name: {"index", "band_hz"}})`` of the checkpoint a run starts from or tests
     (``finetune.init_from``, else ``ckpt_path``): the scenes it was trained on (empty for a checkpoint written
@@ -112,7 +97,54 @@ def check_bands(cfg: DictConfig, trained: dict, dm, source: str) -> None:
             )
 
 
-def build(cfg: DictConfig, trains: bool = True) -> dict:
+@dataclass(eq=False)
+class EvalScene:
+    """A scene the final evaluations test: its name, datamodule, and whether the model was trained on it."""
+
+    eval_scene: str
+    datamodule: SpectrumDataModule
+    within_scene: bool
+
+
+@dataclass(eq=False)
+class BuiltRun:
+    """What :func:`build` makes of a config.  ``cfg`` is the config that runs: the one given with the model
+    settings taken from the run filled in (:func:`run_model_config`); it is the one results.json records."""
+
+    cfg: DictConfig
+    neighbors: NeighborSelector
+    datamodule: SpectrumDataModule
+    evaluations: list[EvalScene]
+    model: L.LightningModule
+    loggers: list
+    trainer: L.Trainer
+    output_dir: Path
+    scene_table: dict
+
+
+def run_model_config(cfg: DictConfig, neighbors: NeighborSelector) -> DictConfig:
+    """The config with the model settings that follow from the run filled in, for the model and every baseline:
+    ``max_rank: null`` (KNN-DL's scale of its rank and neighbor-count features) is the largest L the run's
+    neighbor selector gives (``neighbors.max_L``)."""
+    nodes = ["model"] + [f"baselines.{k}" for k in (cfg.get("baselines") or {})]
+    if not any(
+        isinstance(OmegaConf.select(cfg, n), DictConfig)
+        and "max_rank" in OmegaConf.select(cfg, n)
+        and OmegaConf.select(cfg, n).max_rank is None
+        for n in nodes
+    ):
+        return cfg
+    cfg = cfg.copy()
+    with open_dict(cfg):
+        for n in nodes:
+            node = OmegaConf.select(cfg, n)
+            if isinstance(node, DictConfig) and "max_rank" in node and node.max_rank is None:
+                node.max_rank = int(neighbors.max_L)
+                log.info("%s.max_rank=%d: the largest L of the run's neighbor selector", n, neighbors.max_L)
+    return cfg
+
+
+def build(cfg: DictConfig, trains: bool = True) -> BuiltRun:
     """Instantiate band, scene, neighbor selector, datamodule (set up), model, loggers and trainer.  ``trains``:
     whether the run trains the model on its scenes (graf-eval and a zero-shot test do not: a test scene is then
     "within-scene" only when the checkpoint was trained on its content)."""
@@ -125,6 +157,7 @@ def build(cfg: DictConfig, trains: bool = True) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     source, known = checkpoint_scenes(cfg)
     _, _, neighbors, datamodule = build_datamodule(cfg)
+    cfg = run_model_config(cfg, neighbors)
     datamodule.setup("fit")
     check_bands(cfg, known, datamodule, source)  # fine-tuning or testing a checkpoint at another band: a transfer
     # a scene the checkpoint was trained on (the same content, whatever its name) keeps its index; a new one
@@ -138,42 +171,29 @@ def build(cfg: DictConfig, trains: bool = True) -> dict:
     )
     evaluations = eval_datamodules(cfg, datamodule, table, seen=table if trains or not known else known)
     for ev in evaluations:
-        if ev["datamodule"] is not datamodule:
-            check_bands(cfg, table, ev["datamodule"], source or "the model")
+        if ev.datamodule is not datamodule:
+            check_bands(cfg, table, ev.datamodule, source or "the model")
     model = hydra.utils.instantiate(cfg.model)
     model.scene_table = dict(table)  # what the checkpoints it writes record: the checkpoint's and this run's scenes
     model.run_settings = run_settings(cfg)
-    loggers = [
-        hydra.utils.instantiate(c)
-        for c in (cfg.get("logger") or {}).values()
-        if isinstance(c, DictConfig) and "_target_" in c
-    ]
-    # the callbacks group, composed by Hydra; an entry may make nothing (None: the Optuna pruning callback of a run
-    # that is no search trial)
-    callbacks = [
-        cb
-        for cb in (
-            hydra.utils.instantiate(c)
-            for c in (cfg.get("callbacks") or {}).values()
-            if isinstance(c, DictConfig) and "_target_" in c
-        )
-        if cb is not None
-    ]
+    loggers, callbacks = instantiate_group(cfg, "logger"), instantiate_group(cfg, "callbacks")
     trainer = hydra.utils.instantiate(trainer_args(cfg), logger=loggers or False, callbacks=callbacks)
-    return {
-        "neighbors": neighbors,
-        "datamodule": datamodule,
-        "evaluations": evaluations,
-        "model": model,
-        "loggers": loggers,
-        "trainer": trainer,
-        "output_dir": out,
-        "scene_table": table,
-    }
+    return BuiltRun(cfg, neighbors, datamodule, evaluations, model, loggers, trainer, out, table)
 
 
-def eval_datamodules(cfg: DictConfig, train_dm, table: dict | None = None, seen: dict | None = None) -> list[dict]:
-    """What the final evaluations test: ``[{"eval_scene", "datamodule", "within_scene"}]``.  Without
+def instantiate_group(cfg: DictConfig, group: str) -> list:
+    """The objects of a config group's entries (loggers, callbacks), composed by Hydra; an entry may make nothing
+    (None: the Optuna pruning callback of a run that is no search trial)."""
+    made = (
+        hydra.utils.instantiate(c)
+        for c in (cfg.get(group) or {}).values()
+        if isinstance(c, DictConfig) and "_target_" in c
+    )
+    return [x for x in made if x is not None]
+
+
+def eval_datamodules(cfg: DictConfig, train_dm, table: dict | None = None, seen: dict | None = None) -> list[EvalScene]:
+    """What the final evaluations test (:class:`EvalScene`).  Without
     ``eval_scene`` (``eval_scene=same``) and ``eval_band`` the training datamodule itself (within-scene).
     Otherwise one datamodule per test scene (``eval_scene=same`` with an ``eval_band``: the training scenes at
     that band), its targets from that scene's splits and their neighbors from that scene's training split
@@ -188,7 +208,7 @@ def eval_datamodules(cfg: DictConfig, train_dm, table: dict | None = None, seen:
         within = seen is None or all(
             find_scene(seen, d.name, fp) is not None for d, fp in zip(train_dm.sets, train_dm.fingerprints())
         )
-        return [{"eval_scene": train_dm.scene_name, "datamodule": train_dm, "within_scene": within}]
+        return [EvalScene(train_dm.scene_name, train_dm, within)]
     if not configs:
         configs = scene_configs(cfg.get("scene"))
     band = load_band_config(str(eval_band)) if eval_band else cfg.get("band")
@@ -228,7 +248,7 @@ def eval_datamodules(cfg: DictConfig, train_dm, table: dict | None = None, seen:
             "within-scene (the model was trained on it)" if within else "unseen in training (zero-shot)",
             k,
         )
-        out.append({"eval_scene": name, "datamodule": dm, "within_scene": within})
+        out.append(EvalScene(name, dm, within))
     return out
 
 

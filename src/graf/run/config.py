@@ -10,8 +10,10 @@ import functools
 import logging
 import os
 from pathlib import Path
-from typing import NamedTuple
 
+from hydra import compose
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 import graf
@@ -24,15 +26,6 @@ log = logging.getLogger("graf")
 # folder of your own with Hydra's --config-dir.  CONF_DIR is the same folder on disk.
 CONF_PATH = "pkg://graf.conf"
 CONF_DIR = Path(graf.__file__).resolve().parent / "conf"
-
-
-class Results(NamedTuple):
-    """What a task returns: the run's figures (``val/...``, ``test/...``) and the objects it built and
-    used (``datamodule``, ``model``, ``trainer``, ``output_dir``, ``timing``, ...).  A tuple: ``metrics, objects =
-    train(cfg)``."""
-
-    metrics: dict
-    objects: dict
 
 
 def output_dir(cfg: DictConfig) -> Path:
@@ -57,7 +50,7 @@ def task_wrapper(task):
                 log.error(
                     "%s failed: %s (output folder: %s)",
                     cfg.get("task_name", "task"),
-                    user_message(exc),
+                    user_message(exc, cfg),
                     output_dir(cfg),
                 )
             else:
@@ -65,7 +58,7 @@ def task_wrapper(task):
             raise
         finally:
             try:
-                import wandb
+                import wandb  # lazy: wandb takes seconds to import, and only a run with its logger has started it
 
                 if wandb.run is not None:
                     wandb.finish()
@@ -73,6 +66,29 @@ def task_wrapper(task):
                 pass
 
     return wrapped
+
+
+# the command line's ways to switch the baselines off, and the value each leaves in the config
+BASELINES_OFF = {"baselines={}": {}, "baselines=[]": {}, "baselines=null": None}
+
+
+def with_baselines_switch(cfg: DictConfig) -> DictConfig:
+    """The run's config with the command line's ``baselines={}`` (or ``[]``, ``null``) applied: Hydra merges ``{}``
+    into the composed group (a no-op), so the config would still list ``knn`` though no baseline runs, and
+    results.json (whose ``config.baselines`` graf-aoa reads) must record the config that ran."""
+    if not HydraConfig.initialized():
+        return cfg
+    off = [
+        BASELINES_OFF[o.replace(" ", "")]
+        for o in HydraConfig.get().overrides.task
+        if o.replace(" ", "") in BASELINES_OFF
+    ]
+    if not off or not cfg.get("baselines"):
+        return cfg
+    cfg = cfg.copy()
+    with open_dict(cfg):
+        cfg.baselines = off[-1]
+    return cfg
 
 
 def override_key(override: str) -> str:
@@ -99,9 +115,6 @@ def check_shared_run_folder() -> None:
     name its own folder after the second it started in, so rank 0 would write the run's files in one folder and
     the others would look for them (a base model trained on the fly, a checkpoint) in another.  Lightning's own
     launcher passes its folder to the processes it starts; a multirun's folders are named once by its launcher."""
-    from hydra.core.hydra_config import HydraConfig
-    from hydra.types import RunMode
-
     n = launched_ranks()
     if n < 2 or not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.RUN:
         return
@@ -203,8 +216,6 @@ def expand_heldout(cfg: DictConfig) -> DictConfig:
             log.info("eval_scene=heldout: no held-out layout of %s: testing within-scene", ", ".join(train))
             cfg.eval_scene = None
             return cfg
-        from hydra import compose
-
         composed = compose(config_name="train", overrides=[f"eval_scene=[{','.join(names)}]"])
         cfg.eval_scene = OmegaConf.create(OmegaConf.to_container(composed.eval_scene, resolve=False))
     log.info("eval_scene=heldout: testing on %s (held out from training on %s)", ", ".join(names), ", ".join(train))

@@ -10,20 +10,22 @@ as ``config.model`` and the checkpoint itself under ``checkpoint``.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Sequence
 
 from hydra.core.hydra_config import HydraConfig
 from hydra.utils import get_class
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from graf.models.base import CheckpointError, check_checkpoint, read_checkpoint
 from graf.run.build import build
-from graf.run.config import CONF_DIR, Results, override_key, task_wrapper
-from graf.run.evaluation import test_and_report
+from graf.run.config import CONF_DIR, output_dir, override_key, task_wrapper, with_baselines_switch
+from graf.run.record import CheckpointInfo, Results, RunFacts
+from graf.run.report import set_aside_finished, test_and_report
 
 
-def _model_overrides(overrides: Sequence[str]) -> tuple[str | None, list[str]]:
+def model_overrides(overrides: Sequence[str]) -> tuple[str | None, list[str]]:
     """``(model group choice or None, [keys overridden under model.])`` from command-line overrides."""
     choice, keys = None, []
     for o in overrides:
@@ -35,10 +37,11 @@ def _model_overrides(overrides: Sequence[str]) -> tuple[str | None, list[str]]:
     return choice, keys
 
 
-def load_checkpoint_model(cfg: DictConfig, path: str, overrides: Sequence[str]):
-    """The checkpoint's model with the allowed ``model.*`` overrides applied; and what results.json records."""
+def load_checkpoint_model(cfg: DictConfig, path: str, overrides: Sequence[str]) -> tuple:
+    """The checkpoint's model with the allowed ``model.*`` overrides applied, its config (the run's
+    ``config.model``) and what results.json records of the checkpoint."""
     ckpt = read_checkpoint(path)
-    choice, keys = _model_overrides(overrides)
+    choice, keys = model_overrides(overrides)
     target = (ckpt.get("graf") or {}).get("target")
     if target is None:  # written before checkpoints named their class: trust model=..., check the layout
         target = cfg.model._target_
@@ -63,30 +66,29 @@ def load_checkpoint_model(cfg: DictConfig, path: str, overrides: Sequence[str]):
                 f"may be overridden at evaluation: {', '.join('model.' + a for a in allowed) or 'none'}"
             )
     model = cls.load_from_checkpoint(path, map_location="cpu", **applied)
-    ran = {"_target_": target, **{k: v for k, v in dict(model.hparams).items()}}
-    info = {
-        "path": str(path),
-        "global_step": int(ckpt.get("global_step", 0)),
-        "class": target,
-        "layout": int((ckpt.get("graf") or {}).get("layout", 1)),
-        "hyper_parameters": saved,
-        "applied_overrides": applied,
-        "model": OmegaConf.to_container(OmegaConf.create(ran), resolve=True),
-    }
-    return model, info
+    ran = OmegaConf.create({"_target_": target, **{k: v for k, v in dict(model.hparams).items()}})
+    layout = int((ckpt.get("graf") or {}).get("layout", 1))
+    info = CheckpointInfo(str(path), int(ckpt.get("global_step", 0)), target, layout, saved, applied)
+    return model, ran, info
 
 
 @task_wrapper
 def evaluate(cfg: DictConfig, overrides: Sequence[str] | None = None) -> Results:
     """``overrides``: the command line's overrides (taken from Hydra when run as a command)."""
     started = time.perf_counter()
-    objects = build(cfg, trains=False)
+    cfg = with_baselines_switch(cfg)
+    set_aside_finished(output_dir(cfg), [cfg.get("ckpt_path")])
+    built = build(cfg, trains=False)
+    checkpoint = None
     if cfg.get("ckpt_path"):
         if overrides is None:
             overrides = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
-        objects["model"], objects["checkpoint"] = load_checkpoint_model(cfg, cfg.ckpt_path, overrides)
-    metrics = test_and_report(cfg, objects, started, task="eval")
-    return Results(metrics, objects)
+        model, ran, checkpoint = load_checkpoint_model(built.cfg, cfg.ckpt_path, overrides)
+        run_cfg = built.cfg.copy()
+        with open_dict(run_cfg):  # the model that runs is the checkpoint's: the config records it
+            run_cfg.model = ran
+        built = dataclasses.replace(built, model=model, cfg=run_cfg)
+    return Results(*test_and_report(built.cfg, built, RunFacts("eval", started, checkpoint=checkpoint)))
 
 
 def checkpoint_model_choice(args: Sequence[str]) -> str | None:

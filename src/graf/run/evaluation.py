@@ -1,8 +1,8 @@
 """Testing a built run: validation and test of the final weights, neighbor reliance (the same figures with
-each target's neighbors swapped for another target's), the baselines beside the model on the same data, and
-what is written: ``results.json`` (+ ``predictions.npz``, ``spectra.png``, ``samples/``) and the printed table.
+each target's neighbors swapped for another target's) and the baselines beside the model on the same data; the
+run's record is made of them, written and printed by :mod:`graf.run.report`.
 
-Every command writes ``results.json`` into its output folder::
+Every command writes ``results.json`` into its output folder (:class:`graf.run.record.RunRecord`)::
 
     {"method", "scene", "band_hz", "n_train", "n_test",
      "metrics": {"val/mse", ..., "test/mse", "test/psnr", "test/ssim", "test/lpips", "test/reliance_db"},
@@ -14,32 +14,39 @@ and, with ``save_predictions=true``, ``predictions.npz`` (``pred``, ``target``: 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
-import platform
 import time
-from pathlib import Path
+from dataclasses import dataclass
+from typing import NamedTuple
 
 import hydra
+import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-import graf
 from graf.callbacks import PredictionCollector
-from graf.io import atomic_write_json, atomic_write_npz, is_rank_zero
 from graf.metrics.names import EVAL_METRICS
-from graf.plotting import plot_spectra_grid
-from graf.run.build import evaluation_trainer
+from graf.run.build import BuiltRun, EvalScene, evaluation_trainer
+from graf.run.record import BaselineFigures, RunResult, Timing
 
 log = logging.getLogger("graf")
 
 
-def evaluate_model(cfg: DictConfig, model, dm, loggers=(), timing: dict | None = None) -> tuple[dict, dict]:
-    """Validation then test metrics of ``model`` (``{val/..., test/...}``) and the test predictions; with
-    ``timing`` (a dict), the wall seconds of each loop go into it (``val_s``, ``test_s``).  ``validate=false``
-    (studies, which choose nothing) skips validation: the ``val/...`` figures are then None; ``test=false``
-    (the trials of a hyperparameter search, which must not see the test split) skips the test: the
-    ``test/...`` figures are then None."""
+class ModelEvaluation(NamedTuple):
+    """A model's validation and test figures (``{val/..., test/...}``), its test predictions and the seconds each
+    pass took."""
+
+    metrics: dict
+    arrays: dict[str, np.ndarray]
+    timing: Timing
+
+
+def evaluate_model(cfg: DictConfig, model, dm, loggers=()) -> ModelEvaluation:
+    """Validation then test of ``model``.  ``validate=false`` (studies, which choose nothing) skips validation:
+    the ``val/...`` figures are then None; ``test=false`` (the trials of a hyperparameter search, which must not
+    see the test split) skips the test: the ``test/...`` figures are then None."""
     collector = PredictionCollector()
     trainer = evaluation_trainer(cfg, loggers, [collector])
     t0 = time.perf_counter()
@@ -53,20 +60,25 @@ def evaluate_model(cfg: DictConfig, model, dm, loggers=(), timing: dict | None =
         metrics.update({k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")})
     t2 = time.perf_counter()
     if cfg.get("reliance", True) and getattr(model, "uses_neighbors", True):
-        for split, done in (("val", cfg.get("validate", True)), ("test", cfg.get("test", True))):
-            swapped = swapped_psnr(cfg, model, dm, split) if done else None
-            if swapped is not None and metrics.get(f"{split}/psnr") is not None:
-                metrics[f"{split}/psnr_swapped"] = swapped
-                metrics[f"{split}/reliance_db"] = metrics[f"{split}/psnr"] - swapped
-                for lg in trainer.loggers:  # beside the split's other figures (csv, wandb)
-                    lg.log_metrics(
-                        {f"{split}/psnr_swapped": swapped, f"{split}/reliance_db": metrics[f"{split}/reliance_db"]},
-                        step=trainer.global_step,
-                    )
-                    lg.save()
-    if timing is not None:
-        timing.update(val_s=round(t1 - t0, 3), test_s=round(t2 - t1, 3), reliance_s=round(time.perf_counter() - t2, 3))
-    return {k: metrics.get(k) for k in EVAL_METRICS}, collector.arrays()
+        metrics.update(reliance_figures(cfg, model, dm, metrics, trainer))
+    timing = Timing(val_s=round(t1 - t0, 3), test_s=round(t2 - t1, 3), reliance_s=round(time.perf_counter() - t2, 3))
+    return ModelEvaluation({k: metrics.get(k) for k in EVAL_METRICS}, collector.arrays(), timing)
+
+
+def reliance_figures(cfg: DictConfig, model, dm, metrics: dict, trainer) -> dict:
+    """``{split}/psnr_swapped`` and ``{split}/reliance_db`` of each split evaluated (logged beside the split's
+    other figures, csv and wandb)."""
+    out = {}
+    for split, done in (("val", cfg.get("validate", True)), ("test", cfg.get("test", True))):
+        swapped = swapped_psnr(cfg, model, dm, split) if done else None
+        if swapped is None or metrics.get(f"{split}/psnr") is None:
+            continue
+        figures = {f"{split}/psnr_swapped": swapped, f"{split}/reliance_db": metrics[f"{split}/psnr"] - swapped}
+        out.update(figures)
+        for lg in trainer.loggers:
+            lg.log_metrics(figures, step=trainer.global_step)
+            lg.save()
+    return out
 
 
 def run_device(trainer, model) -> str:
@@ -99,145 +111,63 @@ def swapped_psnr(cfg: DictConfig, model, dm, split: str = "test") -> float | Non
     return float(trainer.callback_metrics[f"{split}/psnr"])
 
 
-def test_and_report(cfg: DictConfig, objects: dict, started: float, task: str) -> dict:
-    """Validate and test the model, then write results.json (+ predictions.npz, spectra.png).  Returns the
-    metrics (``val/...`` and ``test/...``)."""
-    trainer, model, train_dm = objects["trainer"], objects["model"], objects["datamodule"]
-    evaluations = objects.get("evaluations") or [
-        {"eval_scene": train_dm.scene_name, "datamodule": train_dm, "within_scene": True}
-    ]
-    timing = dict(objects.get("timing") or {})
-    done = []
-    for ev in evaluations:  # each test scene on its own (the first one's figures are the run's headline)
-        t = dict(timing)
-        m, a = evaluate_model(cfg, model, ev["datamodule"], objects["loggers"] if not done else (), t)
-        done.append((ev, m, a, t))
-    (first, metrics, arrays, timing) = done[0]
-    # every test scene's figures, for objectives over all of them (val/psnr@mean; graf.search.objectives)
-    objects["evaluation_metrics"] = [m for _, m, _, _ in done]
-    dm = first["datamodule"]
-    out: Path = objects["output_dir"]
-    config = OmegaConf.to_container(cfg, resolve=True)
-    if objects.get("checkpoint"):  # graf-eval of a checkpoint: the model that ran is the checkpoint's
-        config["model"] = objects["checkpoint"]["model"]
-    results = {
-        "method": getattr(model, "method", type(model).__name__),
-        "scene": dm.scene_name,
-        "train_scenes": [d.name for d in train_dm.sets],
-        "eval_scene": first["eval_scene"],
-        "within_scene": bool(first["within_scene"]),
-        "band_hz": float(dm.bands[0].frequency_hz),
-        "train_bands_hz": [float(b.frequency_hz) for b in train_dm.bands],
-        "n_train": dm.n_train,
-        "n_test": int(len(arrays["ids"])),
-        "metrics": metrics,
-        "seconds": round(time.perf_counter() - started, 3),
-        "config": config,
-        "task": task,
-        "eval_split": dm.eval_split,
-        "split_source": "; ".join(d.split_source for d in dm.sets),
-        "splits": dm.split_summary(),
-        "neighbors": repr(objects["neighbors"]),
-        "trainable_parameters": int(sum(p.numel() for p in model.parameters() if p.requires_grad)),
-        "global_step": int(objects.get("checkpoint", {}).get("global_step", trainer.global_step)),
-        "device": run_device(trainer, model),
-        "versions": {"graf": graf.__version__, "torch": torch.__version__, "python": platform.python_version()},
-    }
-    n_test = int(len(arrays["ids"]))
-    if n_test:  # the whole test loop (prediction and the four metrics) per spectrum
-        timing["test_s_per_spectrum"] = round(timing["test_s"] / n_test, 4)
-    results["timing"] = timing
-    sampling = ray_sampling(model, dm)
-    if sampling is not None:
-        results["ray_sampling"] = sampling
-    if objects.get("checkpoint"):
-        results["checkpoint"] = {k: v for k, v in objects["checkpoint"].items() if k != "model"}
-    zero = is_rank_zero()  # the other ranks of a data-parallel run compute the same figures and write nothing
-    if cfg.get("save_predictions") and zero:
-        atomic_write_npz(out / "predictions.npz", **arrays)
-        results["predictions"] = "predictions.npz"
-    if int(cfg.get("plot_count", 0)) > 0 and len(arrays["ids"]) and zero:
-        fig = plot_spectra_grid(
-            arrays["pred"],
-            arrays["target"],
-            arrays["ids"],
-            out / "spectra.png",
-            title=f"{results['method']} on {dm.scene_name}",
-            max_rows=int(cfg.plot_count),
-        )
-        results["figure"] = fig.name
-        for lg in objects["loggers"]:
-            if hasattr(lg, "log_image"):
-                lg.log_image(key="test/spectra", images=[str(fig)])
+@dataclass(eq=False)
+class BaselineResult:
+    """A baseline (nothing trained) tested on a run's test scene: its figures and test predictions."""
+
+    method: str
+    scene: str
+    n_test: int
+    trainable_parameters: int
+    metrics: dict
+    seconds: float
+    arrays: dict[str, np.ndarray]
+
+    def figures(self) -> BaselineFigures:
+        return BaselineFigures(self.metrics, self.seconds, self.trainable_parameters)
+
+
+def test_baseline(cfg: DictConfig, name: str, bcfg: DictConfig, dm) -> BaselineResult:
+    """Validate and test a baseline (nothing trained) on the same datamodule, neighbors and splits."""
+    started = time.perf_counter()
+    model = hydra.utils.instantiate(bcfg)
+    metrics, arrays, _ = evaluate_model(cfg, model, dm)
+    return BaselineResult(
+        method=getattr(model, "method", name),
+        scene=dm.scene_name,
+        n_test=int(len(arrays["ids"])),
+        trainable_parameters=int(sum(p.numel() for p in model.parameters() if p.requires_grad)),
+        metrics=metrics,
+        seconds=round(time.perf_counter() - started, 3),
+        arrays=arrays,
+    )
+
+
+@dataclass(eq=False)
+class SceneTest:
+    """One test scene of a run: the model's evaluation (its timing with the fit's) and its baselines'."""
+
+    scene: EvalScene
+    model: ModelEvaluation
+    baselines: list[BaselineResult]
+
+
+def evaluate_scenes(cfg: DictConfig, built: BuiltRun, fit: Timing) -> list[SceneTest]:
+    """Every test scene on its own (the first one's figures are the run's headline; its evaluation alone is logged):
+    the model, then the baselines on the same data (a baseline equal to the model is skipped)."""
     baselines = [(name, bcfg) for name, bcfg in selected_baselines(cfg).items() if bcfg != cfg.model]
-    rows, per_eval = [], []
-    for i, (ev, m, a, _t) in enumerate(done):  # every test scene: the model, then its baselines on the same data
-        head = (
-            results
-            if i == 0
-            else {"method": results["method"], "scene": ev["eval_scene"], "n_test": int(len(a["ids"])), "metrics": m}
-        )
-        brows = [_test_baseline(cfg, name, bcfg, ev["datamodule"]) for name, bcfg in baselines]
-        if int(cfg.get("save_samples") or 0) > 0 and zero:
-            for method, arr in [(results["method"], a)] + [(r["method"], r.pop("_arrays")) for r in brows]:
-                save_samples(out, ev["eval_scene"], method, arr, int(cfg.save_samples))
-        for r in brows:
-            r.pop("_arrays", None)
-        rows += [head, *brows]
-        per_eval.append(
-            {
-                r["method"]: {
-                    "metrics": r["metrics"],
-                    "seconds": r["seconds"],
-                    "trainable_parameters": r["trainable_parameters"],
-                }
-                for r in brows
-            }
-        )
-    if per_eval[0]:
-        results["baselines"] = per_eval[0]
-    if len(done) > 1 or not first["within_scene"] or first["eval_scene"] != train_dm.scene_name:
-        results["evaluations"] = [
-            {
-                "eval_scene": ev["eval_scene"],
-                "within_scene": bool(ev["within_scene"]),
-                "metrics": m,
-                "n_test": int(len(a["ids"])),
-                "band_hz": float(ev["datamodule"].bands[0].frequency_hz),
-                "scene_index": int(ev["datamodule"].scene_index[0]),
-                "splits": ev["datamodule"].split_summary(),
-                "timing": t,
-                "baselines": b,
-            }
-            for (ev, m, a, t), b in zip(done, per_eval)
-        ]
-    if objects.get("training"):  # steps asked and reached, and why training stopped early if it did
-        results["training"] = objects["training"]
-    if objects.get("resumed"):  # the checkpoint resumed from, and the trainer settings changed since
-        results["resumed"] = objects["resumed"]
-    if objects.get("finetune"):
-        results["finetune"] = objects["finetune"]
-    if objects.get("scene_table"):
-        results["scene_table"] = objects["scene_table"]
-    if cfg.get("regime"):
-        results["regime"] = str(cfg.regime)
-    if not zero:
-        return metrics
-    atomic_write_json(out / "results.json", results)
-    print(format_metrics_table(rows))
-    if "evaluations" in results:  # say which test scenes the model was trained on
-        print(
-            "; ".join(
-                f"{e['eval_scene']}: {'within-scene (trained on it)' if e['within_scene'] else 'zero-shot'}"
-                for e in results["evaluations"]
+    done = []
+    for ev in built.evaluations:
+        m = evaluate_model(cfg, built.model, ev.datamodule, built.loggers if not done else ())
+        timing = dataclasses.replace(fit, val_s=m.timing.val_s, test_s=m.timing.test_s, reliance_s=m.timing.reliance_s)
+        done.append(
+            SceneTest(
+                ev,
+                m._replace(timing=timing),
+                [test_baseline(cfg, name, bcfg, ev.datamodule) for name, bcfg in baselines],
             )
         )
-    if cfg.get("regime"):
-        print(f"regime: {cfg.regime}")
-    print(f"results: {out / 'results.json'}")
-    if results.get("figure"):
-        print(f"figure: {out / results['figure']}")
-    return metrics
+    return done
 
 
 def ray_sampling(model, dm) -> dict | None:
@@ -273,16 +203,8 @@ def ray_sampling(model, dm) -> dict | None:
 
 
 def selected_baselines(cfg: DictConfig) -> dict:
-    """The baselines to test beside the model (``{name: model config}``).  ``baselines=null`` and ``baselines={}``
-    both switch them off: Hydra merges ``{}`` into the composed group (a no-op), so the command line's own
-    ``baselines={}`` is honoured here."""
-    from hydra.core.hydra_config import HydraConfig
-
-    if HydraConfig.initialized() and any(
-        o.replace(" ", "") in ("baselines={}", "baselines=null", "baselines=[]")
-        for o in HydraConfig.get().overrides.task
-    ):
-        return {}
+    """The baselines to test beside the model (``{name: model config}``); ``baselines=null`` and ``baselines={}``
+    switch them off (on the command line, :func:`graf.run.config.with_baselines_switch` puts that in the config)."""
     return {
         name: bcfg
         for name, bcfg in (cfg.get("baselines") or {}).items()
@@ -290,60 +212,7 @@ def selected_baselines(cfg: DictConfig) -> dict:
     }
 
 
-def _test_baseline(cfg: DictConfig, name: str, bcfg: DictConfig, dm) -> dict:
-    """Validate and test a baseline (nothing trained) on the same datamodule, neighbors and splits."""
-    started = time.perf_counter()
-    model = hydra.utils.instantiate(bcfg)
-    metrics, arrays = evaluate_model(cfg, model, dm)
-    return {
-        "method": getattr(model, "method", name),
-        "scene": dm.scene_name,
-        "n_test": int(len(arrays["ids"])),
-        "trainable_parameters": int(sum(p.numel() for p in model.parameters() if p.requires_grad)),
-        "metrics": metrics,
-        "seconds": round(time.perf_counter() - started, 3),
-        "_arrays": arrays,
-    }
-
-
-def save_samples(out: Path, scene: str, method: str, arrays: dict, n: int) -> Path:
-    """The first ``n`` test spectra of an evaluation (lowest ids: the same positions for every method on a
-    scene) as ``samples/<scene>__<method>.npz`` (``pred``, ``target``: uint8 [n, 90, 360]; ``ids``), for
-    graf-report's true-vs-predicted grids."""
-    import numpy as np
-
-    order = np.argsort(np.asarray(arrays["ids"]))[:n]
-    q = lambda x: np.clip(np.rint(np.asarray(x)[order] * 255.0), 0, 255).astype(np.uint8)  # noqa: E731
-    path = out / "samples" / f"{scene}__{method}.npz"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_npz(path, pred=q(arrays["pred"]), target=q(arrays["target"]), ids=np.asarray(arrays["ids"])[order])
-    return path
-
-
-def format_metrics_table(rows: list[dict]) -> str:
-    """A plain-text table of the four test metrics (and the validation PSNR), one row per results dict."""
-    head = (
-        f"{'method':<22}{'scene':<16}{'n_test':>7}{'MSE':>10}{'PSNR':>9}{'SSIM':>8}{'LPIPS':>8}"
-        f"{'val PSNR':>10}{'reliance dB':>13}"
-    )
-    lines = [head, "-" * len(head)]
-    for r in rows:
-        m = r["metrics"]
-
-        def f(key, spec, m=m):
-            v = m.get(key)
-            width = spec.split(".")[0]
-            return format(v, spec) if v is not None and not math.isnan(v) else format("n/a", f">{width}")
-
-        lines.append(
-            f"{r['method']:<22}{r['scene']:<16}{r['n_test']:>7}{f('test/mse', '10.4f')}"
-            f"{f('test/psnr', '9.2f')}{f('test/ssim', '8.3f')}{f('test/lpips', '8.3f')}"
-            f"{f('val/psnr', '10.2f')}{f('test/reliance_db', '13.2f')}"
-        )
-    return "\n".join(lines)
-
-
-def sweep_value(cfg: DictConfig, metrics: dict, objects: dict | None = None):
+def sweep_value(cfg: DictConfig, metrics: dict, run: RunResult | None = None):
     """The value(s) a sweep optimises (``optimized_metric``: one name, or a list for a multi-objective search;
     see :mod:`graf.search.objectives` for the names).  Only validation metrics and costs measured on
     validation data are accepted: nothing is chosen on the test split.  A NaN or missing metric is returned
@@ -354,7 +223,14 @@ def sweep_value(cfg: DictConfig, metrics: dict, objects: dict | None = None):
     if not names:
         return 0.0
     single = isinstance(names, str)
-    values = objective_values([names] if single else list(names), metrics, objects or {})
+    built = run.built if run is not None else None
+    values = objective_values(
+        [names] if single else list(names),
+        metrics,
+        scene_metrics=run.scene_metrics if run is not None else None,
+        model=built.model if built else None,
+        datamodule=built.evaluations[0].datamodule if built else None,
+    )
     if not cfg.get("optuna_trial"):  # the worst value instead (a cost: +inf)
         worst = [float("inf") if str(n).startswith("cost/") else float("-inf") for n in ([names] if single else names)]
         for n, v in zip([names] if single else names, values):

@@ -12,11 +12,9 @@ A test metric is refused: nothing is chosen on the test split.
 
 from __future__ import annotations
 
-import json
 import math
 import statistics
 import time
-from pathlib import Path
 
 import torch
 
@@ -37,19 +35,6 @@ def check_objective_names(names: list[str]) -> None:
                 f"val/<metric>@mean (over the run's test scenes) or {', '.join(COSTS)}; nothing is "
                 "chosen on the test split"
             )
-
-
-def _evaluation_metrics(metrics: dict, objects: dict) -> list[dict]:
-    per = objects.get("evaluation_metrics")
-    if per:
-        return list(per)
-    out = objects.get("output_dir")  # a study job finished before: its results.json
-    f = Path(out) / "results.json" if out else None
-    if f is not None and f.is_file():
-        r = json.loads(f.read_text())
-        if r.get("evaluations"):
-            return [e["metrics"] for e in r["evaluations"]]
-    return [metrics]
 
 
 def inference_seconds_per_spectrum(model, dm, batches: int = COST_BATCHES) -> float:
@@ -77,19 +62,21 @@ def inference_seconds_per_spectrum(model, dm, batches: int = COST_BATCHES) -> fl
     return float(statistics.median(times))
 
 
-def objective_values(names: list[str], metrics: dict, objects: dict) -> list[float]:
-    """The values of ``names`` for a finished run (``metrics``: its headline figures; ``objects``: what
-    ``train``/``evaluate`` returned).  A missing figure is NaN."""
+def objective_values(
+    names: list[str], metrics: dict, scene_metrics: list[dict] | None = None, model=None, datamodule=None
+) -> list[float]:
+    """The values of ``names`` for a finished run: ``metrics``, its headline figures; ``scene_metrics``, every
+    test scene's (default: the headline's alone); ``model`` and ``datamodule`` (its first test scene's), for the
+    costs.  A missing figure is NaN."""
     check_objective_names(names)
     out = []
     for n in names:
         base, _, agg = str(n).partition("@")
         if n in COSTS:
-            model, evs = objects.get("model"), objects.get("evaluations") or []
-            dm = evs[0]["datamodule"] if evs else objects.get("datamodule")
-            out.append(inference_seconds_per_spectrum(model, dm) if model is not None and dm is not None else math.nan)
+            ok = model is not None and datamodule is not None
+            out.append(inference_seconds_per_spectrum(model, datamodule) if ok else math.nan)
         elif agg == "mean":
-            vals = [m.get(base) for m in _evaluation_metrics(metrics, objects)]
+            vals = [m.get(base) for m in (scene_metrics or [metrics])]
             vals = [float(v) if v is not None else math.nan for v in vals]
             out.append(sum(vals) / len(vals) if vals else math.nan)
         else:

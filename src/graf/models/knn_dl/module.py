@@ -61,7 +61,9 @@ class KNNDLModule(SpectrumModule):
     map_size: coarse weight-map grid (h, w); h divides 90, w divides 360.
     hidden / decoder_hidden: widths of the per-neighbor MLP and of the per-cell decoder.
     pe_freqs / dir_freqs: positional-encoding bands of the offset and of the ray direction.
-    max_rank: scale of the rank and neighbor-count features (the largest L expected).
+    max_rank: scale of the rank and neighbor-count features: the largest L the model will see.  The config's
+        ``null`` is the run's neighbor selector's largest L (``max_L``), filled in when a run builds the model
+        (:func:`graf.run.build.run_model_config`); constructed directly, give a number (default 10).
     signed_scale: bound of the signed, zero-sum weight correction (0: convex weights only).
     idw_power: the IDW bias is log(1 / d^idw_power).
     lr / lr_decay / decay_steps: Adam; the lr is multiplied by lr_decay over decay_steps steps.
@@ -82,6 +84,11 @@ class KNNDLModule(SpectrumModule):
         decay_steps: int = 10_000,
     ):
         super().__init__()
+        if max_rank is None:
+            raise ValueError(
+                "model.max_rank=null is the run's largest neighbor count L, filled in when graf-train or graf-eval "
+                "builds the model; constructed outside a run, give a number"
+            )
         map_size = [int(v) for v in map_size]  # plain ints in the checkpoint, not a ListConfig
         if len(map_size) != 2 or min(map_size) < 1 or N_ELEVATION % map_size[0] or N_AZIMUTH % map_size[1]:
             raise ValueError(f"model.map_size must be [h, w] with h dividing 90 and w dividing 360, got {map_size}")
