@@ -7,10 +7,11 @@ import pytest
 import torch
 
 from graf.bands import Band
-from graf.data.datamodule import SpectrumDataModule, carve_validation
+from graf.data.datamodule import SpectrumDataModule
 from graf.data.neighbors import NeighborSelector
 from graf.data.scenes import NeRF2Scene
 from graf.data.spectrum_set import DataFormatError
+from graf.data.splits import carve_validation
 
 S23 = NeRF2Scene("rfid_s23", "embedded:rfid_s23_200")
 BAND = Band("915mhz", 915e6)
@@ -18,7 +19,9 @@ BAND = Band("915mhz", 915e6)
 
 def _dm(scene=S23, band=BAND, **kw) -> SpectrumDataModule:
     kw.setdefault("batch_size", 8)
-    dm = SpectrumDataModule(scene, band, kw.pop("neighbors", NeighborSelector(L=10, L_train=(3, 10), radius=10.0)), **kw)
+    dm = SpectrumDataModule(
+        scene, band, kw.pop("neighbors", NeighborSelector(L=10, L_train=(3, 10), radius=10.0)), **kw
+    )
     dm.setup()
     return dm
 

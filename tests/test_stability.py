@@ -41,7 +41,7 @@ def dm(make_scene):
 
 
 def _batch(dm, **changes):
-    b = dm._collate_eval([0, 1])
+    b = dm.eval_batch([0, 1])
     return {**b, **changes}
 
 
@@ -102,13 +102,13 @@ def test_one_neighbor_and_more_asked_than_there_are(make_scene):
         b = d.train_batch(0)
         model = _graf()
         _finite_step(model, b)
-        _finite_render(model, d._collate_eval([0, 1]))
+        _finite_render(model, d.eval_batch([0, 1]))
 
 
 @pytest.mark.parametrize("value", [0.0, 1.0, 0.37])
 def test_all_zero_and_constant_spectra(dm, value):
     flat = torch.full((2, 90, 360), value)
-    b = _batch(dm, tgt_spectrum=flat, src_spectra=torch.full_like(dm._collate_eval([0, 1])["src_spectra"], value))
+    b = _batch(dm, tgt_spectrum=flat, src_spectra=torch.full_like(dm.eval_batch([0, 1])["src_spectra"], value))
     model = _graf()
     _finite_step(model, b)
     _finite_render(model, b)
@@ -126,7 +126,7 @@ def test_all_zero_and_constant_spectra(dm, value):
 def test_tiny_and_huge_scenes_at_low_and_high_bands(dm, length, band, samples):
     """Rays of 0.3 m (under the 0.33 m wavelength of 915 MHz: one voxel) and 0.5 m; rays of 500 m at 3 GHz hit
     the cap (32 in graf_cpu, 5,000 voxels needed)."""
-    b = dm._collate_eval([0, 1])
+    b = dm.eval_batch([0, 1])
     s = length / float(b["ray_length"][0])
     gw = b["gw_pos"]
     scaled = {
@@ -160,7 +160,7 @@ def test_reduced_precision_forward_and_backward(dm, dtype):
     ref_loss = float(ref.training_step(b, 0))
     assert abs(loss - ref_loss) < 0.05 * max(ref_loss, 1e-3) + 1e-3  # reduced precision stays near fp32
     with torch.autocast("cpu", dtype=dtype), torch.no_grad():
-        pred = model.predict_spectra(dm._collate_eval([0]))
+        pred = model.predict_spectra(dm.eval_batch([0]))
     assert pred.dtype == torch.float32 and torch.isfinite(pred).all()
 
 
@@ -185,6 +185,6 @@ def test_training_until_the_learning_rate_has_decayed_fully(dm):
     assert all(torch.isfinite(p).all() for p in model.parameters())
     assert torch.isfinite(trainer.callback_metrics["train/loss"])
     with torch.no_grad():
-        pred = model.predict_spectra(dm._collate_eval([0, 1]))
+        pred = model.predict_spectra(dm.eval_batch([0, 1]))
     assert torch.isfinite(pred).all()
-    assert torch.isfinite(psnr_per_sample(pred.clamp(0, 1), dm._collate_eval([0, 1])["tgt_spectrum"])).all()
+    assert torch.isfinite(psnr_per_sample(pred.clamp(0, 1), dm.eval_batch([0, 1])["tgt_spectrum"])).all()

@@ -27,8 +27,3 @@ class Band:
     def wavelength(self) -> float:
         """Wavelength in metres (also GRaF's voxel size)."""
         return SPEED_OF_LIGHT / self.frequency_hz
-
-    @property
-    def half_wavelength(self) -> float:
-        """Array pitch of a half-wavelength-spaced array."""
-        return self.wavelength / 2.0

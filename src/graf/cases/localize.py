@@ -94,7 +94,7 @@ def read_run(folder: Path, data_root: str | None) -> dict:
 
 def group_key(dm) -> tuple:
     """Runs with the same scene, measured part and neighbor pool share a measured set and a KNN synthesizer."""
-    pool = dm._split("test")[1]
+    pool = dm.split_rows("test")[1]
     return dm.sets[0].name, tuple(dm.ids[dm.measured_rows].tolist()), tuple(dm.ids[pool].tolist())
 
 

@@ -9,8 +9,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from graf.bands import Band
-from graf.data.nerf2_format import read_nerf2_folder
+from graf.data.nerf2_format import POSITION_ROWS_RULES, read_nerf2_folder
 from graf.data.spectrum_set import DataFormatError, SpectrumSet
+from graf.errors import ConfigError
 
 EMBEDDED_PREFIX = "embedded:"
 EMBEDDED_DIR = Path(__file__).resolve().parent.parent / "embedded"
@@ -64,9 +65,6 @@ class NeRF2Scene:
         fixed_band: bool = False,
         position_rows: str = "exact",
     ):
-        from graf.data.nerf2_format import POSITION_ROWS_RULES
-        from graf.errors import ConfigError
-
         if (
             isinstance(train_fraction, bool)
             or not isinstance(train_fraction, (int, float))

@@ -1,13 +1,13 @@
-"""Rays of the spectrum grid and the voxels sampled along them (seed appendix D, "Voxel Size").
+"""Rays of the spectrum grid and the samples along them (seed appendix D, "Voxel Size").
 
 Pixel ``p = r * 360 + c`` of a 90 x 360 spectrum is the ray leaving the gateway at elevation ``r + 1`` deg
 and azimuth ``c + 1`` deg: local direction ``(cos e cos a, cos e sin a, sin e)``
-(:func:`graf.geometry.grid.grid_directions`), world direction ``gw_rot @ d``.
+(:func:`graf.geometry.grid.grid_directions`), world direction ``gw_rot @ d`` (:func:`world_directions`).
 
-A ray of the scene's ``ray_length`` (m) is cut into ``S = min(max_samples, ceil(ray_length / wavelength))``
-voxels whose centres lie at ``(s + 0.5) * ray_length / S`` from the gateway: voxels one wavelength long
-unless capped.  S is per batch item (scene and band come from the batch, nothing is global); items with
-a smaller S than the batch's largest are padded, with ``sample_mask`` False.
+A ray of length ``ray_length`` (m) holds ``S = min(max_samples, ceil(ray_length / spacing))`` samples
+(:func:`num_samples`, per batch item: scene and band come from the batch, nothing is global).  GRaF cuts each
+ray's own stretch inside the scene box into voxels one wavelength long (:func:`box_segments`,
+:func:`segment_samples`); NeRF2 samples from its near plane to the ray length.
 """
 
 from __future__ import annotations
@@ -25,44 +25,11 @@ def num_samples(ray_length: torch.Tensor, wavelength: torch.Tensor, max_samples:
     return [max(1, min(int(max_samples), math.ceil(x - 1e-6))) for x in ratio]
 
 
-def sample_mask(samples: list[int], device=None) -> torch.Tensor:
-    """``[B, S_max]`` True for the real voxels of each item."""
-    s = torch.as_tensor(samples, device=device)
-    return torch.arange(max(samples), device=device)[None, :] < s[:, None]
-
-
-def voxel_distances(ray_length: torch.Tensor, samples: list[int]) -> torch.Tensor:
-    """``[B, S_max]`` distances (m) of the voxel centres from the gateway: ``(s + 0.5) * ray_length / S``
-    (padded entries continue the sequence; they are masked)."""
-    s = torch.as_tensor(samples, device=ray_length.device, dtype=ray_length.dtype)
-    idx = torch.arange(max(samples), device=ray_length.device, dtype=ray_length.dtype)
-    return (idx[None, :] + 0.5) * (ray_length / s)[:, None]
-
-
 def world_directions(gw_rot: torch.Tensor, dirs_local: torch.Tensor) -> torch.Tensor:
     """``gw_rot [B, 3, 3]`` (local -> world) applied to ``dirs_local [B, R, 3]`` or ``[R, 3]`` -> ``[B, R, 3]``."""
     if dirs_local.dim() == 2:
         return torch.einsum("bij,rj->bri", gw_rot, dirs_local.to(gw_rot.dtype))
     return torch.einsum("bij,brj->bri", gw_rot, dirs_local.to(gw_rot.dtype))
-
-
-def sample_voxels(
-    gw_pos: torch.Tensor,
-    gw_rot: torch.Tensor,
-    dirs_local: torch.Tensor,
-    ray_length: torch.Tensor,
-    wavelength: torch.Tensor,
-    max_samples: int,
-):
-    """Voxel centres along the rays ``dirs_local`` ([B, R, 3] or [R, 3], gateway frame) of each item.
-
-    Returns ``(positions [B, R, S_max, 3], mask [B, S_max], samples list[int] of length B)``.
-    """
-    samples = num_samples(ray_length, wavelength, max_samples)
-    dist = voxel_distances(ray_length.to(gw_pos.dtype), samples)  # [B, S]
-    dirs = world_directions(gw_rot.to(gw_pos.dtype), dirs_local)  # [B, R, 3]
-    pos = gw_pos[:, None, None, :] + dist[:, None, :, None] * dirs[:, :, None, :]
-    return pos, sample_mask(samples, gw_pos.device), samples
 
 
 def random_pixels(batch_size: int, rays_per_step: int, step: int, device=None) -> torch.Tensor:

@@ -158,7 +158,7 @@ def build(cfg: DictConfig, trains: bool = True) -> BuiltRun:
     source, known = checkpoint_scenes(cfg)
     _, _, neighbors, datamodule = build_datamodule(cfg)
     cfg = run_model_config(cfg, neighbors)
-    datamodule.setup("fit")
+    datamodule.setup("fit" if trains else "test")  # checks the neighbors of the targets the run will select
     check_bands(cfg, known, datamodule, source)  # fine-tuning or testing a checkpoint at another band: a transfer
     # a scene the checkpoint was trained on (the same content, whatever its name) keeps its index; a new one
     # gets the next; the table is what the checkpoints this run writes record
