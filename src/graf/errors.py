@@ -9,6 +9,10 @@ subclass :class:`UserError` beside :class:`ConfigError`.
 
 from __future__ import annotations
 
+import collections.abc
+import types
+import typing
+
 
 class UserError(ValueError):
     """Something the user gave cannot be used as given; the message says what and where."""
@@ -44,13 +48,87 @@ def is_user_error(exc: BaseException) -> bool:
     return isinstance(exc, (UserError, MissingMandatoryValue, InstantiationException))
 
 
-def user_message(exc: BaseException) -> str:
+def user_message(exc: BaseException, cfg=None) -> str:
     """A user error's message on one line: a constructor's own refusal rather than Hydra's three-line wrapper
-    around it (``Error in call to target ...``), with the config node it came from."""
+    around it (``Error in call to target ...``), with the config node it came from.  Given the run's config, a
+    setting of that node that is not of the type its constructor takes is named with its value
+    (:func:`mistyped_setting`): ``neighbors.L=abc: must be an integer``, not ``invalid literal for int()``."""
     from hydra.errors import InstantiationException
 
     cause = exc.__cause__ if isinstance(exc, InstantiationException) else None
     if cause is not None and str(cause):
-        key = getattr(exc, "full_key", None)
-        return f"{cause}" + (f" (in {key})" if key and str(key) not in str(cause) else "")
+        key = instantiated_key(exc)
+        if cfg is not None and key and isinstance(cause, (TypeError, ValueError)) and not isinstance(cause, UserError):
+            mistyped = mistyped_setting(cfg, key)
+            if mistyped:
+                return mistyped
+        return f"{cause}" + (f" (in {key})" if key and key not in str(cause) else "")
     return " ".join(str(exc).split("\n")) if "\n" in str(exc) else str(exc)
+
+
+def instantiated_key(exc: BaseException) -> str | None:
+    """The config node Hydra's instantiation error names (its ``full_key: ...`` line), or None."""
+    for line in str(exc).splitlines():
+        if line.startswith("full_key: "):
+            return line[len("full_key: ") :].strip() or None
+    return None
+
+
+def mistyped_setting(cfg, key: str) -> str | None:
+    """``<key>.<setting>=<value>: must be <type>`` for the first setting of the config node ``key`` whose value is
+    not of the type its target's constructor is annotated with; None when every value fits (or nothing is known)."""
+    from hydra.utils import get_method
+    from omegaconf import OmegaConf
+
+    try:
+        node = OmegaConf.to_container(OmegaConf.select(cfg, key), resolve=True)
+        target = get_method(node["_target_"])
+        hints = typing.get_type_hints(target.__init__ if isinstance(target, type) else target)
+    except Exception:
+        return None
+    for name, value in node.items():
+        hint = hints.get(name)
+        if hint is not None and not fits(value, hint):
+            return f"{key}.{name}={as_override(value)}: must be {describe(hint)}"
+    return None
+
+
+def as_override(value) -> str:
+    """A value as written on the command line: ``[3, x]``, ``null``, ``true``."""
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(as_override(v) for v in value) + "]"
+    if value is None:
+        return "null"
+    return str(value).lower() if isinstance(value, bool) else str(value)
+
+
+def fits(value, hint) -> bool:
+    """``value`` is of the annotated type ``hint`` (int, float, bool, str, None, unions, sequences of them);
+    True for any other annotation."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        return any(fits(value, a) for a in args)
+    if origin in (list, tuple, collections.abc.Sequence):
+        inner = [a for a in args if a is not Ellipsis]
+        return isinstance(value, (list, tuple)) and (len(inner) != 1 or all(fits(v, inner[0]) for v in value))
+    simple = {
+        type(None): value is None,
+        bool: isinstance(value, bool),
+        int: isinstance(value, int) and not isinstance(value, bool),
+        float: isinstance(value, (int, float)) and not isinstance(value, bool),
+        str: isinstance(value, str),
+    }
+    return simple.get(hint, True)
+
+
+def describe(hint) -> str:
+    """An annotation in words: ``int`` -> "an integer", ``float | None`` -> "a number or null"."""
+    args = typing.get_args(hint)
+    names = {type(None): "null", bool: "true or false", int: "an integer", float: "a number", str: "a string"}
+    plural = {bool: "booleans", int: "integers", float: "numbers", str: "strings"}
+    if hint in names:
+        return names[hint]
+    if typing.get_origin(hint) in (list, tuple, collections.abc.Sequence):
+        inner = [a for a in args if a is not Ellipsis]
+        return f"a list of {plural.get(inner[0], 'values') if len(inner) == 1 else 'values'}"
+    return " or ".join(describe(a) for a in args) if args else str(hint)

@@ -3,15 +3,13 @@ and the true spectra.  The work is :func:`graf.cases.aoa.run`, callable from Pyt
 
 from __future__ import annotations
 
-import hydra
 from omegaconf import DictConfig
 
 from graf.cases.aoa import run
-from graf.cli.entry import CONF_PATH, cli_errors
+from graf.cli.entry import graf_command
 
 
-@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="aoa")
-@cli_errors
+@graf_command("aoa")
 def main(cfg: DictConfig) -> None:
     run(cfg)
 

@@ -4,15 +4,13 @@ The work is :func:`graf.studies.bench.bench`, callable from Python with a compos
 
 from __future__ import annotations
 
-import hydra
 from omegaconf import DictConfig
 
-from graf.cli.entry import CONF_PATH, cli_errors
+from graf.cli.entry import graf_command
 from graf.studies.bench import bench
 
 
-@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="bench")
-@cli_errors
+@graf_command("bench")
 def main(cfg: DictConfig) -> None:
     bench(cfg)
 

@@ -4,15 +4,13 @@ The work is :func:`graf.sim_commands.bench.bench`, callable from Python with a c
 
 from __future__ import annotations
 
-import hydra
 from omegaconf import DictConfig
 
-from graf.cli.entry import CONF_PATH, cli_errors
+from graf.cli.entry import graf_command
 from graf.sim_commands.bench import bench
 
 
-@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="bench_sim")
-@cli_errors
+@graf_command("bench_sim")
 def main(cfg: DictConfig) -> None:
     bench(cfg)
 

@@ -4,15 +4,13 @@ The work is :func:`graf.studies.curves.curves`, callable from Python with a comp
 
 from __future__ import annotations
 
-import hydra
 from omegaconf import DictConfig
 
-from graf.cli.entry import CONF_PATH, cli_errors
+from graf.cli.entry import graf_command
 from graf.studies.curves import curves
 
 
-@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="curves")
-@cli_errors
+@graf_command("curves")
 def main(cfg: DictConfig) -> None:
     curves(cfg)
 

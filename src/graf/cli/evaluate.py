@@ -9,16 +9,14 @@ from __future__ import annotations
 
 import sys
 
-import hydra
 from omegaconf import DictConfig
 
-from graf.cli.entry import CONF_PATH, cli_errors
+from graf.cli.entry import graf_command
 from graf.run.evaluate import checkpoint_model_choice, evaluate
 from graf.run.evaluation import sweep_value
 
 
-@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="eval")
-@cli_errors
+@graf_command("eval")
 def _hydra_main(cfg: DictConfig) -> float:
     metrics, run = evaluate(cfg)
     return sweep_value(cfg, metrics, run)

@@ -3,15 +3,13 @@ the curvature K).  The work is :func:`graf.cases.interp.run`, callable from Pyth
 
 from __future__ import annotations
 
-import hydra
 from omegaconf import DictConfig
 
 from graf.cases.interp import run
-from graf.cli.entry import CONF_PATH, cli_errors
+from graf.cli.entry import graf_command
 
 
-@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="interp")
-@cli_errors
+@graf_command("interp")
 def main(cfg: DictConfig) -> None:
     run(cfg)
 

@@ -3,15 +3,13 @@ synthesized spectra, against the number of measured spectra.  The work is :func:
 
 from __future__ import annotations
 
-import hydra
 from omegaconf import DictConfig
 
 from graf.cases.localize import run
-from graf.cli.entry import CONF_PATH, cli_errors
+from graf.cli.entry import graf_command
 
 
-@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="localize")
-@cli_errors
+@graf_command("localize")
 def main(cfg: DictConfig) -> None:
     run(cfg)
 

@@ -4,15 +4,13 @@ The work is :func:`graf.cases.oracle.run`, callable from Python with a composed 
 
 from __future__ import annotations
 
-import hydra
 from omegaconf import DictConfig
 
 from graf.cases.oracle import run
-from graf.cli.entry import CONF_PATH, cli_errors
+from graf.cli.entry import graf_command
 
 
-@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="oracle")
-@cli_errors
+@graf_command("oracle")
 def main(cfg: DictConfig) -> None:
     run(cfg)
 

@@ -4,15 +4,13 @@ The work is :func:`graf.studies.pareto.sweep`, callable from Python with a compo
 
 from __future__ import annotations
 
-import hydra
 from omegaconf import DictConfig
 
-from graf.cli.entry import CONF_PATH, cli_errors
+from graf.cli.entry import graf_command
 from graf.studies.pareto import sweep
 
 
-@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="pareto")
-@cli_errors
+@graf_command("pareto")
 def main(cfg: DictConfig) -> None:
     sweep(cfg)
 

@@ -4,15 +4,13 @@ The work is :func:`graf.studies.report.report`, callable from Python with a comp
 
 from __future__ import annotations
 
-import hydra
 from omegaconf import DictConfig
 
-from graf.cli.entry import CONF_PATH, cli_errors
+from graf.cli.entry import graf_command
 from graf.studies.report import report
 
 
-@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="report")
-@cli_errors
+@graf_command("report")
 def main(cfg: DictConfig) -> None:
     report(cfg)
 

@@ -4,15 +4,13 @@ The work is :func:`graf.sim_commands.show_scenes.show`, callable from Python wit
 
 from __future__ import annotations
 
-import hydra
 from omegaconf import DictConfig
 
-from graf.cli.entry import CONF_PATH, cli_errors
+from graf.cli.entry import graf_command
 from graf.sim_commands.show_scenes import show
 
 
-@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="show_scenes")
-@cli_errors
+@graf_command("show_scenes")
 def main(cfg: DictConfig) -> None:
     show(cfg)
 

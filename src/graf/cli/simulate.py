@@ -4,15 +4,13 @@ The work is :func:`graf.sim_commands.simulate.simulate`, callable from Python wi
 
 from __future__ import annotations
 
-import hydra
 from omegaconf import DictConfig
 
-from graf.cli.entry import CONF_PATH, cli_errors
+from graf.cli.entry import graf_command
 from graf.sim_commands.simulate import simulate
 
 
-@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="simulate")
-@cli_errors
+@graf_command("simulate")
 def main(cfg: DictConfig) -> None:
     simulate(cfg)
 

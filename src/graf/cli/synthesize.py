@@ -4,15 +4,13 @@ The work is :func:`graf.cases.synthesis.run`, callable from Python with a compos
 
 from __future__ import annotations
 
-import hydra
 from omegaconf import DictConfig
 
 from graf.cases.synthesis import run
-from graf.cli.entry import CONF_PATH, cli_errors
+from graf.cli.entry import graf_command
 
 
-@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="synthesize")
-@cli_errors
+@graf_command("synthesize")
 def main(cfg: DictConfig) -> None:
     run(cfg)
 

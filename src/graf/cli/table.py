@@ -4,15 +4,13 @@ The work is :func:`graf.studies.table.make_table`, callable from Python with a c
 
 from __future__ import annotations
 
-import hydra
 from omegaconf import DictConfig
 
-from graf.cli.entry import CONF_PATH, cli_errors
+from graf.cli.entry import graf_command
 from graf.studies.table import make_table
 
 
-@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="table")
-@cli_errors
+@graf_command("table")
 def main(cfg: DictConfig) -> None:
     make_table(cfg)
 

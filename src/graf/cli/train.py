@@ -6,16 +6,14 @@ The work is :func:`graf.run.train.train`; the value returned to a sweeper is the
 
 from __future__ import annotations
 
-import hydra
 from omegaconf import DictConfig
 
-from graf.cli.entry import CONF_PATH, cli_errors
+from graf.cli.entry import graf_command
 from graf.run.evaluation import sweep_value
 from graf.run.train import train
 
 
-@hydra.main(version_base="1.3", config_path=CONF_PATH, config_name="train")
-@cli_errors
+@graf_command("train")
 def main(cfg: DictConfig) -> float:
     metrics, run = train(cfg)
     return sweep_value(cfg, metrics, run)
