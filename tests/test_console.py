@@ -59,6 +59,19 @@ def test_line_progress_prints_a_line_every_n_steps_and_at_the_last():
         LineProgress(every_n_steps=0)
 
 
+def test_line_progress_is_silent_while_disabled_as_lightning_asks_of_a_progress_bar():
+    """Lightning disables the bar on every rank but the first and its Tuner re-enables it (ProgressBar's
+    disable/enable, which raise NotImplementedError unless a bar defines them)."""
+    out = io.StringIO()
+    bar = LineProgress(every_n_steps=1, stream=out)
+    bar.disable()
+    _fit(bar, steps=2)
+    assert out.getvalue() == ""
+    bar.enable()
+    _fit(bar, steps=2)
+    assert [ln.split()[1] for ln in out.getvalue().splitlines()] == ["1/2", "2/2"]
+
+
 def test_the_progress_callback_is_a_bar_on_a_terminal_lines_elsewhere_and_nothing_when_off(monkeypatch):
     assert progress_bar(enabled=False) is None
     assert isinstance(progress_bar(every_n_steps=5), LineProgress)  # pytest's captured stdout: no terminal

@@ -90,6 +90,9 @@ class LineProgress(ProgressBar):
         self.every_n_steps, self.stream = every_n_steps, stream
         self._enabled, self._t0, self._step0, self._printed = True, None, 0, -1
 
+    # disable/enable: Lightning's ProgressBar interface (its base raises NotImplementedError).  Lightning disables
+    # the bar on every rank but the first (DDP); its Tuner (lr_find, scale_batch_size) disables it and enables
+    # it again around its trial runs.
     def disable(self) -> None:
         self._enabled = False
 
