@@ -20,6 +20,7 @@ import logging
 import time
 from pathlib import Path
 
+import matplotlib.pyplot as plt  # on the Agg backend: graf.plotting (below) sets it
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 from scipy.spatial.transform import Rotation
@@ -137,8 +138,6 @@ def markdown(rows: list[dict]) -> str:
 
 
 def _plot(path: Path, rows: list[dict]) -> None:
-    import matplotlib.pyplot as plt
-
     fig, ax = plt.subplots(figsize=(6, 4), constrained_layout=True)
     done_truth = set()
     for r in rows:

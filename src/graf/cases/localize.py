@@ -38,6 +38,7 @@ import logging
 import time
 from pathlib import Path
 
+import matplotlib.pyplot as plt  # on the Agg backend: graf.plotting (below) sets it
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
@@ -49,8 +50,10 @@ from graf.analysis.localization import (
     normalise,
     synthetic_positions,
 )
+from graf.cases.synthesis import load_model, synthesize
 from graf.errors import ConfigError
 from graf.io import atomic_write_json, atomic_write_text
+from graf.metrics.functional import psnr_per_sample
 from graf.plotting import save_figure
 from graf.run.build import build_datamodule
 from graf.run.config import CONF_DIR, output_dir, task_wrapper
@@ -99,8 +102,6 @@ def group_key(dm) -> tuple:
 
 
 def _psnr(pred: torch.Tensor, target: torch.Tensor) -> float:
-    from graf.metrics.functional import psnr_per_sample
-
     return float(psnr_per_sample(pred.float(), target.float()).mean())
 
 
@@ -138,8 +139,6 @@ def _summary(err: np.ndarray) -> dict:
 
 def run_group(runs: list[dict], cfg: DictConfig) -> dict:
     """The localization learning-curve point of one group (see the module doc)."""
-    from graf.cases.synthesis import load_model, synthesize
-
     dm = runs[0]["dm"]
     d = dm.sets[0]
     wavelength = float(dm.band.wavelength)
@@ -151,45 +150,15 @@ def run_group(runs: list[dict], cfg: DictConfig) -> dict:
     box = (pos[train].min(0), pos[train].max(0))  # the survey area: the training split's positions, no spectrum
     syn_pos = synthetic_positions(*box, int(cfg.n_synth), test_pos, min_gap, seed=int(cfg.synth_seed))
     check_disjoint(syn_pos, test_pos, min_gap, "synthesized set")
-
-    # synthesis quality on the first n_q spectra of the seeded test split (all unless quality_test_count says)
-    n_q = len(test) if cfg.get("quality_test_count") is None else cfg.quality_test_count
-    if isinstance(n_q, bool) or not isinstance(n_q, int) or not 1 <= n_q <= len(test):
-        raise ConfigError(
-            f"graf-localize: quality_test_count={n_q}: give a whole number from 1 to {len(test)} "
-            f"({d.name}'s test split holds {len(test)})"
-        )
-    synthesizers = [(r["method"], r) for r in runs]
-    if cfg.knn and not any(r["method"] == "knn" for r in runs):
-        knn = {**runs[0], "ckpt": None, "folder": None, "reliance_db": runs[0]["knn_reliance_db"]}
-        synthesizers.append(("knn", knn))
-    synth = {}
-    for name, r in synthesizers:
-        t0 = time.perf_counter()
-        mcfg = OmegaConf.load(CONF_DIR / "model" / "knn.yaml") if r["folder"] is None else r["cfg"].model
-        model = load_model(mcfg, r["ckpt"], f"run {r['folder']}")
-        spectra = synthesize(model, r["dm"], syn_pos)
-        quality = _psnr(synthesize(model, r["dm"], test_pos[:n_q]), dm.spectra[test[:n_q]])
-        synth[name] = {"spectra": spectra, "quality_psnr": quality, "quality_n_test": n_q,
-                       "reliance_db": r["reliance_db"], "folder": r["folder"],
-                       "seconds": round(time.perf_counter() - t0, 2)}  # fmt: skip
-        log.info("%s: %s synthesized %d spectra (test PSNR %.2f dB)", d.name, name, len(spectra), quality)
-
+    synth = _synthesize_all(runs, cfg, syn_pos, test_pos)
     meas_x, test_x = dm.spectra[measured].float(), dm.spectra[test].float()
     meas_y = torch.as_tensor(normalise(meas_pos, *box), dtype=torch.float32)
     syn_y = torch.as_tensor(normalise(syn_pos, *box), dtype=torch.float32)
-    lc = cfg.localizer
     inits: dict[str, dict] = {}
     for init in ["random", *synth]:
-        per_seed = []
-        for seed in cfg.seeds:
-            torch.manual_seed(int(seed))
-            net = SpectrumLocalizer(tuple(lc.widths), int(lc.hidden))
-            if init != "random":
-                train_localizer(net, synth[init]["spectra"].float(), syn_y, int(lc.pretrain_steps), float(lc.lr),
-                                int(lc.batch_size), int(seed) + 1000)  # fmt: skip
-            train_localizer(net, meas_x, meas_y, int(lc.train_steps), float(lc.lr), int(lc.batch_size), int(seed))
-            per_seed.append(_summary(localization_errors(net, test_x, test_pos, box)))
+        pretrain = None if init == "random" else (synth[init]["spectra"].float(), syn_y)
+        per_seed = [_localize(cfg.localizer, int(seed), pretrain, (meas_x, meas_y), test_x, test_pos, box)
+                    for seed in cfg.seeds]  # fmt: skip
         inits[init] = {
             "median_m": float(np.mean([s["median_m"] for s in per_seed])),
             "p90_m": float(np.mean([s["p90_m"] for s in per_seed])),
@@ -212,6 +181,47 @@ def run_group(runs: list[dict], cfg: DictConfig) -> dict:
     }
 
 
+def _synthesize_all(runs: list[dict], cfg: DictConfig, syn_pos: np.ndarray, test_pos: np.ndarray) -> dict:
+    """``{synthesizer: its spectra at syn_pos, its synthesis quality, ...}``: each run's model, and KNN on the
+    group's first run's data when ``cfg.knn`` and no run is KNN."""
+    dm = runs[0]["dm"]
+    d, test = dm.sets[0], np.asarray(dm.test_rows)
+    # synthesis quality on the first n_q spectra of the seeded test split (all unless quality_test_count says)
+    n_q = len(test) if cfg.get("quality_test_count") is None else cfg.quality_test_count
+    if isinstance(n_q, bool) or not isinstance(n_q, int) or not 1 <= n_q <= len(test):
+        raise ConfigError(
+            f"graf-localize: quality_test_count={n_q}: give a whole number from 1 to {len(test)} "
+            f"({d.name}'s test split holds {len(test)})"
+        )
+    synthesizers = [(r["method"], r) for r in runs]
+    if cfg.knn and not any(r["method"] == "knn" for r in runs):
+        knn = {**runs[0], "ckpt": None, "folder": None, "reliance_db": runs[0]["knn_reliance_db"]}
+        synthesizers.append(("knn", knn))
+    synth = {}
+    for name, r in synthesizers:
+        t0 = time.perf_counter()
+        mcfg = OmegaConf.load(CONF_DIR / "model" / "knn.yaml") if r["folder"] is None else r["cfg"].model
+        model = load_model(mcfg, r["ckpt"], f"run {r['folder']}")
+        spectra = synthesize(model, r["dm"], syn_pos)
+        quality = _psnr(synthesize(model, r["dm"], test_pos[:n_q]), dm.spectra[test[:n_q]])
+        synth[name] = {"spectra": spectra, "quality_psnr": quality, "quality_n_test": n_q,
+                       "reliance_db": r["reliance_db"], "folder": r["folder"],
+                       "seconds": round(time.perf_counter() - t0, 2)}  # fmt: skip
+        log.info("%s: %s synthesized %d spectra (test PSNR %.2f dB)", d.name, name, len(spectra), quality)
+    return synth
+
+
+def _localize(lc: DictConfig, seed: int, pretrain, measured, test_x, test_pos, box) -> dict:
+    """One seed's localizer: pre-trained on ``pretrain`` (synthesized spectra and coordinates; None: from its
+    random initialisation), trained on the ``measured`` ones; its error summary on the test spectra."""
+    torch.manual_seed(seed)
+    net = SpectrumLocalizer(tuple(lc.widths), int(lc.hidden))
+    if pretrain is not None:
+        train_localizer(net, *pretrain, int(lc.pretrain_steps), float(lc.lr), int(lc.batch_size), seed + 1000)
+    train_localizer(net, *measured, int(lc.train_steps), float(lc.lr), int(lc.batch_size), seed)
+    return _summary(localization_errors(net, test_x, test_pos, box))
+
+
 def markdown(groups: list[dict]) -> str:
     lines = [
         "| scene | measured | init | localization error median / p90 (m) | vs random (median) | "
@@ -230,8 +240,6 @@ def markdown(groups: list[dict]) -> str:
 
 
 def _plot(path: Path, groups: list[dict]) -> None:
-    import matplotlib.pyplot as plt
-
     scenes = sorted({g["scene"] for g in groups})
     fig, axes = plt.subplots(1, len(scenes), figsize=(5 * len(scenes), 3.8), squeeze=False, constrained_layout=True)
     for ax, scene in zip(axes[0], scenes):

@@ -15,6 +15,7 @@ import time
 
 from omegaconf import DictConfig, OmegaConf
 
+from graf.analysis.oracle import PAPER_REFERENCE, plot_oracle, run_oracle, select_targets, summarize
 from graf.io import atomic_write_json
 from graf.run.build import build_datamodule
 from graf.run.config import output_dir, single_scene_config, task_wrapper
@@ -43,8 +44,7 @@ def format_table(results: dict) -> str:
 
 @task_wrapper
 def run(cfg: DictConfig) -> dict:
-    from graf.analysis.oracle import PAPER_REFERENCE, plot_oracle, run_oracle, select_targets, summarize
-
+    """graf-oracle: the oracle and IDW KNN on the scene's targets; results.json and the figure, a table printed."""
     started = time.perf_counter()
     oc = cfg.oracle
     single_scene_config(cfg, "graf-oracle")

@@ -22,12 +22,16 @@ from pathlib import Path
 import hydra
 import numpy as np
 import torch
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
+from graf.data.nerf2_files import read_positions
+from graf.data.nerf2_format import write_nerf2_folder
 from graf.data.spectrum_set import DataFormatError
 from graf.errors import ConfigError
 from graf.geometry.grid import SPECTRUM_SHAPE
 from graf.io import atomic_write_json
+from graf.models.base import check_checkpoint, read_checkpoint
 from graf.run.build import build_datamodule
 from graf.run.config import output_dir, single_scene_config, task_wrapper
 
@@ -35,8 +39,6 @@ from graf.run.config import output_dir, single_scene_config, task_wrapper
 def read_query_positions(path: Path):
     """The query positions ``[N, 3]`` (x,y,z; header optional) and whether a header was found: at least one,
     every one finite, or a :class:`DataFormatError` naming the file and line."""
-    from graf.data.nerf2_files import read_positions
-
     positions, had_header = read_positions(path)
     if len(positions) == 0:
         raise DataFormatError(
@@ -52,8 +54,6 @@ def read_query_positions(path: Path):
 
 
 def _model_choice() -> str:
-    from hydra.core.hydra_config import HydraConfig
-
     return str(HydraConfig.get().runtime.choices.get("model")) if HydraConfig.initialized() else "..."
 
 
@@ -62,8 +62,6 @@ def load_model(model_cfg: DictConfig, ckpt_path: str | None, what: str | None = 
     first); without a checkpoint only a method with nothing to train (KNN) is accepted."""
     model_cls = hydra.utils.get_class(model_cfg._target_)
     if ckpt_path:
-        from graf.models.base import check_checkpoint, read_checkpoint
-
         check_checkpoint(read_checkpoint(ckpt_path), model_cls, ckpt_path)
         return model_cls.load_from_checkpoint(ckpt_path, map_location="cpu")
     model = hydra.utils.instantiate(model_cfg)
@@ -78,8 +76,6 @@ def load_model(model_cfg: DictConfig, ckpt_path: str | None, what: str | None = 
 
 @task_wrapper
 def run(cfg: DictConfig) -> dict:
-    from graf.data.nerf2_format import write_nerf2_folder
-
     started = time.perf_counter()
     positions, had_header = read_query_positions(Path(cfg.positions))
     single_scene_config(cfg, "graf-synthesize")
