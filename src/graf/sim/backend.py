@@ -34,7 +34,7 @@ def import_sionna_rt():
     """Return the ``sionna.rt`` module, configuring Dr.Jit's LLVM backend first when needed."""
     configure_llvm()
     try:
-        import sionna.rt as rt
+        import sionna.rt as rt  # lazy: seconds to load, and only after configure_llvm
     except ImportError as exc:
         raise ImportError(
             "graf-simulate needs Sionna RT: install the project with its 'sim' extra "

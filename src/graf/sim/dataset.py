@@ -32,18 +32,24 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 import shutil
 import time
 from pathlib import Path
 
+import h5py
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 
+import graf
 from graf.bands import Band
+from graf.data.nerf2_format import write_nerf2_folder
 from graf.data.spectrum_set import DataFormatError, SpectrumSet, warn_flat_spectra
 from graf.errors import ConfigError
 from graf.geometry.grid import SPECTRUM_SHAPE
 from graf.io import atomic_write_json, atomic_write_npz
+from graf.sim.array import to_uint8
 
 log = logging.getLogger(__name__)
 FORMAT_VERSION = 1
@@ -74,25 +80,79 @@ def generate(
 
     Returns a summary: path, n, seconds, spectra per second (of the spectra made in this call), whether the file
     was assembled, and the chunks still missing (other shards')."""
-    from tqdm.auto import tqdm
-
-    from graf.sim.array import to_uint8
-
     started = time.perf_counter()
     path = scene.dataset_path(data_root, band, num_tx)
     parts = path.with_name(path.name + ".parts")
     positions = scene.positions(num_tx)
     n = len(positions)
-    antennas = scene.antenna_positions(band)
-    config = {
+    config = dataset_config(scene, band, n, chunk_size)
+    index, count = (int(v) for v in shard)
+    check_shard(index, count, overwrite, merge_only, parts)
+    if path.is_file() and not overwrite:
+        log.info("%s exists; nothing to do (overwrite=true makes it again)", path)
+        return {"path": str(path), "n": n, "made": 0, "seconds": 0.0, "spectra_per_second": None, "skipped": True}
+    manifest = open_parts(path, parts, config, overwrite)
+    chunks = [(i, s, min(s + chunk_size, n)) for i, s in enumerate(range(0, n, chunk_size))]
+    mine = [] if merge_only else chunks[index * len(chunks) // count : (index + 1) * len(chunks) // count]
+    made, t_trace, materials = trace_chunks(scene, band, positions, parts, mine, device, progress, started)
+    materials = record_materials(manifest, materials)
+    missing = missing_chunks(parts, chunks, merge_only)
+    assembled = False
+    if not missing and _lock(parts, force=merge_only):
+        _assemble(path, parts, chunks, scene, band, positions, scene.antenna_positions(band), config, materials)
+        shutil.rmtree(parts, ignore_errors=True)
+        assembled = True
+    seconds = time.perf_counter() - started
+    return {
+        "path": str(path),
+        "n": n,
+        "made": made,
+        "seconds": round(seconds, 3),
+        "spectra_per_second": round(made / seconds, 2) if made else None,
+        "trace_seconds": round(t_trace, 3),
+        "skipped": False,
+        "materials": materials,
+        "shard": [index, count],
+        "shard_positions": [mine[0][1], mine[-1][2]] if mine else None,
+        "assembled": assembled,
+        "missing_chunks": len(missing),
+    }
+
+
+def dataset_config(scene, band: Band, n: int, chunk_size: int) -> dict:
+    """What makes a dataset file: its fingerprint (:func:`fingerprint`) guards the parts of a resumed run."""
+    return {
         "scene": scene.config(),
         "band": {"name": band.name, "frequency_hz": band.frequency_hz},
         "num_tx": n,
         "chunk_size": int(chunk_size),
         "format_version": FORMAT_VERSION,
     }
-    fp = fingerprint(config)
-    index, count = (int(v) for v in shard)
+
+
+def record_materials(manifest: Path, materials: list | None) -> list:
+    """The traced materials, recorded in the manifest; None (nothing traced in this call): the ones recorded."""
+    if materials is None:
+        return json.loads(manifest.read_text()).get("materials", [])
+    atomic_write_json(manifest, {**json.loads(manifest.read_text()), "materials": materials})
+    return materials
+
+
+def missing_chunks(parts: Path, chunks: list[tuple[int, int, int]], merge_only: bool) -> list[int]:
+    """The chunks not yet in ``parts`` (an explicit merge refuses any)."""
+    missing = [i for i, _, _ in chunks if not (parts / f"chunk_{i:05d}.npz").is_file()]
+    if merge_only and missing:
+        _, start, end = chunks[missing[0]]
+        raise DataFormatError(
+            parts,
+            f"{len(missing)} of {len(chunks)} chunks are missing (first: chunk_{missing[0]:05d}, positions "
+            f"{start}-{end - 1}): run their shards first",
+        )
+    return missing
+
+
+def check_shard(index: int, count: int, overwrite: bool, merge_only: bool, parts: Path) -> None:
+    """Refuse a shard ``index`` outside ``0 .. count - 1``, and ``overwrite`` with shards or a merge."""
     if count < 1 or not 0 <= index < count:
         raise ConfigError(f"sim.shard: index {index} of count {count}; need count >= 1 and 0 <= index < count")
     if overwrite and (count > 1 or merge_only):
@@ -100,14 +160,17 @@ def generate(
             "sim.overwrite with shards or a merge would delete other shards' chunks: remove the file and its "
             f"{parts.name} folder once, then run the shards"
         )
-    if path.is_file() and not overwrite:
-        log.info("%s exists; nothing to do (overwrite=true makes it again)", path)
-        return {"path": str(path), "n": n, "made": 0, "seconds": 0.0, "spectra_per_second": None, "skipped": True}
+
+
+def open_parts(path: Path, parts: Path, config: dict, overwrite: bool) -> Path:
+    """The parts folder's manifest, made for ``config`` (after removing the file and its parts on ``overwrite``);
+    chunks of another configuration there are refused."""
     if overwrite:
         path.unlink(missing_ok=True)
         shutil.rmtree(parts, ignore_errors=True)
     parts.mkdir(parents=True, exist_ok=True)
     manifest = parts / "manifest.json"
+    fp = fingerprint(config)
     if manifest.is_file():
         old = json.loads(manifest.read_text())
         if old.get("fingerprint") != fp:
@@ -118,13 +181,15 @@ def generate(
             )
     else:
         atomic_write_json(manifest, {"fingerprint": fp, "config": config})
+    return manifest
 
-    chunks = [(i, s, min(s + chunk_size, n)) for i, s in enumerate(range(0, n, chunk_size))]
-    mine = [] if merge_only else chunks[index * len(chunks) // count : (index + 1) * len(chunks) // count]
+
+def trace_chunks(scene, band: Band, positions, parts: Path, mine, device: str, progress: bool, started: float):
+    """Trace the chunks ``mine`` (``(i, start, end)``) not yet in ``parts``, each written atomically.  Returns
+    ``(spectra made, seconds tracing, the tracer's material table or None when nothing was traced)``."""
     todo = [c for c in mine if not (parts / f"chunk_{c[0]:05d}.npz").is_file()]
     done_before = sum(e - s for i, s, e in mine if (i, s, e) not in todo)
-    tracer = None
-    made, t_trace = 0, 0.0
+    made, t_trace, tracer = 0, 0.0, None
     bar = tqdm(
         total=sum(e - s for _, s, e in mine),
         initial=done_before,
@@ -150,45 +215,12 @@ def generate(
             bar.update(e - s)
             bar.set_postfix(spectra_per_s=f"{made / max(time.perf_counter() - started, 1e-9):.1f}")
     bar.close()
-    materials = tracer.material_table() if tracer is not None else json.loads(manifest.read_text()).get("materials", [])
-    if tracer is not None:
-        m = json.loads(manifest.read_text())
-        m["materials"] = materials
-        atomic_write_json(manifest, m)
-    missing = [i for i, _, _ in chunks if not (parts / f"chunk_{i:05d}.npz").is_file()]
-    if merge_only and missing:
-        raise DataFormatError(
-            parts,
-            f"{len(missing)} of {len(chunks)} chunks are missing (first: chunk_{missing[0]:05d}, positions "
-            f"{missing[0] * chunk_size}-{min((missing[0] + 1) * chunk_size, n) - 1}): run their shards first",
-        )
-    assembled = False
-    if not missing and _lock(parts, force=merge_only):
-        _assemble(path, parts, chunks, scene, band, positions, antennas, config, materials)
-        shutil.rmtree(parts, ignore_errors=True)
-        assembled = True
-    seconds = time.perf_counter() - started
-    return {
-        "path": str(path),
-        "n": n,
-        "made": made,
-        "seconds": round(seconds, 3),
-        "spectra_per_second": round(made / seconds, 2) if made else None,
-        "trace_seconds": round(t_trace, 3),
-        "skipped": False,
-        "materials": materials,
-        "shard": [index, count],
-        "shard_positions": [mine[0][1], mine[-1][2]] if mine else None,
-        "assembled": assembled,
-        "missing_chunks": len(missing),
-    }
+    return made, t_trace, (tracer.material_table() if tracer is not None else None)
 
 
 def _lock(parts: Path, force: bool = False) -> bool:
     """Take the right to assemble (an exclusive lock file in the parts folder): False if another shard holds it.
     ``force`` (an explicit merge) takes it whatever a killed shard left."""
-    import os
-
     lock = parts / "assemble.lock"
     if force:
         lock.unlink(missing_ok=True)
@@ -201,10 +233,6 @@ def _lock(parts: Path, force: bool = False) -> bool:
 
 
 def _assemble(path: Path, parts: Path, chunks, scene, band: Band, positions, antennas, config, materials) -> None:
-    import h5py
-
-    import graf
-
     spectra = np.concatenate([np.load(parts / f"chunk_{i:05d}.npz")["spectra"] for i, _, _ in chunks])
     channels = np.concatenate([np.load(parts / f"chunk_{i:05d}.npz")["channels"] for i, _, _ in chunks])
     num_paths = np.concatenate([np.load(parts / f"chunk_{i:05d}.npz")["num_paths"] for i, _, _ in chunks])
@@ -249,8 +277,6 @@ def _assemble(path: Path, parts: Path, chunks, scene, band: Band, positions, ant
 
 def read_dataset(path: str | Path, name: str | None = None) -> SpectrumSet:
     """A simulated scene's dataset file as a :class:`SpectrumSet` (spectra = uint8 / 255)."""
-    import h5py
-
     path = Path(path)
     try:
         f = h5py.File(path, "r")
@@ -293,8 +319,6 @@ def read_dataset(path: str | Path, name: str | None = None) -> SpectrumSet:
 def export_nerf2(dataset_path: str | Path, out_dir: str | Path) -> Path:
     """Write a dataset file as a NeRF2 folder (PNG spectra are the stored uint8 values, so
     :func:`graf.data.nerf2_format.read_nerf2_folder` reads back the same spectra)."""
-    from graf.data.nerf2_format import write_nerf2_folder
-
     d = read_dataset(dataset_path)
     return write_nerf2_folder(
         out_dir,

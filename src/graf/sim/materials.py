@@ -9,6 +9,7 @@ from __future__ import annotations
 
 
 def itu_parameters(itu_type: str, frequency_hz: float) -> dict:
+    # lazy: Sionna RT (Dr.Jit, Mitsuba) takes seconds to load and needs graf.sim's LLVM set-up first
     from sionna.rt.radio_materials.itu import ITU_MATERIALS_PROPERTIES
 
     if itu_type not in ITU_MATERIALS_PROPERTIES:

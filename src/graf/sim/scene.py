@@ -9,14 +9,20 @@ pattern, pitch) and the tracing settings.  ``graf-simulate`` turns it into a dat
 from __future__ import annotations
 
 import copy
+import logging
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from graf.bands import Band
 from graf.data.spectrum_set import DataFormatError, SpectrumSet
-from graf.sim.array import PATTERNS, rotation_from_axes
+from graf.sim.array import PATTERNS, Bartlett, array_positions, rotation_from_axes
+from graf.sim.dataset import generate, read_dataset
 from graf.sim.geometry import SceneGeometry, build_geometry, sample_positions
+from graf.sim.tracer import SionnaTracer, spectra_from_paths
+
+log = logging.getLogger(__name__)
 
 
 class SimulatedScene:
@@ -101,8 +107,6 @@ class SimulatedScene:
 
     # ------------------------------------------------------------------ tracing
     def antenna_positions(self, band: Band) -> np.ndarray:
-        from graf.sim.array import array_positions
-
         a = self.array
         return array_positions(
             band.wavelength, int(a.get("rows", 4)), int(a.get("cols", 4)), float(a.get("pitch_wavelengths", 0.5))
@@ -110,14 +114,10 @@ class SimulatedScene:
 
     def bartlett(self, band: Band, device="cpu"):
         """The array's Bartlett beamformer at ``band``."""
-        from graf.sim.array import Bartlett
-
         return Bartlett(self.antenna_positions(band), band.wavelength, device=device)
 
     def tracer(self, band: Band, **tracing_overrides):
         """A Sionna RT tracer of this scene at ``band`` (tracing settings from the config, overridable)."""
-        from graf.sim.tracer import SionnaTracer
-
         tracing = {**self.tracing, **tracing_overrides}
         return SionnaTracer(
             self.geometry,
@@ -130,8 +130,6 @@ class SimulatedScene:
 
     def spectra(self, tracer, bartlett, positions):
         """Trace ``positions``; returns (channels [n, K], float spectra [n, 90, 360], paths per position [n])."""
-        from graf.sim.tracer import spectra_from_paths
-
         gains, dirs, counts = tracer.trace(np.asarray(positions, float))
         h, s = spectra_from_paths(bartlett, gains, dirs, self.array.get("pattern", "cos"))
         return h, s, counts
@@ -144,19 +142,11 @@ class SimulatedScene:
     def ensure_dataset(self, data_root: str | Path | None, band: Band) -> Path:
         """Ray-trace this scene's dataset at ``band`` (``num_tx`` positions) unless its file is there (studies
         set ``data.simulate_missing=true``); resumable as ``graf-simulate`` is."""
-        from graf.sim.dataset import generate
-
         if data_root is None:
             raise DataFormatError("data_root", "simulated scenes are read from data_root; set data_root=DIR")
         path = self.dataset_path(data_root, band, self.num_tx)
         if not path.is_file():
-            import logging
-
-            import torch
-
-            logging.getLogger(__name__).info(
-                "simulating %s at %s (%s positions) into %s", self.name, band.name, self.num_tx or "all", path
-            )
+            log.info("simulating %s at %s (%s positions) into %s", self.name, band.name, self.num_tx or "all", path)
             generate(
                 self,
                 band,
@@ -168,8 +158,6 @@ class SimulatedScene:
         return path
 
     def load(self, data_root: str | Path | None, band: Band, num_tx: int | None = None) -> SpectrumSet:
-        from graf.sim.dataset import read_dataset
-
         if data_root is None:
             raise DataFormatError("data_root", "simulated scenes are read from data_root; set data_root=DIR")
         num_tx = self.num_tx if num_tx is None else num_tx

@@ -47,7 +47,7 @@ class SionnaTracer:
         sources_per_call: int = 256,
     ):
         rt = import_sionna_rt()
-        import mitsuba as mi
+        import mitsuba as mi  # lazy, after Sionna RT (which sets up Dr.Jit's LLVM backend): seconds to load
 
         self.rt, self.mi = rt, mi
         self.tracing = {k: tracing[k] for k in TRACING_KEYS if k in tracing}

@@ -20,7 +20,10 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from graf.io import atomic_write_json
+from graf.metrics import psnr_per_sample
 from graf.run.config import output_dir, scene_band_config, single_scene_config, task_wrapper
+from graf.sim.array import to_uint8
+from graf.sim.tracer import spectra_from_paths
 
 PAPER_SECONDS_PER_SPECTRUM = 59.5
 
@@ -37,10 +40,6 @@ def _cpu_name() -> str:
 
 @task_wrapper
 def bench(cfg: DictConfig) -> dict:
-    from graf.metrics import psnr_per_sample
-    from graf.sim.array import to_uint8
-    from graf.sim.tracer import spectra_from_paths
-
     scene_cfg = single_scene_config(cfg, "graf-bench-sim")
     band = hydra.utils.instantiate(scene_band_config(scene_cfg, cfg.get("band")))
     scene = hydra.utils.instantiate(scene_cfg)
@@ -56,6 +55,26 @@ def bench(cfg: DictConfig) -> dict:
     tracer.trace(positions[:spc])  # first call: JIT compilation
     t_first = time.perf_counter() - t0
     steady = positions[spc : spc + n] if len(positions) > spc else positions[:n]
+    out = {
+        "scene": scene.name,
+        "band": band.name,
+        "band_hz": band.frequency_hz,
+        **steady_state(scene, tracer, bart, steady, spc, device, t_build, t_first),
+        "tracing": dict(scene.tracing),
+    }
+    k = int(cfg.bench.convergence_tx)
+    if k > 0:
+        out["convergence"] = convergence(scene, band, tracer, bart, positions[:k])
+    out["config"] = OmegaConf.to_container(cfg, resolve=True)
+    atomic_write_json(output_dir(cfg) / "results.json", out)
+    print_bench(out, t_build, t_first)
+    return out
+
+
+def steady_state(scene, tracer, bart, steady, spc: int, device: str, t_build: float, t_first: float) -> dict:
+    """Spectra per second end to end and per stage (tracing, Bartlett, quantisation) over the positions
+    ``steady``, ``spc`` at a time, with the machine and the one-off times (set-up ``t_build``, first call
+    ``t_first``)."""
     t_trace = t_bart = t_q = 0.0
     path_counts = []
     for s in range(0, len(steady), spc):
@@ -72,10 +91,7 @@ def bench(cfg: DictConfig) -> dict:
         t_trace, t_bart, t_q = t_trace + t1 - t0, t_bart + t2 - t1, t_q + t3 - t2
     m = len(steady)
     total = t_trace + t_bart + t_q
-    out = {
-        "scene": scene.name,
-        "band": band.name,
-        "band_hz": band.frequency_hz,
+    return {
         "positions": m,
         "machine": {
             "cpu": _cpu_name(),
@@ -97,33 +113,35 @@ def bench(cfg: DictConfig) -> dict:
             "mean": round(float(np.mean(np.concatenate(path_counts))), 2),
             "fraction_without_paths": round(float(np.mean(np.concatenate(path_counts) == 0)), 4),
         },
-        "tracing": dict(scene.tracing),
     }
-    k = int(cfg.bench.convergence_tx)
-    if k > 0:
-        pos = positions[:k]
-        base = scene.spectra(tracer, bart, pos)[1]
-        doubled = {
-            "samples_per_src": 2 * int(scene.tracing["samples_per_src"]),
-            "max_num_paths_per_src": 2 * int(scene.tracing["max_num_paths_per_src"]),
-        }
-        ref = scene.spectra(scene.tracer(band, **doubled), bart, pos)[1]
-        p = psnr_per_sample(base.cpu(), ref.cpu())
-        out["convergence"] = {
-            "positions": k,
-            "samples_per_src": [int(scene.tracing["samples_per_src"]), doubled["samples_per_src"]],
-            "psnr_min": round(float(p.min()), 2),
-            "psnr_median": round(float(p.median()), 2),
-            "fraction_under_40db": round(float((p < 40).float().mean()), 4),
-        }
-    out["config"] = OmegaConf.to_container(cfg, resolve=True)
-    atomic_write_json(output_dir(cfg) / "results.json", out)
+
+
+def convergence(scene, band, tracer, bart, pos) -> dict:
+    """PSNR of the spectra at ``pos`` between the scene's sample budget and twice that budget."""
+    base = scene.spectra(tracer, bart, pos)[1]
+    doubled = {
+        "samples_per_src": 2 * int(scene.tracing["samples_per_src"]),
+        "max_num_paths_per_src": 2 * int(scene.tracing["max_num_paths_per_src"]),
+    }
+    ref = scene.spectra(scene.tracer(band, **doubled), bart, pos)[1]
+    p = psnr_per_sample(base.cpu(), ref.cpu())
+    return {
+        "positions": len(pos),
+        "samples_per_src": [int(scene.tracing["samples_per_src"]), doubled["samples_per_src"]],
+        "psnr_min": round(float(p.min()), 2),
+        "psnr_median": round(float(p.median()), 2),
+        "fraction_under_40db": round(float((p < 40).float().mean()), 4),
+    }
+
+
+def print_bench(out: dict, t_build: float, t_first: float) -> None:
+    """The benchmark's lines on the terminal (``t_build``, ``t_first``: the set-up and first call, unrounded)."""
     mach = out["machine"]
-    print(f"graf-bench-sim {scene.name} {band.name} on {mach['gpu'] or mach['cpu']} ({mach['threads']} threads)")
+    print(f"graf-bench-sim {out['scene']} {out['band']} on {mach['gpu'] or mach['cpu']} ({mach['threads']} threads)")
     print(f"  set-up {t_build:.2f} s, first call (JIT) {t_first:.2f} s")
     ms = out["ms_per_spectrum"]
     print(
-        f"  steady state over {m} positions: {out['spectra_per_second']:.1f} spectra/s "
+        f"  steady state over {out['positions']} positions: {out['spectra_per_second']:.1f} spectra/s "
         f"(trace {ms['trace']:.2f} ms + Bartlett {ms['bartlett']:.3f} ms + quantise {ms['quantise']:.3f} ms)"
     )
     pp = out["paths_per_position"]
@@ -135,8 +153,7 @@ def bench(cfg: DictConfig) -> dict:
     if "convergence" in out:
         c = out["convergence"]
         print(
-            f"  convergence, {c['samples_per_src'][0]} vs {c['samples_per_src'][1]} samples per source on {k} "
-            f"positions: PSNR min {c['psnr_min']:.1f} dB, median {c['psnr_median']:.1f} dB, "
+            f"  convergence, {c['samples_per_src'][0]} vs {c['samples_per_src'][1]} samples per source on "
+            f"{c['positions']} positions: PSNR min {c['psnr_min']:.1f} dB, median {c['psnr_median']:.1f} dB, "
             f"{100 * c['fraction_under_40db']:.1f}% under 40 dB"
         )
-    return out

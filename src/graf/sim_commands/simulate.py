@@ -20,15 +20,14 @@ from omegaconf import DictConfig, OmegaConf
 from graf.errors import ConfigError
 from graf.io import atomic_write_json, writable_dir
 from graf.run.config import output_dir, scene_band_config, single_scene_config, task_wrapper
+from graf.sim.dataset import export_nerf2, generate
+from graf.sim.scene import SimulatedScene
 
 log = logging.getLogger("graf")
 
 
 @task_wrapper
 def simulate(cfg: DictConfig) -> dict:
-    from graf.sim.dataset import export_nerf2, generate
-    from graf.sim.scene import SimulatedScene
-
     started = time.perf_counter()
     scene_cfg = single_scene_config(cfg, "graf-simulate")
     band = hydra.utils.instantiate(scene_band_config(scene_cfg, cfg.get("band")))
