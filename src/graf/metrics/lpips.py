@@ -174,7 +174,24 @@ def _check_image(name: str, x: object) -> Tensor:
     return x
 
 
-def _lpips_distance(img0: Tensor, img1: Tensor, weights_path: str | os.PathLike[str] | None = None) -> Tensor:
+def lpips_distance(img0: Tensor, img1: Tensor, weights_path: str | os.PathLike[str] | None = None) -> Tensor:
+    """LPIPS v0.1 (AlexNet) distance per sample; lower = more similar.
+
+    Args:
+        img0, img1: float tensors of shape [N, C, H, W], C = 1 (repeated to RGB) or 3,
+            values in [0, 1] (mapped to [-1, 1] internally), H, W >= 31, same device.
+            Values slightly outside [0, 1] (by at most 0.05) are passed through unchanged;
+            anything further out raises ``ValueError`` (catches [0, 255] / [-1, 1] inputs).
+        weights_path: the LPIPS weight file (None: :func:`graf.metrics.lpips_weights.find_weights`).
+
+    Returns:
+        float32 tensor [N] on the inputs' device. Computed without grad, with autocast
+        disabled, using a pretrained model loaded once per process and device.
+
+    Raises:
+        ValueError: shape mismatch, wrong rank/channels, too small, non-finite or out-of-range values.
+        LPIPSWeightsMissing / LPIPSWeightsInvalid: see :mod:`graf.metrics.lpips_weights`.
+    """
     _check_image("img0", img0)
     _check_image("img1", img1)
     if img0.shape != img1.shape:
@@ -204,23 +221,3 @@ def _lpips_distance(img0: Tensor, img1: Tensor, weights_path: str | os.PathLike[
             x1 = x1.expand(-1, 3, -1, -1)
         model = get_lpips_model(device, weights_path)
         return model(x0 * 2.0 - 1.0, x1 * 2.0 - 1.0)
-
-
-def lpips_distance(img0: Tensor, img1: Tensor) -> Tensor:
-    """LPIPS v0.1 (AlexNet) distance per sample; lower = more similar.
-
-    Args:
-        img0, img1: float tensors of shape [N, C, H, W], C = 1 (repeated to RGB) or 3,
-            values in [0, 1] (mapped to [-1, 1] internally), H, W >= 31, same device.
-            Values slightly outside [0, 1] (by at most 0.05) are passed through unchanged;
-            anything further out raises ``ValueError`` (catches [0, 255] / [-1, 1] inputs).
-
-    Returns:
-        float32 tensor [N] on the inputs' device. Computed without grad, with autocast
-        disabled, using a pretrained model loaded once per process and device.
-
-    Raises:
-        ValueError: shape mismatch, wrong rank/channels, too small, non-finite or out-of-range values.
-        LPIPSWeightsMissing / LPIPSWeightsInvalid: see :mod:`graf.metrics.lpips_weights`.
-    """
-    return _lpips_distance(img0, img1)

@@ -34,6 +34,8 @@ import tempfile
 from pathlib import Path
 from typing import Any, BinaryIO
 
+import numpy as np
+
 __all__ = [
     "ENV_VAR",
     "FETCH_COMMAND",
@@ -136,8 +138,6 @@ def _numpy_multiarray_module() -> Any:
 
 
 def _allowed_global(module: str, name: str) -> Any | None:
-    import numpy as np
-
     if module in ("numpy.core.multiarray", "numpy._core.multiarray") and name == "_reconstruct":
         return _numpy_multiarray_module()._reconstruct
     if module == "numpy" and name == "ndarray":
@@ -201,8 +201,6 @@ def load_checkpoint(path: str | os.PathLike[str] | None = None) -> dict[str, Any
     ``path=None`` uses :func:`find_weights`. Raises :class:`LPIPSWeightsMissing` if the
     file does not exist and :class:`LPIPSWeightsInvalid` if its hash or content is wrong.
     """
-    import numpy as np
-
     p = find_weights() if path is None else Path(path)
     if not p.is_file():
         raise LPIPSWeightsMissing(_missing_message(p))

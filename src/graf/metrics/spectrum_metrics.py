@@ -18,7 +18,7 @@ from torch import Tensor
 from torchmetrics import Metric, MetricCollection
 
 from .functional import mse_per_sample, psnr_per_sample, ssim_per_sample
-from .lpips import _lpips_distance, get_lpips_model
+from .lpips import get_lpips_model, lpips_distance
 
 __all__ = ["SpectrumMSE", "SpectrumPSNR", "SpectrumSSIM", "SpectrumLPIPS", "spectrum_metrics"]
 
@@ -140,7 +140,7 @@ class SpectrumLPIPS(_SpectrumMean):
     def _per_sample(self, pred: Tensor, target: Tensor) -> Tensor:
         if pred.ndim == 3:
             pred, target = pred.unsqueeze(1), target.unsqueeze(1)
-        return _lpips_distance(pred, target, weights_path=self.weights_path)
+        return lpips_distance(pred, target, weights_path=self.weights_path)
 
 
 def spectrum_metrics(prefix: str = "", *, lpips: bool = True, data_range: float = 1.0) -> MetricCollection:
