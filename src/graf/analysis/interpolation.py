@@ -15,6 +15,7 @@ from collections.abc import Callable
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 from graf.data.neighbors import select_neighbors
 from graf.models.knn.weights import barycentric_weights, idw_weights
@@ -81,8 +82,6 @@ def cluster_errors(trace: Callable[[np.ndarray], np.ndarray], anchors, scales, s
     one per octant) at distances drawn in [d/2, d] (the largest set to d, so ``dp_max == d``); the anchor is
     interpolated from them with barycentric and IDW weights.  Returns ``{"anchor", "scale", "dp_max",
     "rmse_barycentric", "rmse_idw"}`` (one entry per anchor and scale), all traced in one call per scale."""
-    from scipy.spatial.transform import Rotation
-
     anchors = np.asarray(anchors, dtype=np.float64).reshape(-1, 3)
     rng = np.random.default_rng(seed)
     out = {k: [] for k in ("anchor", "scale", "dp_max", "rmse_barycentric", "rmse_idw")}
