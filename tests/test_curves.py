@@ -33,7 +33,7 @@ def test_curves_run_resume_and_validate_only(tmp_path, make_scene):
         f"+regimes={{tiny: {{max_steps: 3, overrides: {regime}}}}}",
         "only_regimes=[tiny]",
         f"methods.pooled.overrides={q('model=graf_cpu', *small)}",
-        f"methods.ray_knn.overrides={q('model=graf_cpu', 'model.neighbor_features=ray_knn', *small)}",
+        f"methods.ray_knn.overrides={q('model=graf_cpu', 'model/features=ray_knn', *small)}",
         "only_methods=[pooled,ray_knn]",
         f"hydra.run.dir={tmp_path / 'h'}",
     ]

@@ -1,6 +1,6 @@
 """Ray-aligned neighbor features (issue 22, points 2 and 3): a ray at (elevation, azimuth) reads every
 neighbor at (elevation, azimuth), the azimuth wrapping at 360 degrees; the ray_knn variant is IDW KNN at
-step 0; every option composes through Hydra and round-trips a checkpoint."""
+step 0; every option composes through Hydra (``model/features=<mode>``) and round-trips a checkpoint."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from graf.models.graf import GRaFModule
+from graf.models.graf.features import MODES, RayFeatures
 from graf.models.graf.ray_features import pad_wrap, pixel_window, sample_wrap, upsample_wrap
 from graf.models.knn import KNNModule
 from graf.run.train import train
@@ -69,14 +70,15 @@ def test_pixel_window_reads_the_rays_own_pixel_and_wraps_the_azimuth_seam():
     assert torch.equal(win[2, :, 3], spectra[1, :, 89, 359])  # az 0 - 1 column -> az 359
 
 
-def _batch(B=2, L=3, seed=0, colocated=False):
+def synthetic_batch(B=2, L=3, seed=0, colocated=False):
+    """A batch of B targets with L neighbors each (the last neighbor of the last target padded)."""
     g = torch.Generator().manual_seed(seed)
     tgt = torch.rand(B, 3, generator=g) + torch.tensor([0.0, 0.0, 0.5])
     src = tgt[:, None, :] + 0.3 * torch.randn(B, L, 3, generator=g)
     if colocated:
         src[:, 0] = tgt
     mask = torch.ones(B, L, dtype=torch.bool)
-    mask[1, -1] = False  # a padded neighbor
+    mask[-1, -1] = False  # a padded neighbor (of the second target when B = 2)
     return {
         "tgt_pos": tgt,
         "src_pos": src,
@@ -96,8 +98,8 @@ def _batch(B=2, L=3, seed=0, colocated=False):
 @pytest.mark.parametrize("features", ["ray_knn", "ray_weights"])
 def test_knn_based_modes_at_step_0_are_idw_knn_on_the_same_neighbors(features):
     torch.manual_seed(0)
-    model = GRaFModule(**TINY, neighbor_features=features).eval()
-    batch = _batch()
+    model = GRaFModule(**TINY, features=features).eval()
+    batch = synthetic_batch()
     with torch.no_grad():
         pred = model.predict_spectra(batch)
     knn = KNNModule(weighting="idw").predict_spectra(batch)
@@ -107,8 +109,8 @@ def test_knn_based_modes_at_step_0_are_idw_knn_on_the_same_neighbors(features):
 @pytest.mark.parametrize("features", ["ray_knn", "ray_weights"])
 def test_a_colocated_neighbor_with_its_identity_weight_is_reproduced(features):
     torch.manual_seed(0)
-    model = GRaFModule(**TINY, neighbor_features=features).eval()
-    batch = _batch(colocated=True)
+    model = GRaFModule(**TINY, features=features).eval()
+    batch = synthetic_batch(colocated=True)
     with torch.no_grad():
         pred = model.predict_spectra(batch)
     assert (pred - batch["src_spectra"][:, 0]).abs().max() < 1e-5
@@ -118,8 +120,9 @@ def test_ray_mode_reads_each_neighbor_at_the_rays_own_pixel():
     """Changing one neighbor pixel changes the ray through that pixel; pooled mode spreads it over every ray,
     ray mode moves that ray most."""
     torch.manual_seed(0)
-    model = GRaFModule(**TINY, neighbor_features="ray", pixel_window=0).eval()
-    batch = _batch()
+    model = GRaFModule(**TINY, features={"_target_": MODES["ray"], "pixel_window": 0}).eval()
+    assert isinstance(model.features, RayFeatures) and model.features.pixel_window == 0
+    batch = synthetic_batch()
     r, c = 40, 359
     with torch.no_grad():
         before = model.predict_spectra(batch)
@@ -136,7 +139,7 @@ def test_ray_options_compose_train_and_round_trip_a_checkpoint(compose_cfg, feat
         "train",
         (
             "experiment=graf_rfid_s23",
-            f"model.neighbor_features={features}",
+            f"model/features={features}",
             "trainer.max_steps=2",
             "model.rays_per_step=64",
             "model.max_samples=4",
@@ -153,7 +156,7 @@ def test_ray_options_compose_train_and_round_trip_a_checkpoint(compose_cfg, feat
     assert res["method"] == "graf-" + features.replace("_", "-") and res["global_step"] == 2
     model = run.built.model.eval()
     loaded = GRaFModule.load_from_checkpoint(tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu").eval()
-    assert loaded.hparams.neighbor_features == features
+    assert loaded.hparams.features == {"_target_": MODES[features], "ray_feature_dim": 8, "pixel_window": 1}
     batch = next(iter(run.built.datamodule.test_dataloader()))
     with torch.no_grad():
         assert torch.equal(model.predict_spectra(batch), loaded.predict_spectra(batch))
@@ -161,25 +164,27 @@ def test_ray_options_compose_train_and_round_trip_a_checkpoint(compose_cfg, feat
 
 def test_ray_knn_refuses_the_pooled_residual_and_unknown_modes_are_refused():
     with pytest.raises(ValueError, match="ray_knn already adds"):
-        GRaFModule(**TINY, neighbor_features="ray_knn", residual=True)
+        GRaFModule(**TINY, features="ray_knn", residual=True)
     with pytest.raises(ValueError, match="ray_weights already adds"):
-        GRaFModule(**TINY, neighbor_features="ray_weights", residual=True)
-    with pytest.raises(ValueError, match="neighbor_features must be one of"):
-        GRaFModule(**TINY, neighbor_features="rays")
+        GRaFModule(**TINY, features="ray_weights", residual=True)
+    with pytest.raises(ValueError, match="features must be one of"):
+        GRaFModule(**TINY, features="rays")
+    with pytest.warns(FutureWarning, match="deprecated"), pytest.raises(ValueError, match="must be one of"):
+        GRaFModule(**TINY, neighbor_features="rays")  # the old string hyperparameter
 
 
 def test_ray_weights_predicts_only_convex_combinations_of_what_the_neighbors_measured_even_after_training():
     """Trained or not, every pixel of a ray_weights prediction lies between the neighbors' values there."""
     torch.manual_seed(0)
-    model = GRaFModule(**TINY, neighbor_features="ray_weights")
-    batch = _batch()
+    model = GRaFModule(**TINY, features="ray_weights")
+    batch = synthetic_batch()
     opt = torch.optim.SGD(model.parameters(), lr=0.5)
     for _ in range(3):  # move the weights away from IDW
         pix = torch.randint(0, 90 * 360, (batch["tgt_pos"].shape[0], 64))
         pred = model.render(model.prepare(batch), pix)
         loss = (pred - batch["tgt_spectrum"].flatten(1).gather(1, pix)).pow(2).mean()
         opt.zero_grad(), loss.backward(), opt.step()
-    assert model.weight_query.weight.abs().sum() > 0
+    assert model.features.weight_query.weight.abs().sum() > 0
     model.eval()
     with torch.no_grad():
         pred = model.predict_spectra(batch)
