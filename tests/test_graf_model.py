@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import functools
 import inspect
 import math
 
 import lightning as L
 import pytest
 import torch
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
 from graf.bands import Band
 from graf.data.datamodule import SpectrumDataModule
@@ -39,12 +42,24 @@ def _eval_batch(dm, n=2) -> dict:
     return next(iter(dm.test_dataloader())) if n == dm.batch_size else dm.eval_batch(list(range(n)))
 
 
-def _preset(name: str, **overrides) -> GRaFModule:
+@functools.cache
+def _composed(name: str, overrides: tuple[str, ...]) -> dict:
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF_DIR / "model"), version_base="1.3"):
+        cfg = compose(config_name=name, overrides=list(overrides))
+    GlobalHydra.instance().clear()
+    return OmegaConf.to_container(cfg)
+
+
+def preset_config(name: str, *overrides: str) -> DictConfig:
+    """conf/model/<name>.yaml as ``model=<name>`` composes it (its defaults list: graf.yaml, the features
+    group); ``overrides`` in the model's own terms, e.g. ``features=ray``."""
+    return OmegaConf.create(_composed(name, overrides))
+
+
+def _preset(name: str, *group_overrides: str, **overrides) -> GRaFModule:
     """The model exactly as conf/model/<name>.yaml builds it (with overrides)."""
-    cfg = OmegaConf.load(CONF_DIR / "model" / f"{name}.yaml")
-    if "defaults" in cfg:  # graf_cpu.yaml extends graf.yaml
-        base = OmegaConf.load(CONF_DIR / "model" / "graf.yaml")
-        cfg = OmegaConf.merge(base, {k: v for k, v in cfg.items() if k != "defaults"})
+    cfg = preset_config(name, *group_overrides)
     torch.manual_seed(0)
     return instantiate(cfg, **overrides)
 
@@ -66,10 +81,11 @@ def rfid():
 
 # ---------------------------------------------------------------------------------------------- configs
 def test_preset_configs_are_the_constructor_arguments(compose_cfg):
-    params = set(inspect.signature(GRaFModule.__init__).parameters) - {"self"}
+    signature = inspect.signature(GRaFModule.__init__).parameters
+    params = {k for k, p in signature.items() if p.kind != p.VAR_KEYWORD} - {"self"}  # **legacy: old checkpoints
     for name, method in (("graf", "graf"), ("graf_cpu", "graf")):
         cfg = compose_cfg("train", (f"model={name}",)).model
-        assert set(cfg) - {"_target_"} == params
+        assert set(cfg) - {"_target_", "_recursive_"} == params
         model = instantiate(cfg)
         assert model.method == method and model.has_trainable_parameters
         assert model.hparams.encoder_widths == list(cfg.encoder_widths)
@@ -192,7 +208,7 @@ def test_prediction_contract_and_invariances(tiny):
 
 def test_scene_index_enters_the_encoding(tiny):
     model = _small(use_scene_index=True)
-    assert model.mlp1[0].in_features == 128 + 84 + 63 and model.query_voxel.in_features == 84
+    assert model.features.mlp1[0].in_features == 128 + 84 + 63 and model.query_voxel.in_features == 84
     b = _eval_batch(tiny)
     pix = torch.arange(0, 32400, 101).expand(2, -1)
     with torch.no_grad():
@@ -294,8 +310,8 @@ def test_two_training_steps_and_checkpoint(tiny, tmp_path, preset, overrides):
     assert trainer.global_step == 2
     assert math.isfinite(float(trainer.callback_metrics["train/loss"]))
     changed = [k for k, v in model.named_parameters() if not torch.equal(v, before[k])]
-    assert "head.weight" in changed and any(k.startswith("encoder.") for k in changed)
-    assert any(k.startswith("mlp1.") for k in changed) and any(k.startswith("ray_blocks.") for k in changed)
+    assert "features.head.weight" in changed and any(k.startswith("encoder.") for k in changed)
+    assert any(k.startswith("features.mlp1.") for k in changed) and any(k.startswith("ray_blocks.") for k in changed)
     if preset == "graf_cpu":  # checkpoint round trip (hparams included) gives identical predictions
         path = tmp_path / "graf.ckpt"
         trainer.save_checkpoint(path)

@@ -7,7 +7,6 @@ import warnings
 import pytest
 import torch
 from hydra.utils import instantiate
-from omegaconf import OmegaConf
 
 from graf.bands import Band
 from graf.data.datamodule import SpectrumDataModule
@@ -17,16 +16,13 @@ from graf.geometry.rays import random_pixels
 from graf.metrics import lpips_distance, mse_per_sample, psnr_per_sample, ssim_per_sample
 from graf.models.knn import KNNModule
 from graf.models.nerf2 import NeRF2Module
-from graf.run.config import CONF_DIR
+from tests.test_graf_model import preset_config
 
 UHF, SHF = Band("915mhz", 915e6), Band("3ghz", 3e9)
 
 
 def _graf(**kw):
-    cfg = OmegaConf.merge(
-        OmegaConf.load(CONF_DIR / "model" / "graf.yaml"),
-        {k: v for k, v in OmegaConf.load(CONF_DIR / "model" / "graf_cpu.yaml").items() if k != "defaults"},
-    )
+    cfg = preset_config("graf_cpu")  # as model=graf_cpu composes it (graf.yaml, the features group)
     torch.manual_seed(0)
     return instantiate(cfg, **{"rays_per_step": 64, "chunk_rays": 40000, **kw})
 
