@@ -18,9 +18,9 @@ from hydra.errors import MissingConfigException
 
 from graf.cli import evaluate as graf_eval
 from graf.cli import train as graf_train
-from graf.cli.overrides import RENAMED_KEYS, modernize
 from graf.errors import user_message
 from graf.run.config import CONF_DIR
+from graf.run.overrides import RENAMED_KEYS, modernize
 
 BIN = Path(sys.executable).parent
 HINT = "(HYDRA_FULL_ERROR=1 shows the full traceback)"

@@ -8,6 +8,8 @@ notebook without a Hydra app.
   written and printed;
 - :mod:`.finetune`, :mod:`.resume`: starting from a checkpoint's weights, resuming or stopping a training run;
 - :mod:`.train` (graf-train), :mod:`.evaluate` (graf-eval): ``train(cfg) -> Results``, ``evaluate(cfg) -> Results``.
+- :mod:`.overrides`, :mod:`.command`: a command line brought up to date and checked before Hydra composes, and
+  how a command ends (a user error on one line, a multirun's failed jobs counted).
 
 The tools over many runs are in :mod:`graf.studies`, the case studies in :mod:`graf.cases` and the simulator's
 commands in :mod:`graf.sim_commands`.
