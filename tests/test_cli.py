@@ -17,6 +17,7 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from graf.data.spectrum_set import DataFormatError
 from graf.errors import ConfigError
+from graf.run.build import model_config_for_neighbors
 from graf.run.config import CONF_DIR, CONF_PATH, scene_band_config, scene_configs
 from graf.run.evaluate import evaluate
 from graf.run.train import train
@@ -340,7 +341,9 @@ def test_the_comparison_study_composes_one_job_per_method_on_the_same_neighbors(
         jobs = sorted(o for o in options if o.startswith("compare_rfid_s23_"))  # what glob(compare_rfid_s23_*) runs
         cfgs = {j: compose(config_name="train", overrides=[f"experiment={j}"]) for j in jobs}
     GlobalHydra.instance().clear()
-    methods = {j: instantiate(c.model).method for j, c in cfgs.items()}
+    methods = {
+        j: instantiate(model_config_for_neighbors(c.model, instantiate(c.neighbors))).method for j, c in cfgs.items()
+    }
     assert sorted(methods.values()) == ["graf", "knn", "knn-dl", "nerf2"]
     for c in cfgs.values():
         assert c.scene.rfid_s23.name == "rfid_s23" and c.neighbors.exclude_within == 0.25 and c.baselines is None

@@ -123,25 +123,26 @@ class BuiltRun:
 
 
 def run_model_config(cfg: DictConfig, neighbors: NeighborSelector) -> DictConfig:
-    """The config with the model settings that follow from the run filled in, for the model and every baseline:
-    ``max_rank: null`` (KNN-DL's scale of its rank and neighbor-count features) is the largest L the run's
-    neighbor selector gives (``neighbors.max_L``)."""
-    nodes = ["model"] + [f"baselines.{k}" for k in (cfg.get("baselines") or {})]
-    if not any(
-        isinstance(OmegaConf.select(cfg, n), DictConfig)
-        and "max_rank" in OmegaConf.select(cfg, n)
-        and OmegaConf.select(cfg, n).max_rank is None
-        for n in nodes
-    ):
-        return cfg
+    """The config with the model settings that follow from the run filled in, for the model and every baseline
+    (:func:`model_config_for_neighbors`)."""
     cfg = cfg.copy()
     with open_dict(cfg):
-        for n in nodes:
-            node = OmegaConf.select(cfg, n)
-            if isinstance(node, DictConfig) and "max_rank" in node and node.max_rank is None:
-                node.max_rank = int(neighbors.max_L)
-                log.info("%s.max_rank=%d: the largest L of the run's neighbor selector", n, neighbors.max_L)
+        cfg.model = model_config_for_neighbors(cfg.model, neighbors, "model")
+        for name, node in (cfg.get("baselines") or {}).items():
+            if isinstance(node, DictConfig):
+                cfg.baselines[name] = model_config_for_neighbors(node, neighbors, f"baselines.{name}")
     return cfg
+
+
+def model_config_for_neighbors(node: DictConfig, neighbors: NeighborSelector, where: str = "model") -> DictConfig:
+    """A model config with ``max_rank: null`` (KNN-DL's scale of its rank and neighbor-count features) set to the
+    largest L the neighbor selector gives (``neighbors.max_L``): the one place that decides it."""
+    if "max_rank" not in node or node.max_rank is not None:
+        return node
+    node = node.copy()
+    node.max_rank = int(neighbors.max_L)
+    log.info("%s.max_rank=%d: the largest L of the run's neighbor selector", where, neighbors.max_L)
+    return node
 
 
 def build(cfg: DictConfig, trains: bool = True) -> BuiltRun:

@@ -72,7 +72,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from graf.errors import ConfigError
-from graf.run.build import build_datamodule
+from graf.run.build import build_datamodule, model_config_for_neighbors
 from graf.run.config import CONF_DIR, band_choices, output_dir, task_wrapper
 from graf.sim_commands.simulate import simulate
 from graf.studies.bench_measure import (
@@ -281,6 +281,7 @@ def _bench_model(cfg: DictConfig, m: str, scene_name: str, infer: list, train: l
     quick = bool(cfg.get("quick", False))
     try:
         mcfg = OmegaConf.create(OmegaConf.to_container(cfg.models[m], resolve=True))
+        mcfg = model_config_for_neighbors(mcfg, hydra.utils.instantiate(cfg.neighbors), f"models.{m}")
         rps = cfg.bench.get("rays_per_step")
         if rps is not None and "rays_per_step" in mcfg:
             mcfg.rays_per_step = int(rps)
