@@ -1,4 +1,4 @@
-"""Ray-aligned neighbor features (``model.neighbor_features=ray`` and ``ray_knn``).
+"""Ray-aligned neighbor features (``model/features=ray``, ``ray_knn`` and ``ray_weights``).
 
 Every spectrum of a scene is measured by the same array, so ray (elevation, azimuth) of the target is pixel
 (elevation, azimuth) of every neighbor.  Instead of pooling each neighbor's spectrum to one vector, a ray
