@@ -30,6 +30,7 @@ from graf.callbacks import PredictionCollector
 from graf.metrics.names import EVAL_METRICS
 from graf.run.build import BuiltRun, EvalScene, evaluation_trainer
 from graf.run.record import BaselineFigures, RunResult, Timing
+from graf.search.objectives import objective_values
 
 log = logging.getLogger("graf")
 
@@ -217,8 +218,6 @@ def sweep_value(cfg: DictConfig, metrics: dict, run: RunResult | None = None):
     see :mod:`graf.search.objectives` for the names).  Only validation metrics and costs measured on
     validation data are accepted: nothing is chosen on the test split.  A NaN or missing metric is returned
     as NaN for the Optuna sweeper (which records the trial as failed) and as -inf for Hydra's basic sweeper."""
-    from graf.search.objectives import objective_values
-
     names = cfg.get("optimized_metric")
     if not names:
         return 0.0
