@@ -179,6 +179,8 @@ def test_an_old_format_checkpoint_loads_strictly_and_predicts_the_same(tmp_path,
     with pytest.warns(FutureWarning, match="deprecated"):
         loaded = GRaFModule.load_from_checkpoint(tmp_path / "old.ckpt", map_location="cpu", strict=True)
     assert loaded.method == model.method and dict(loaded.hparams) == dict(model.hparams)
+    with pytest.warns(FutureWarning):  # what a resumed run compares with its own settings (graf.run.resume)
+        assert GRaFModule.upgrade_hparams(old["hyper_parameters"]) == dict(model.hparams)
     fresh = _model(mode, residual=residual)
     fresh.load_state_dict(old["state_dict"], strict=True)  # fine-tuning's (finetune.init_from) of the old keys
     batch = synthetic_batch()

@@ -112,7 +112,8 @@ def check_resume(cfg: DictConfig, model, dm, path) -> Resumed:
     both are recorded (results.json ``resumed``)."""
     ckpt = read_checkpoint(path)
     check_checkpoint(ckpt, type(model), path)
-    saved = dict(ckpt.get("hyper_parameters") or {})
+    # in the current form (GRaF's: a checkpoint written before model/features, graf.models.graf.legacy)
+    saved = getattr(type(model), "upgrade_hparams", dict)(ckpt.get("hyper_parameters") or {})
     allowed = set(getattr(type(model), "INFERENCE_SETTINGS", ()))
     info = ckpt.get("graf") or {}
     run_then, run_now = info.get("run") or {}, run_settings(cfg)
