@@ -34,6 +34,7 @@ and told one at a time (ask-and-tell), so that every outcome is stored as it hap
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import logging
 import math
@@ -41,16 +42,26 @@ import os
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
 
 import optuna
+import psutil
+import sqlalchemy.exc
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.core.plugins import Plugins
+from hydra.core.utils import JobStatus
 from omegaconf import DictConfig, OmegaConf
+from optuna.storages import RDBStorage, RetryHeartbeatStaleTrialCallback, fail_stale_trials
+from optuna.storages._heartbeat import is_heartbeat_enabled  # Optuna's own test, not exported by optuna.storages
 from optuna.trial import FrozenTrial, TrialState
 
 from graf.errors import PREEMPTED_EXIT_CODE, is_preempted
 from graf.io import atomic_write_json
+from graf.search.objectives import check_objective_names, metrics_mean
+from graf.search.outputs import best_trials, write_outputs
 from graf.search.pruners import make_pruner
 from graf.search.search_space import SearchSpace, SearchSpaceError, parse_search_space
 
@@ -86,8 +97,6 @@ class SweepPreempted(RuntimeError):
 # processes
 def _process_start(pid: int) -> float | None:
     try:
-        import psutil
-
         return float(psutil.Process(pid).create_time())
     except Exception:
         return None
@@ -115,8 +124,6 @@ def storage_lock(lock_path: Path | None):
     if lock_path is None:
         yield
         return
-    import fcntl
-
     lock_path.parent.mkdir(parents=True, exist_ok=True)
     with open(lock_path, "a+") as f:
         fcntl.flock(f.fileno(), fcntl.LOCK_EX)
@@ -143,9 +150,6 @@ def make_storage(url: str, heartbeat: dict | None):
                 heartbeat.get("grace_period"),
             )
         return url
-    import sqlalchemy.exc
-    from optuna.storages import RDBStorage, RetryHeartbeatStaleTrialCallback
-
     interval, grace = int(heartbeat.get("interval", 10)), heartbeat.get("grace_period")
     for attempt in range(5):
         try:
@@ -167,8 +171,7 @@ def make_storage(url: str, heartbeat: dict | None):
 
 
 def heartbeat_enabled(study) -> bool:
-    from optuna.storages._heartbeat import is_heartbeat_enabled
-
+    """Whether the study's storage records heartbeats (an RDB storage made by :func:`make_storage`)."""
     return is_heartbeat_enabled(study._storage)
 
 
@@ -179,8 +182,6 @@ def heartbeats(study, trial):
     if not heartbeat_enabled(study):
         yield
         return
-    import threading
-
     storage, stop = study._storage, threading.Event()
     interval = storage.get_heartbeat_interval()
 
@@ -330,8 +331,6 @@ class OptunaSweep:
 
     # -- Hydra's side ---------------------------------------------------------------------------------------
     def setup(self, *, hydra_context, task_function, config: DictConfig) -> None:
-        from hydra.core.plugins import Plugins
-
         self.hydra_context, self.config = hydra_context, config
         self.launcher = Plugins.instance().instantiate_launcher(
             hydra_context=hydra_context, task_function=task_function, config=config
@@ -378,14 +377,12 @@ class OptunaSweep:
                 f"optimized_metric {names} has {len(names)} value(s) but hydra.sweeper.direction "
                 f"has {len(self.directions)}: give one direction per objective"
             )
-        from graf.search.objectives import check_objective_names
-
         check_objective_names(names)
         return names
 
     def sweep(self, arguments: list[str]) -> list:
-        from hydra.core.override_parser.overrides_parser import OverridesParser
-
+        """This process's part of the search over the space of ``arguments`` and ``hydra.sweeper.params``; rank 0
+        starts the other workers, writes the outputs and tests the chosen configuration.  The trials' returns."""
         sweep_dir = Path(str(self.config.hydra.sweep.dir)).absolute()
         sweep_dir.mkdir(parents=True, exist_ok=True)
         if self.worker_rank == 0:
@@ -393,6 +390,29 @@ class OptunaSweep:
         names = self._objective_names()
         parser = OverridesParser.create(config_loader=self.hydra_context.config_loader)
         space = self._prune_absent(parse_search_space(self.params, arguments, parser))
+        study, ctx = self._open_study(sweep_dir, space, names)
+        workers = (
+            self._start_workers(sweep_dir, ctx["url"], ctx["name"]) if self.worker_rank == 0 and self.n_jobs > 1 else []
+        )
+        try:
+            returns, error = self._trials(study, ctx)
+        except SweepPreempted as exc:
+            if self.worker_rank == 0:
+                write_outputs(study, ctx["sweep_dir"], space, ctx["names"], plots=False)
+            log.error("%s", exc)
+            raise SystemExit(exc.exit_code) from None
+        finally:
+            for p in workers:
+                p.wait()
+        if self.worker_rank == 0:
+            self._finish(study, ctx)
+        if error is not None:
+            raise error
+        return returns
+
+    def _open_study(self, sweep_dir: Path, space: SearchSpace, names: list[str]):
+        """``(study, ctx)``: the study created or loaded (under the storage lock) with this process's sampler, and
+        what the loop needs of the sweep (url, name, sweep_dir, lock, space, n_trials, names)."""
         url = str(self.storage) if self.storage else f"sqlite:///{sweep_dir / 'optuna.db'}"
         name = str(self.study_name or self.config.get("task_name") or "study")
         db = _sqlite_path(url)
@@ -431,44 +451,24 @@ class OptunaSweep:
             self.directions,
             self.threads(),
         )
-        workers = self._start_workers(sweep_dir, url, name) if self.worker_rank == 0 and self.n_jobs > 1 else []
-        ctx = {
-            "url": url,
-            "name": name,
-            "sweep_dir": sweep_dir,
-            "lock": lock,
-            "space": space,
-            "n_trials": n_trials,
-            "names": names,
-        }
-        returns, error = [], None
-        try:
-            while True:
-                step = self._next(study, ctx)
-                if step == "done":
-                    break
-                if step == "wait":
-                    time.sleep(POLL_S)
-                    continue
-                if isinstance(step, SweepError):
-                    error = step
-                    break
-                returns.append(self._run_trial(study, step, ctx))
-        except SweepPreempted as exc:
-            from graf.search.outputs import write_outputs
+        ctx = {"url": url, "name": name, "sweep_dir": sweep_dir, "lock": lock, "space": space,
+               "n_trials": n_trials, "names": names}  # fmt: skip
+        return study, ctx
 
-            if self.worker_rank == 0:
-                write_outputs(study, ctx["sweep_dir"], space, ctx["names"], plots=False)
-            log.error("%s", exc)
-            raise SystemExit(exc.exit_code) from None
-        finally:
-            for p in workers:
-                p.wait()
-        if self.worker_rank == 0:
-            self._finish(study, ctx)
-        if error is not None:
-            raise error
-        return returns
+    def _trials(self, study, ctx) -> tuple[list, SweepError | None]:
+        """Run trials until the study is done (or waits on others' last trials); the returns, and the error that
+        stopped the search (too many failures) or None."""
+        returns = []
+        while True:
+            step = self._next(study, ctx)
+            if step == "done":
+                return returns, None
+            if step == "wait":
+                time.sleep(POLL_S)
+                continue
+            if isinstance(step, SweepError):
+                return returns, step
+            returns.append(self._run_trial(study, step, ctx))
 
     def _check_same_search(self, study, space: SearchSpace, names: list[str]) -> None:
         described = {"space": space.describe(), "objectives": names, "directions": self.directions}
@@ -527,8 +527,6 @@ class OptunaSweep:
 
     def _recover_interrupted(self, study, ctx) -> None:
         if heartbeat_enabled(study):  # a shared RDB storage: Optuna's heartbeats find dead workers on any machine
-            from optuna.storages import fail_stale_trials
-
             before = {t.number for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))}
             fail_stale_trials(study)
             trials = study.get_trials(deepcopy=False)
@@ -641,22 +639,48 @@ class OptunaSweep:
             time.sleep(POLL_S)  # the same configuration is being trained elsewhere: take its outcome
 
     def _run_trial(self, study, trial, ctx):
-        dup = self._duplicate(study, trial)
-        if dup is not None:
-            trial.set_user_attr(DUPLICATE, dup.number)
-            if dup.state == TrialState.COMPLETE:
-                study.tell(trial, dup.values)
-            else:
-                study.tell(trial, state=TrialState.PRUNED)
-            log.info(
-                "trial %d: the parameters of trial %d (%s): its outcome taken, nothing trained",
-                trial.number,
-                dup.number,
-                dup.state.name,
-            )
+        """Run one trial's job (unless a finished trial had its parameters: its outcome is taken) and tell the
+        study its outcome; the job's return (None for a duplicate)."""
+        if self._took_duplicate(study, trial):
             return None
         space: SearchSpace = ctx["space"]
-        overrides = space.overrides(trial.params)
+        overrides = self._trial_overrides(trial, ctx)
+        log.info("trial %d: %s", trial.number, " ".join(space.overrides(trial.params)[len(space.fixed) :]))
+        t0 = time.perf_counter()
+        with heartbeats(study, trial):
+            ret = self._launch(overrides, trial.number)
+        wall = round(time.perf_counter() - t0, 3)
+        trial.set_user_attr(WALL, wall)
+        with contextlib.suppress(Exception):
+            trial.set_user_attr(OUTPUT, str(ret.hydra_cfg.hydra.runtime.output_dir))
+        if ret.status == JobStatus.COMPLETED:
+            self._tell_values(study, trial, ret._return_value, ctx, wall)
+        else:
+            self._tell_failure(study, trial, ret)
+        return ret
+
+    def _took_duplicate(self, study, trial) -> bool:
+        """Whether a finished trial had the same parameters: its outcome is then told for this one."""
+        dup = self._duplicate(study, trial)
+        if dup is None:
+            return False
+        trial.set_user_attr(DUPLICATE, dup.number)
+        if dup.state == TrialState.COMPLETE:
+            study.tell(trial, dup.values)
+        else:
+            study.tell(trial, state=TrialState.PRUNED)
+        log.info(
+            "trial %d: the parameters of trial %d (%s): its outcome taken, nothing trained",
+            trial.number,
+            dup.number,
+            dup.state.name,
+        )
+        return True
+
+    def _trial_overrides(self, trial, ctx) -> list[str]:
+        """The job's overrides: the trial's parameters, its checkpoint to resume from, its link to the study
+        (``optuna_trial``: the pruner's reports) and its threads."""
+        overrides = ctx["space"].overrides(trial.params)
         resume = trial.user_attrs.get(RESUME)
         if resume and Path(resume).is_file():
             overrides.append(f"ckpt_path={_quote(resume)}")
@@ -669,72 +693,55 @@ class OptunaSweep:
             "monitor": self.pruner_conf.get("monitor", "val/psnr") if prune else None,
             "pruner": {k: v for k, v in self.pruner_conf.items() if k != "monitor"},
         }
-        overrides += [
+        return overrides + [
             f"{self._key('optuna_trial')}={_grammar(trial_conf)}",
             f"{self._key('torch_threads')}={self.threads()}",
         ]
-        log.info("trial %d: %s", trial.number, " ".join(space.overrides(trial.params)[len(space.fixed) :]))
-        t0 = time.perf_counter()
-        with heartbeats(study, trial):
-            ret = self._launch(overrides, trial.number)
-        wall = round(time.perf_counter() - t0, 3)
-        trial.set_user_attr(WALL, wall)
-        with contextlib.suppress(Exception):
-            trial.set_user_attr(OUTPUT, str(ret.hydra_cfg.hydra.runtime.output_dir))
-        from hydra.core.utils import JobStatus
 
-        if ret.status == JobStatus.COMPLETED:
-            values = ret._return_value
-            values = list(values) if isinstance(values, (list, tuple)) or OmegaConf.is_list(values) else [values]
-            try:
-                values = [float(v) for v in values]
-            except (TypeError, ValueError):
-                values = [math.nan]
-            if len(values) != len(self.directions) or not all(math.isfinite(v) for v in values):
-                trial.set_user_attr(ERROR, f"objective {ctx['names']} returned {values}")
-                study.tell(trial, state=TrialState.FAIL)
-                log.warning(
-                    "trial %d failed: its objective is %s (stored as failed; the study goes on)", trial.number, values
-                )
-            else:
-                study.tell(trial, values)
-                log.info("trial %d: %s = %s (%.1f s)", trial.number, ctx["names"], values, wall)
+    def _tell_values(self, study, trial, values, ctx, wall: float) -> None:
+        """A completed job's objective values told; one not a finite number per objective is a failed trial."""
+        values = list(values) if isinstance(values, (list, tuple)) or OmegaConf.is_list(values) else [values]
+        try:
+            values = [float(v) for v in values]
+        except (TypeError, ValueError):
+            values = [math.nan]
+        if len(values) != len(self.directions) or not all(math.isfinite(v) for v in values):
+            trial.set_user_attr(ERROR, f"objective {ctx['names']} returned {values}")
+            study.tell(trial, state=TrialState.FAIL)
+            log.warning(
+                "trial %d failed: its objective is %s (stored as failed; the study goes on)", trial.number, values
+            )
         else:
-            exc = ret._return_value
-            if isinstance(exc, optuna.TrialPruned):
-                study.tell(trial, state=TrialState.PRUNED)
-                log.info("trial %d pruned: %s", trial.number, exc)
-            elif is_preempted(exc):
-                self._requeue(
-                    study,
-                    trial,
-                    str(ret.hydra_cfg.hydra.runtime.output_dir)
-                    if getattr(ret, "hydra_cfg", None) is not None
-                    else None,
-                )
-                raise SweepPreempted(
-                    f"trial {trial.number} was pre-empted ({exc}); its parameters are queued again: "
-                    "run the same command to resume the search"
-                )
-            else:
-                trial.set_user_attr(ERROR, f"{type(exc).__name__}: {exc}"[:2000])
-                study.tell(trial, state=TrialState.FAIL)
-                log.warning(
-                    "trial %d failed: %s: %s (stored as failed; the study goes on)",
-                    trial.number,
-                    type(exc).__name__,
-                    exc,
-                )
-        return ret
+            study.tell(trial, values)
+            log.info("trial %d: %s = %s (%.1f s)", trial.number, ctx["names"], values, wall)
+
+    def _tell_failure(self, study, trial, ret) -> None:
+        """A job that raised: pruned, pre-empted (queued again, and the sweep stops: :class:`SweepPreempted`), or
+        failed."""
+        exc = ret._return_value
+        if isinstance(exc, optuna.TrialPruned):
+            study.tell(trial, state=TrialState.PRUNED)
+            log.info("trial %d pruned: %s", trial.number, exc)
+        elif is_preempted(exc):
+            has_cfg = getattr(ret, "hydra_cfg", None) is not None
+            self._requeue(study, trial, str(ret.hydra_cfg.hydra.runtime.output_dir) if has_cfg else None)
+            raise SweepPreempted(
+                f"trial {trial.number} was pre-empted ({exc}); its parameters are queued again: "
+                "run the same command to resume the search"
+            )
+        else:
+            trial.set_user_attr(ERROR, f"{type(exc).__name__}: {exc}"[:2000])
+            study.tell(trial, state=TrialState.FAIL)
+            log.warning(
+                "trial %d failed: %s: %s (stored as failed; the study goes on)", trial.number, type(exc).__name__, exc
+            )
 
     def _key(self, key: str) -> str:
         return key if key in self.config else f"+{key}"
 
     # -- after the search -----------------------------------------------------------------------------------
     def _finish(self, study, ctx) -> None:
-        from graf.search.objectives import metrics_mean
-        from graf.search.outputs import best_trials, write_outputs
-
+        """The outputs written, and the chosen configuration tested once (``best/best.json``), unless it was."""
         out = ctx["sweep_dir"]
         space: SearchSpace = ctx["space"]
         write_outputs(study, out, space, ctx["names"], plots=self.plots)
@@ -759,8 +766,6 @@ class OptunaSweep:
         overrides.append(f"{self._key('torch_threads')}={self.threads()}")
         log.info("testing the chosen configuration (trial %d) once: %s", chosen.number, " ".join(overrides))
         ret = self._launch(overrides, 10**6)
-        from hydra.core.utils import JobStatus
-
         result = {
             "trial": chosen.number,
             "params": chosen.params,
@@ -769,20 +774,7 @@ class OptunaSweep:
             "overrides": overrides,
             "checkpoint": str(ckpt) if ckpt.is_file() else None,
         }
-        if ret.status == JobStatus.COMPLETED:
-            res = Path(str(ret.hydra_cfg.hydra.runtime.output_dir)) / "results.json"
-            if res.is_file():
-                r = json.loads(res.read_text())
-                result["metrics"] = r.get("metrics")
-                result["evaluations"] = [
-                    {"eval_scene": e["eval_scene"], "metrics": e["metrics"]} for e in r.get("evaluations", [])
-                ]
-                result["results"] = str(res)
-                if means := metrics_mean(result["evaluations"]):
-                    result["metrics@mean"] = means
-        else:
-            result["error"] = f"{type(ret._return_value).__name__}: {ret._return_value}"
-            log.error("testing the chosen configuration failed: %s", result["error"])
+        _add_test_result(result, ret)
         record.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_json(record, result)
         shown = result.get("metrics@mean") or result.get("metrics") or {}
@@ -795,3 +787,22 @@ class OptunaSweep:
             shown.get("test/psnr"),
             " (means over the evaluated scenes)" if "metrics@mean" in result else "",
         )
+
+
+def _add_test_result(result: dict, ret) -> None:
+    """The chosen configuration's test job into its record: its figures (and their means over the evaluated
+    scenes), or its error."""
+    if ret.status != JobStatus.COMPLETED:
+        result["error"] = f"{type(ret._return_value).__name__}: {ret._return_value}"
+        log.error("testing the chosen configuration failed: %s", result["error"])
+        return
+    res = Path(str(ret.hydra_cfg.hydra.runtime.output_dir)) / "results.json"
+    if res.is_file():
+        r = json.loads(res.read_text())
+        result["metrics"] = r.get("metrics")
+        result["evaluations"] = [
+            {"eval_scene": e["eval_scene"], "metrics": e["metrics"]} for e in r.get("evaluations", [])
+        ]
+        result["results"] = str(res)
+        if means := metrics_mean(result["evaluations"]):
+            result["metrics@mean"] = means

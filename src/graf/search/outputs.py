@@ -143,6 +143,7 @@ def write_outputs(study: optuna.Study, out: Path, space: SearchSpace, names: lis
 
 
 def write_figures(study: optuna.Study, out: Path, names: list[str]) -> list[str]:
+    # lazy: pyplot and Optuna's plotting take a second to import, and only the figures (plots=true) need them
     import matplotlib
 
     matplotlib.use("Agg")

@@ -10,6 +10,7 @@ from typing import Any
 
 from hydra.core.config_store import ConfigStore
 from hydra.plugins.sweeper import Sweeper
+from omegaconf import OmegaConf
 
 
 @dataclass
@@ -62,8 +63,7 @@ ConfigStore.instance().store(group="hydra/sweeper", name="graf_optuna", node=Gra
 
 class GrafOptunaSweeper(Sweeper):
     def __init__(self, **kwargs: Any) -> None:
-        from omegaconf import OmegaConf
-
+        # lazy: Hydra imports every plugin module when any graf command starts; Optuna is imported only by a search
         from graf.search.optuna_sweeper import OptunaSweep
 
         kwargs = {
