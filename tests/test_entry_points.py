@@ -15,6 +15,7 @@ import hydra
 import pytest
 from hydra import compose, initialize_config_dir
 from hydra.errors import MissingConfigException
+from omegaconf import OmegaConf
 
 from graf.cli import evaluate as graf_eval
 from graf.cli import train as graf_train
@@ -100,6 +101,21 @@ def test_a_constructor_refusing_a_value_names_the_setting_and_the_value(override
     exc, cfg = _instantiate_error("neighbors=fixed", override)
     assert user_message(exc, cfg) == says
     assert "(in neighbors)" in user_message(exc)  # without the config: the node at least
+
+
+class Picky:
+    """A constructor that refuses a value with its own message, naming the setting."""
+
+    def __init__(self, count: int = 1) -> None:
+        if count is None:
+            raise ValueError("count=null is filled in by the run; give a number")
+
+
+def test_a_constructors_own_message_naming_the_setting_stands():
+    cfg = OmegaConf.create({"picky": {"_target_": f"{__name__}.Picky", "count": None}})
+    with pytest.raises(Exception) as info:
+        hydra.utils.instantiate(cfg.picky)
+    assert user_message(info.value, cfg) == "count=null is filled in by the run; give a number (in picky)"
 
 
 def test_a_multirun_prints_one_line_per_failed_job_and_how_many_failed(tmp_path):

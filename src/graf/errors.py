@@ -10,6 +10,7 @@ subclass :class:`UserError` beside :class:`ConfigError`.
 from __future__ import annotations
 
 import collections.abc
+import re
 import types
 import typing
 
@@ -59,7 +60,7 @@ def user_message(exc: BaseException, cfg=None) -> str:
     if cause is not None and str(cause):
         key = instantiated_key(exc)
         if cfg is not None and key and isinstance(cause, (TypeError, ValueError)) and not isinstance(cause, UserError):
-            mistyped = mistyped_setting(cfg, key)
+            mistyped = mistyped_setting(cfg, key, said=str(cause))
             if mistyped:
                 return mistyped
         return f"{cause}" + (f" (in {key})" if key and key not in str(cause) else "")
@@ -74,9 +75,10 @@ def instantiated_key(exc: BaseException) -> str | None:
     return None
 
 
-def mistyped_setting(cfg, key: str) -> str | None:
+def mistyped_setting(cfg, key: str, said: str = "") -> str | None:
     """``<key>.<setting>=<value>: must be <type>`` for the first setting of the config node ``key`` whose value is
-    not of the type its target's constructor is annotated with; None when every value fits (or nothing is known)."""
+    not of the type its target's constructor is annotated with; None when every value fits, when nothing is known,
+    or when the constructor's own message (``said``) names that setting already."""
     from hydra.utils import get_method
     from omegaconf import OmegaConf
 
@@ -89,6 +91,8 @@ def mistyped_setting(cfg, key: str) -> str | None:
     for name, value in node.items():
         hint = hints.get(name)
         if hint is not None and not fits(value, hint):
+            if re.search(rf"\b{re.escape(name)}\b", said):
+                return None
             return f"{key}.{name}={as_override(value)}: must be {describe(hint)}"
     return None
 
