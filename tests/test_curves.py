@@ -69,25 +69,25 @@ def test_curves_run_resume_and_validate_only(tmp_path, make_scene):
 
 
 def test_a_preempted_point_resumes_from_its_own_checkpoint_and_its_seconds_count(tmp_path):
-    from graf.studies.curves import PREEMPTED_RUNS, _preempted_runs, _resume_preempted
+    from graf.studies.curves import PREEMPTED_RUNS, preempted_runs, resume_from
 
     prev, folder = tmp_path / "step_1000", tmp_path / "step_10000"
     (folder / "checkpoints").mkdir(parents=True)
-    assert _resume_preempted(folder, None) is None  # a curve's first point starts from scratch
-    assert _resume_preempted(folder, prev) == prev / "checkpoints" / "last.ckpt"
+    assert resume_from(folder, None) is None  # a curve's first point starts from scratch
+    assert resume_from(folder, prev) == prev / "checkpoints" / "last.ckpt"
     ckpt = folder / "checkpoints" / "last.ckpt"
     ckpt.write_bytes(b"state at step 4200")
     (folder / "preempted.json").write_text(json.dumps({"global_step": 4200, "checkpoint": str(ckpt), "fit_s": 5000.0}))
-    assert _resume_preempted(folder, prev) == ckpt  # not the previous point's: 3,200 steps are not lost
-    assert not (folder / "preempted.json").exists() and [r["fit_s"] for r in _preempted_runs(folder)] == [5000.0]
+    assert resume_from(folder, prev) == ckpt  # not the previous point's: 3,200 steps are not lost
+    assert not (folder / "preempted.json").exists() and [r["fit_s"] for r in preempted_runs(folder)] == [5000.0]
     (folder / "preempted.json").write_text(json.dumps({"global_step": 4300, "checkpoint": str(folder / "gone.ckpt")}))
-    assert _resume_preempted(folder, prev) == prev / "checkpoints" / "last.ckpt"  # nothing saved: start the point again
+    assert resume_from(folder, prev) == prev / "checkpoints" / "last.ckpt"  # nothing saved: start the point again
     assert not (folder / "preempted.json").exists() and len(json.loads((folder / PREEMPTED_RUNS).read_text())) == 1
 
 
 def test_a_preempted_point_moved_to_another_folder_resumes_from_its_own_checkpoint(tmp_path):
     """A curve run in one folder and published, stopped, into sweeps/: preempted.json names the old path."""
-    from graf.studies.curves import _preempted_runs, _resume_preempted
+    from graf.studies.curves import preempted_runs, resume_from
 
     prev, folder = tmp_path / "published" / "step_1000", tmp_path / "published" / "step_3000"
     (folder / "checkpoints").mkdir(parents=True)
@@ -95,8 +95,8 @@ def test_a_preempted_point_moved_to_another_folder_resumes_from_its_own_checkpoi
     ckpt.write_bytes(b"state at step 2100")
     old = tmp_path / "elsewhere" / "step_3000" / "checkpoints" / "last.ckpt"  # where it was saved; gone now
     (folder / "preempted.json").write_text(json.dumps({"global_step": 2100, "checkpoint": str(old), "fit_s": 1700.0}))
-    assert _resume_preempted(folder, prev) == ckpt
-    assert [r["checkpoint"] for r in _preempted_runs(folder)] == [str(ckpt)]
+    assert resume_from(folder, prev) == ckpt
+    assert [r["checkpoint"] for r in preempted_runs(folder)] == [str(ckpt)]
 
 
 def test_a_killed_point_resumes_from_its_periodic_checkpoint_and_its_saved_seconds_count(tmp_path):
@@ -104,14 +104,14 @@ def test_a_killed_point_resumes_from_its_periodic_checkpoint_and_its_saved_secon
     from the previous point, and the seconds its saved steps cost (AttemptClock's record) count in fit_s."""
     import torch
 
-    from graf.studies.curves import _preempted_runs, _resume_preempted
+    from graf.studies.curves import preempted_runs, resume_from
 
     prev, folder = tmp_path / "step_3000", tmp_path / "step_10000"
     (folder / "checkpoints").mkdir(parents=True)
     ckpt = folder / "checkpoints" / "last.ckpt"
     torch.save({"global_step": 4500, "graf_attempt": {"start_step": 3000, "global_step": 4500, "fit_s": 2250.5}}, ckpt)
-    assert _resume_preempted(folder, prev) == ckpt
-    [record] = _preempted_runs(folder)
+    assert resume_from(folder, prev) == ckpt
+    [record] = preempted_runs(folder)
     assert (
         record["killed"]
         and record["global_step"] == 4500
@@ -120,19 +120,19 @@ def test_a_killed_point_resumes_from_its_periodic_checkpoint_and_its_saved_secon
     )
     # killed again later, from a checkpoint written before AttemptClock existed: resumed, its seconds unknown (None)
     torch.save({"global_step": 5000}, ckpt)
-    assert _resume_preempted(folder, prev) == ckpt
-    assert [r["fit_s"] for r in _preempted_runs(folder)] == [2250.5, None]
+    assert resume_from(folder, prev) == ckpt
+    assert [r["fit_s"] for r in preempted_runs(folder)] == [2250.5, None]
     # a checkpoint already on record (a pre-emption's, resumed and then killed before its next save): resumed
     # from again, its seconds not counted twice
     torch.save({"global_step": 5000, "graf_attempt": {"start_step": 4500, "global_step": 5000, "fit_s": 300.0}}, ckpt)
-    assert _resume_preempted(folder, prev) == ckpt and len(_preempted_runs(folder)) == 2
+    assert resume_from(folder, prev) == ckpt and len(preempted_runs(folder)) == 2
     # a finished point is never resumed; an unreadable checkpoint starts the point again from the previous one
     ckpt.write_bytes(b"truncated")
-    assert _resume_preempted(folder, prev) == prev / "checkpoints" / "last.ckpt"
+    assert resume_from(folder, prev) == prev / "checkpoints" / "last.ckpt"
     (folder / "results.json").write_text("{}")
     torch.save({"global_step": 5000}, ckpt)
-    assert _resume_preempted(folder, prev) == prev / "checkpoints" / "last.ckpt"
-    assert len(_preempted_runs(folder)) == 2
+    assert resume_from(folder, prev) == prev / "checkpoints" / "last.ckpt"
+    assert len(preempted_runs(folder)) == 2
 
 
 def test_attempt_clock_writes_its_attempt_into_each_checkpoint():

@@ -98,7 +98,7 @@ def collect(out: Path, cfg: DictConfig) -> tuple[list[dict], dict]:
                 t = r.get("timing") or {}
                 # an attempt whose seconds are unknown (killed with a checkpoint older than AttemptClock) makes the
                 # cumulative seconds unknown from there on: n/a, not an undercount
-                parts = [t.get("fit_s"), *(p.get("fit_s") for p in _preempted_runs(f.parent))]
+                parts = [t.get("fit_s"), *(p.get("fit_s") for p in preempted_runs(f.parent))]
                 fit_s = None if fit_s is None or any(x is None for x in parts) else fit_s + sum(map(float, parts))
                 v = val_figures(r)
                 rows.append(
@@ -119,13 +119,13 @@ def collect(out: Path, cfg: DictConfig) -> tuple[list[dict], dict]:
     return rows, knn
 
 
-def _preempted_runs(folder: Path) -> list[dict]:
+def preempted_runs(folder: Path) -> list[dict]:
     """The ``preempted.json`` records of a point's earlier, pre-empted attempts (their training seconds count)."""
     f = folder / PREEMPTED_RUNS
     return json.loads(f.read_text()) if f.exists() else []
 
 
-def _resume_preempted(folder: Path, prev: Path | None) -> Path | None:
+def resume_from(folder: Path, prev: Path | None) -> Path | None:
     """The checkpoint a point resumes from: its own pre-empted attempt's (``preempted.json``, whose record moves to
     ``preempted_runs.json``), else the previous point's ``last.ckpt`` (None: the curve's first point)."""
     f = folder / "preempted.json"
@@ -134,7 +134,7 @@ def _resume_preempted(folder: Path, prev: Path | None) -> Path | None:
         ckpt = _recorded_checkpoint(folder, record.get("checkpoint"))
         if ckpt is not None:
             record["checkpoint"] = str(ckpt)
-            atomic_write_json(folder / PREEMPTED_RUNS, [*_preempted_runs(folder), record])
+            atomic_write_json(folder / PREEMPTED_RUNS, [*preempted_runs(folder), record])
             f.unlink()
             log.info("%s: resuming its pre-empted run from step %s (%s)", folder, record.get("global_step"), ckpt)
             return Path(ckpt)
@@ -146,14 +146,14 @@ def _resume_preempted(folder: Path, prev: Path | None) -> Path | None:
     if killed is not None:
         # a checkpoint already on record (a pre-emption's, whose resumed run was then killed before its next
         # save) is resumed from again, and its seconds are not counted twice
-        if not any(r.get("global_step") == killed["global_step"] for r in _preempted_runs(folder)):
+        if not any(r.get("global_step") == killed["global_step"] for r in preempted_runs(folder)):
             if killed["fit_s"] is None:
                 log.warning(
                     "%s: the checkpoint holds no training time of its attempt; the curve's seconds become "
                     "n/a from this point",
                     killed["checkpoint"],
                 )
-            atomic_write_json(folder / PREEMPTED_RUNS, [*_preempted_runs(folder), killed])
+            atomic_write_json(folder / PREEMPTED_RUNS, [*preempted_runs(folder), killed])
         log.info("%s: resuming a killed run from its checkpoint at step %d", folder, killed["global_step"])
         return Path(killed["checkpoint"])
     return None if prev is None else prev / "checkpoints" / "last.ckpt"
@@ -325,7 +325,7 @@ def _run_curve(cfg: DictConfig, out: Path, env: dict, rname: str, mname: str, ba
             f"callbacks.model_checkpoint.every_n_train_steps={min(step, int(cfg.checkpoint_every))}",
             f"hydra.run.dir={folder}",
         ]
-        start = _resume_preempted(folder, prev)
+        start = resume_from(folder, prev)
         if start is not None:
             cmd.append(f"ckpt_path={start}")
         log.info(
