@@ -12,7 +12,7 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
-from graf.models.base import check_checkpoint, read_checkpoint
+from graf.models.base import CheckpointError, check_checkpoint, read_checkpoint
 from graf.models.graf import GRaFModule
 from graf.models.graf.features import (
     MODES,
@@ -22,6 +22,7 @@ from graf.models.graf.features import (
     RayWeightsFeatures,
 )
 from graf.models.knn import KNNModule
+from graf.run.evaluate import checkpoint_model_choice, load_checkpoint_model
 from tests.test_ray_features import TINY, synthetic_batch
 
 PUBLISHED = Path(__file__).resolve().parents[1] / "sweeps" / "learning_curves" / "rfid_sparse"
@@ -228,3 +229,17 @@ def test_published_checkpoints_load_and_predict(mode, method):
     params = list(model.parameters())
     for i, s in ckpt["optimizer_states"][0]["state"].items():
         assert s["exp_avg"].shape == params[i].shape
+
+
+def test_graf_eval_refuses_another_features_choice_for_a_checkpoint(compose_cfg):
+    """``model/features=X`` on a trained checkpoint describes a model that did not run: refused unless it is
+    the checkpoint's own (also for a checkpoint written before model/features)."""
+    path = PUBLISHED / "ray_weights" / "step_10000" / "checkpoints" / "last.ckpt"
+    assert checkpoint_model_choice([f"ckpt_path={path}", "model/features=ray"]) == "graf"
+    cfg = compose_cfg("eval", ("model=graf_cpu", "model/features=ray", f"ckpt_path={path}"))
+    with pytest.warns(FutureWarning), pytest.raises(CheckpointError, match="model.features=.*RayFeatures"):
+        load_checkpoint_model(cfg, str(path), ["model/features=ray"])
+    cfg = compose_cfg("eval", ("model=graf_cpu", "model/features=ray_weights", f"ckpt_path={path}"))
+    with pytest.warns(FutureWarning):
+        model, ran, _ = load_checkpoint_model(cfg, str(path), ["model/features=ray_weights"])
+    assert model.method == "graf-ray-weights" and ran.features._target_ == MODES["ray_weights"]

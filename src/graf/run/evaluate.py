@@ -32,8 +32,8 @@ def model_overrides(overrides: Sequence[str]) -> tuple[str | None, list[str]]:
         key = override_key(o)
         if key == "model":
             choice = o.split("=", 1)[1]
-        elif key.startswith("model."):
-            keys.append(key[len("model.") :])
+        elif key.startswith(("model.", "model/")):  # model/features=X: a nested group's choice (GRaF's)
+            keys.append(key[len("model.") :].split("@")[0].replace("/", "."))
     return choice, keys
 
 
@@ -54,15 +54,18 @@ def load_checkpoint_model(cfg: DictConfig, path: str, overrides: Sequence[str]) 
     check_checkpoint(ckpt, cls, path)
     saved = dict(ckpt.get("hyper_parameters") or {})
     allowed = tuple(getattr(cls, "INFERENCE_SETTINGS", ()))
+    # nested settings (model.features.pixel_window) too, an old checkpoint's in the current form
+    trained = OmegaConf.create(getattr(cls, "upgrade_hparams", dict)(saved))
     applied = {}
     for key in keys:
         value = OmegaConf.select(cfg.model, key)
+        was = OmegaConf.select(trained, key, default=f"<not a setting of {cls.__name__}>")
         if key in allowed:
             applied[key] = value
-        elif key not in saved or saved[key] != value:
+        elif was != value:
             raise CheckpointError(
                 f"model.{key}={value} cannot change the trained checkpoint {path} (it was trained with "
-                f"{key}={saved.get(key, '<not a setting of ' + cls.__name__ + '>')}); only inference settings "
+                f"{key}={was}); only inference settings "
                 f"may be overridden at evaluation: {', '.join('model.' + a for a in allowed) or 'none'}"
             )
     model = cls.load_from_checkpoint(path, map_location="cpu", **applied)
@@ -99,7 +102,7 @@ def checkpoint_model_choice(args: Sequence[str]) -> str | None:
     reports that itself)."""
     if not any(a.startswith("ckpt_path=") for a in args) or any(override_key(a) == "model" for a in args):
         return None
-    if not any(override_key(a).startswith("model.") for a in args):
+    if not any(override_key(a).startswith(("model.", "model/")) for a in args):
         return None
     path = next(a.split("=", 1)[1] for a in args if a.startswith("ckpt_path="))
     try:
