@@ -48,6 +48,7 @@ def _main(monkeypatch, capsys, main, *args: str) -> tuple[int | None, str, str]:
         ("model=graf_xl", "model=graf_xl: no such option of 'model'; the options are graf, graf_cpu,"),
         ("scene=nowhere", "scene=nowhere: no such option of 'scene'; the options are bedroom,"),
         ("model=knn,graf_xl", "model=graf_xl: no such option of 'model'"),  # every value of a sweep
+        ("scene=[rfid_s23,nowhere]", "scene=nowhere: no such option of 'scene'"),  # every item of a list
         ("model.no_such_key=1", "model.no_such_key=1: no such setting (to add one, write +model.no_such_key=1)"),
     ],
 )

@@ -7,7 +7,7 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from hydra.core.hydra_config import HydraConfig
@@ -35,6 +35,7 @@ class JobOutcome:
     sweep_dir: str
     error: str | None = None
     user_error: bool = True
+    exception: Exception | None = field(default=None, repr=False)
 
 
 JOBS: list[JobOutcome] = []  # the jobs of this process's multirun, in the order they ended (record_job)
@@ -63,7 +64,7 @@ def record_job(cfg: DictConfig, exc: Exception | None) -> None:
     hc = HydraConfig.get()
     job = JobOutcome(int(hc.job.num), " ".join(hc.overrides.task), str(hc.sweep.dir))
     if exc is not None:
-        job.user_error = is_user_error(exc)
+        job.exception, job.user_error = exc, is_user_error(exc)
         job.error = user_message(exc, cfg) if job.user_error else f"{type(exc).__name__}: {exc}".split("\n")[0]
         print(f"job {job.num} ({job.overrides}) failed: {job.error}", file=sys.stderr, flush=True)
     JOBS.append(job)
@@ -116,14 +117,16 @@ def run_multirun(hydra_main, args: list[str]) -> None:
             hydra_main()
     except Exception as exc:
         failed = [j for j in JOBS if j.error is not None]
-        if not failed:  # not a job's own error (a job's config, a launcher): reported as a single run's
-            if isinstance(exc, ConfigCompositionException):
-                fail(user_message(composition_error(exc, args)))
-            if is_user_error(exc):
-                fail(user_message(exc))
-            raise
-        where = Path(failed[0].sweep_dir) / "failed.json"
-        print(f"{len(failed)} of {len(JOBS)} jobs failed (listed in {where})", file=sys.stderr)
-        sys.exit(2 if all(j.user_error for j in failed) else 1)
+        if failed:
+            where = Path(failed[0].sweep_dir) / "failed.json"
+            print(f"{len(failed)} of {len(JOBS)} jobs failed (listed in {where})", file=sys.stderr)
+        if any(j.exception is exc for j in failed):
+            sys.exit(2 if all(j.user_error for j in failed) else 1)
+        # the sweep's own error (a job's config, a launcher, a search's max_failures): as a single run's
+        if isinstance(exc, ConfigCompositionException):
+            fail(user_message(composition_error(exc, args)))
+        if is_user_error(exc):
+            fail(user_message(exc))
+        raise
     finally:
         set_full_error(os.environ.pop(USERS_FULL_ERROR))

@@ -69,14 +69,23 @@ def unknown_option(group: str, value: str, choices) -> ConfigError:
     return ConfigError(f"{group}={value}: no such option of '{group}'; the options are {', '.join(choices)}")
 
 
+def group_values(override) -> list[str]:
+    """The options a config-group override names: each value of a sweep, each item of a list (``scene=[a,b]``)."""
+    given = override.sweep_string_iterator() if override.is_sweep_override() else [override.get_value_element_as_str()]
+    out = []
+    for value in given:
+        listed = value.startswith("[") and value.endswith("]")
+        out += [v.strip() for v in value[1:-1].split(",") if v.strip()] if listed else [value]
+    return out
+
+
 def check_group_values(overrides) -> None:
     """Every value of a graf config group given on the command line (each value of a sweep) is one of its files."""
     for o in overrides:
         group = o.key_or_group
         if o.is_delete() or group.startswith("hydra/") or not is_group(group):
             continue
-        values = list(o.sweep_string_iterator()) if o.is_sweep_override() else [o.get_value_element_as_str()]
-        for value in values:  # an option in a subfolder of the group (experiment=base/x) is a file too
+        for value in group_values(o):  # an option in a subfolder of the group (experiment=base/x) is a file too
             if value != "null" and not (CONF_DIR / group / f"{value}.yaml").is_file():
                 raise unknown_option(group, value, options(group))
 
