@@ -32,7 +32,7 @@ from graf.errors import ConfigError
 from graf.geometry.grid import SPECTRUM_SHAPE
 from graf.io import atomic_write_json
 from graf.models.base import check_checkpoint, read_checkpoint
-from graf.run.build import build_datamodule
+from graf.run.build import build_datamodule, model_config_for_neighbors
 from graf.run.config import output_dir, single_scene_config, task_wrapper
 
 
@@ -81,7 +81,7 @@ def run(cfg: DictConfig) -> dict:
     single_scene_config(cfg, "graf-synthesize")
     bands, _, neighbors, dm = build_datamodule(cfg)
     band = bands[0]
-    model = load_model(cfg.model, cfg.get("ckpt_path"))
+    model = load_model(model_config_for_neighbors(cfg.model, neighbors), cfg.get("ckpt_path"))
     model_cls = type(model)
     t0 = time.perf_counter()
     spectra = synthesize(model, dm, positions)
