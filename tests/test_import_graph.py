@@ -158,3 +158,49 @@ def test_rooms_of_one_floor_do_not_import_each_other():
 def test_every_command_file_is_thin(path):
     n = len(path.read_text().splitlines())
     assert n <= CLI_MAX_LINES, f"{path.name}: {n} lines; its logic belongs in graf.run"
+
+
+# --- sizes: small modules and small functions (issue: the house by stage) ---
+MODULE_MAX_LINES = 400
+FUNCTION_MAX_LINES = 60
+# the Hydra sweeper implements Hydra's Sweeper interface for Optuna in one place: launch, tell, resume, heartbeat
+# and the study's files belong together, and splitting the class would scatter one protocol over several files
+LONG_MODULES = {"graf.search.optuna_sweeper"}
+
+
+def test_no_module_is_over_the_size_limit():
+    long = {
+        mod: n
+        for mod, path in _modules().items()
+        if (n := len(path.read_text().splitlines())) > MODULE_MAX_LINES and mod not in LONG_MODULES
+    }
+    assert long == {}, f"modules over {MODULE_MAX_LINES} lines: {long}"
+
+
+def test_no_function_is_over_the_size_limit():
+    long = {}
+    for mod, path in _modules().items():
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                n = node.end_lineno - node.lineno + 1
+                if n > FUNCTION_MAX_LINES:
+                    long[f"{mod}.{node.name}"] = n
+    assert long == {}, f"functions over {FUNCTION_MAX_LINES} lines: {long}"
+
+
+def test_no_private_name_is_imported_from_another_module():
+    """A leading underscore says "this module's own": no other module of ours imports such a name."""
+    modules = _modules()
+    private = []
+    for mod, path in modules.items():
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            ours = isinstance(node, ast.ImportFrom) and (
+                node.level or (node.module or "").startswith(("graf", "hydra_"))
+            )
+            if ours:
+                private += [
+                    f"{mod}: from {node.module} import {a.name}"
+                    for a in node.names
+                    if a.name.startswith("_") and not a.name.startswith("__")
+                ]
+    assert private == []
