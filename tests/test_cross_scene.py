@@ -110,4 +110,3 @@ def test_a_checkpoint_is_tested_zero_shot_on_a_scene_it_was_not_trained_on(compo
     (ev,) = r["evaluations"]
     assert ev["scene_index"] == 1 and ev["band_hz"] == 2.412e9 and ev["n_test"] > 0
     assert r["band_hz"] == 2.412e9 and all(v == v for v in ev["metrics"].values())
-
