@@ -16,7 +16,7 @@ from graf.models.base import SpectrumModule
 from graf.run.build import build
 from graf.run.evaluate import evaluate
 from graf.run.evaluation import evaluate_model
-from graf.run.report import format_metrics_table
+from graf.run.writer import format_metrics_table
 
 
 @pytest.mark.parametrize("n", [2, 3, 7, 40])

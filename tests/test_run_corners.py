@@ -22,8 +22,8 @@ from omegaconf import open_dict
 from graf.run import train as train_module
 from graf.run.build import build
 from graf.run.config import CONF_DIR
-from graf.run.report import REPLACED_RESULTS
 from graf.run.train import train
+from graf.run.writer import REPLACED_RESULTS
 
 KNN_DL = ("model=knn_dl", "data.batch_size=2", "trainer.limit_test_batches=1", "plot_count=0")
 

@@ -1,13 +1,13 @@
 """graf-bench-sim: how fast the simulator makes spectra here, and whether its sample budget converged.
 
-The work is :func:`graf.sim_commands.bench.bench`, callable from Python with a composed config."""
+The work is :func:`graf.sim_commands.bench_sim.bench`, callable from Python with a composed config."""
 
 from __future__ import annotations
 
 from omegaconf import DictConfig
 
 from graf.cli.entry import graf_command
-from graf.sim_commands.bench import bench
+from graf.sim_commands.bench_sim import bench
 
 
 @graf_command("bench_sim")

@@ -22,7 +22,7 @@ from graf.models.base import CheckpointError, check_checkpoint, read_checkpoint
 from graf.run.build import build
 from graf.run.config import CONF_DIR, output_dir, override_key, task_wrapper, with_baselines_switch
 from graf.run.record import CheckpointInfo, Results, RunFacts
-from graf.run.report import set_aside_finished, test_and_report
+from graf.run.writer import set_aside_finished, test_and_report
 
 
 def model_overrides(overrides: Sequence[str]) -> tuple[str | None, list[str]]:

@@ -1,6 +1,6 @@
 """Testing a built run: validation and test of the final weights, neighbor reliance (the same figures with
 each target's neighbors swapped for another target's) and the baselines beside the model on the same data; the
-run's record is made of them, written and printed by :mod:`graf.run.report`.
+run's record is made of them, written and printed by :mod:`graf.run.writer`.
 
 Every command writes ``results.json`` into its output folder (:class:`graf.run.record.RunRecord`)::
 

@@ -2,7 +2,7 @@
 
 Fine-tuning (:mod:`graf.run.finetune`) starts from a checkpoint's weights; resuming (``ckpt_path``,
 :mod:`graf.run.resume`) continues a checkpoint's training.  A run started in a folder that holds a finished run
-moves that run's files aside first (:func:`graf.run.report.set_aside_finished`), unless it resumes that run.
+moves that run's files aside first (:func:`graf.run.writer.set_aside_finished`), unless it resumes that run.
 
 Study jobs set ``skip_finished=true``: a job whose output folder already holds its ``results.json`` (or a
 ``skipped.json``) returns that result without running again, so an interrupted multirun started again with
@@ -37,8 +37,8 @@ from graf.run.finetune import (
     resolve_base,
 )
 from graf.run.record import Results, RunFacts, RunResult, Timing, Training, finished_scene_metrics
-from graf.run.report import set_aside_finished, test_and_report
 from graf.run.resume import check_resume, interrupted, preempted
+from graf.run.writer import set_aside_finished, test_and_report
 
 log = logging.getLogger("graf")
 
