@@ -243,3 +243,18 @@ def test_graf_eval_refuses_another_features_choice_for_a_checkpoint(compose_cfg)
     with pytest.warns(FutureWarning):
         model, ran, _ = load_checkpoint_model(cfg, str(path), ["model/features=ray_weights"])
     assert model.method == "graf-ray-weights" and ran.features._target_ == MODES["ray_weights"]
+
+
+def test_a_seed_draws_the_model_weights_whatever_the_output_of_the_mode():
+    """The component's output parameters (``head``, ``weight_query``) are drawn last, as in the model before the
+    components: ``ray`` and ``ray_weights`` differ only there, so with one seed every other weight is equal (the
+    main job's seed gives the weights, and so the figures, it gave before the components)."""
+    GRaFModule(**TINY, features="ray")  # the first model built in a process draws once more (a lazy set-up)
+    torch.manual_seed(0)
+    ray = GRaFModule(**TINY, features="ray").state_dict()
+    torch.manual_seed(0)
+    ray_weights = GRaFModule(**TINY, features="ray_weights").state_dict()
+    shared = sorted(set(ray) & set(ray_weights))
+    assert len(shared) > 20 and any(k.startswith("features.ray_tokens.") for k in shared)
+    assert [k for k in shared if not torch.equal(ray[k], ray_weights[k])] == []
+    assert set(ray) - set(ray_weights) == {"features.head.weight", "features.head.bias"}

@@ -154,13 +154,14 @@ class GRaFModule(SpectrumModule):
 
     def build_layers(self, hp: Mapping) -> None:
         """The encoder, the neighbor-feature component (its parameters right after the encoder's), the voxel
-        queries, the scene blocks, MLP2 and the ray transformer."""
+        queries, the scene blocks, MLP2, the ray transformer, and last the component's output (in the order
+        of the model before the components, so a seed draws the same initial weights)."""
         d, coord_dim = self.d_model, 4 if self.use_scene_index else 3
         self.pe = PositionalEncoding(hp["pe_freqs"])
         pe_abs, pe_off = self.pe.out_dim(coord_dim), self.pe.out_dim(3)
         self.encoder = ResNetEncoder(hp["encoder_widths"], in_channels=1, downsample=hp["encoder_downsample"])
         dims = Dims(self.encoder.out_dim, pe_abs, pe_off, hp["mlp_dim"], d)
-        self.features = build_features(hp["features"], dims, self.residual)
+        self.features = build_features(hp["features"], dims, self.residual, defer_output=True)
         # Linear(PE(voxel) ⊕ PE(ray direction) ⊕ PE(target)) split in three: the direction's part is computed
         # once per ray (it is constant along the ray) and the target's once per target
         self.query_voxel = nn.Linear(pe_abs, d)
@@ -178,6 +179,7 @@ class GRaFModule(SpectrumModule):
             SelfAttentionBlock(d, hp["ray_heads"], hp["ray_head_dim"], ffn, kernel=kernel)
             for _ in range(hp["ray_blocks"])
         )
+        self.features.make_output(dims, self.residual)  # last, as before the components: same seed, same weights
 
     @property
     def method(self) -> str:

@@ -62,19 +62,27 @@ class NeighborFeatures(nn.Module):
         dims: the model's sizes.
         residual: the model adds the KNN base to the real part (``model.residual``): the output head starts
             at zero, so the model starts as KNN.
+        defer_output: leave the output's parameters to a later :meth:`make_output` call (the model's).
     """
 
     name: ClassVar[str] = ""
     method_suffix: ClassVar[str] = ""
     knn_based: ClassVar[bool] = False
 
-    def __init__(self, dims: Dims, residual: bool = False):
+    def __init__(self, dims: Dims, residual: bool = False, defer_output: bool = False):
         super().__init__()
         if residual and self.knn_based:
             raise ValueError(
                 f"model/features={self.name} already adds its own per-ray KNN base: model.residual must be false"
             )
-        self.dims = dims
+        self.dims, self.defer_output = dims, bool(defer_output)
+
+    def make_output(self, dims: Dims, residual: bool) -> None:  # pragma: no cover - abstract
+        """Build the output's parameters (:meth:`output`'s).  A subclass calls it at the end of its ``__init__``
+        unless ``defer_output``: the GRaF model then calls it after its ray transformer, so that the random
+        initialisation is drawn in the order of the model before the components (the same seed gives the same
+        weights, and the main job the same figures, as before)."""
+        raise NotImplementedError
 
     def prepare(self, model: nn.Module, batch: dict) -> dict:  # pragma: no cover - abstract
         """The batch's context for :meth:`scene_inputs` (``model``: the GRaF model, for its encoder and
@@ -115,7 +123,7 @@ def features_config(features: Mapping | str) -> dict:
     if not isinstance(features, Mapping) or "_target_" not in features:
         raise ValueError(f"model.features must be a mode name or a config with _target_, got {features!r}")
     params = inspect.signature(component_class(features["_target_"]).__init__).parameters
-    defaults = {k: p.default for k, p in params.items() if k not in ("self", "dims", "residual")}
+    defaults = {k: p.default for k, p in params.items() if k not in ("self", "dims", "residual", "defer_output")}
     return {
         "_target_": str(features["_target_"]),
         **defaults,
@@ -123,7 +131,7 @@ def features_config(features: Mapping | str) -> dict:
     }
 
 
-def build_features(config: dict, dims: Dims, residual: bool) -> NeighborFeatures:
+def build_features(config: dict, dims: Dims, residual: bool, defer_output: bool = False) -> NeighborFeatures:
     """The component of ``config`` (see :func:`features_config`) built for a model of sizes ``dims``."""
     settings = {k: v for k, v in config.items() if k != "_target_"}
-    return component_class(config["_target_"])(dims, residual=residual, **settings)
+    return component_class(config["_target_"])(dims, residual=residual, defer_output=defer_output, **settings)

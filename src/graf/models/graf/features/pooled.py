@@ -15,9 +15,14 @@ class PooledFeatures(NeighborFeatures):
     name = "pooled"
     method_suffix = ""
 
-    def __init__(self, dims: Dims, residual: bool = False):
-        super().__init__(dims, residual)
+    def __init__(self, dims: Dims, residual: bool = False, defer_output: bool = False):
+        super().__init__(dims, residual, defer_output)
         self.mlp1 = mlp(dims.encoder_dim + dims.position_dim + dims.offset_dim, dims.mlp_dim, dims.d_model)
+        if not defer_output:
+            self.make_output(dims, residual)
+
+    def make_output(self, dims: Dims, residual: bool) -> None:
+        """``Linear(d, 2)``, zero at initialisation with ``model.residual`` (the model starts as KNN)."""
         self.head = complex_head(dims.d_model, zero=residual)
 
     def prepare(self, model: nn.Module, batch: dict) -> dict:

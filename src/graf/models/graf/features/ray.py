@@ -28,8 +28,15 @@ class RayFeatures(NeighborFeatures):
     name = "ray"
     method_suffix = "-ray"
 
-    def __init__(self, dims: Dims, residual: bool = False, ray_feature_dim: int = 8, pixel_window: int = 1):
-        super().__init__(dims, residual)
+    def __init__(
+        self,
+        dims: Dims,
+        residual: bool = False,
+        defer_output: bool = False,
+        ray_feature_dim: int = 8,
+        pixel_window: int = 1,
+    ):
+        super().__init__(dims, residual, defer_output)
         if ray_feature_dim < 1 or pixel_window < 0:
             raise ValueError(
                 f"model.features.ray_feature_dim must be >= 1 and model.features.pixel_window >= 0, got "
@@ -40,7 +47,8 @@ class RayFeatures(NeighborFeatures):
         self.ray_tokens = RayNeighborTokens(
             int(ray_feature_dim), self.pixel_window, dims.offset_dim + 1, dims.mlp_dim, dims.d_model
         )
-        self.make_output(dims, residual)
+        if not defer_output:
+            self.make_output(dims, residual)
 
     def make_output(self, dims: Dims, residual: bool) -> None:
         """The output's parameters: ``Linear(d, 2)``, zero at initialisation when the model starts as a KNN
