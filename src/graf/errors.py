@@ -14,6 +14,11 @@ import re
 import types
 import typing
 
+from hydra.errors import InstantiationException
+from hydra.utils import get_method
+from omegaconf import OmegaConf
+from omegaconf.errors import MissingMandatoryValue
+
 
 class UserError(ValueError):
     """Something the user gave cannot be used as given; the message says what and where."""
@@ -43,8 +48,6 @@ def is_user_error(exc: BaseException) -> bool:
     :class:`graf.errors.UserError` (``ConfigError``, ``DataFormatError``, ``CheckpointError``,
     ``NoNeighborsError``), a mandatory config value left unset, and a constructor refusing a config value
     (Hydra's instantiation error)."""
-    from hydra.errors import InstantiationException
-    from omegaconf.errors import MissingMandatoryValue
 
     return isinstance(exc, (UserError, MissingMandatoryValue, InstantiationException))
 
@@ -54,7 +57,6 @@ def user_message(exc: BaseException, cfg=None) -> str:
     around it (``Error in call to target ...``), with the config node it came from.  Given the run's config, a
     setting of that node that is not of the type its constructor takes is named with its value
     (:func:`mistyped_setting`): ``neighbors.L=abc: must be an integer``, not ``invalid literal for int()``."""
-    from hydra.errors import InstantiationException
 
     cause = exc.__cause__ if isinstance(exc, InstantiationException) else None
     if cause is not None and str(cause):
@@ -79,8 +81,6 @@ def mistyped_setting(cfg, key: str, said: str = "") -> str | None:
     """``<key>.<setting>=<value>: must be <type>`` for the first setting of the config node ``key`` whose value is
     not of the type its target's constructor is annotated with; None when every value fits, when nothing is known,
     or when the constructor's own message (``said``) names that setting already."""
-    from hydra.utils import get_method
-    from omegaconf import OmegaConf
 
     try:
         node = OmegaConf.to_container(OmegaConf.select(cfg, key), resolve=True)

@@ -61,6 +61,6 @@ def atomic_write_npz(path: str | os.PathLike, **arrays: np.ndarray) -> Path:
 def is_rank_zero() -> bool:
     """Whether this process writes a run's files: always, except in the ranks other than 0 of a data-parallel
     run (torch.distributed initialised), which compute the same figures and write nothing."""
-    import torch.distributed as dist
+    import torch.distributed as dist  # lazy: graf.io (atomic writes) is used by code that needs no torch
 
     return not (dist.is_available() and dist.is_initialized()) or dist.get_rank() == 0

@@ -101,6 +101,7 @@ def load_lpips(weights_path: str | os.PathLike[str] | None = None) -> LPIPS:
     ``weights_path=None`` resolves the file with :func:`find_weights`; raises
     ``LPIPSWeightsMissing`` / ``LPIPSWeightsInvalid`` -- never falls back to random weights.
     """
+    # not at the top: setup.sh runs ``python -m graf.metrics.lpips_weights``, which imports this package first
     from .lpips_weights import load_checkpoint
 
     model = LPIPS().load_checkpoint_dict(load_checkpoint(weights_path))
@@ -131,7 +132,7 @@ def _device_model(path: str, device: torch.device) -> LPIPS:
 
 
 def _resolve(weights_path: str | os.PathLike[str] | None) -> str:
-    from .lpips_weights import find_weights
+    from .lpips_weights import find_weights  # not at the top: see load_lpips
 
     p = find_weights() if weights_path is None else Path(weights_path)
     return str(p.expanduser().resolve())
