@@ -77,8 +77,10 @@ def test_every_config_group_option_composes():
                     assert len(scene_configs(cfg[group])) == (f.stem not in ("same", "heldout"))
                     for c in scene_configs(cfg[group]):
                         instantiate(c)
-                elif group in ("band", "neighbors", "model"):
+                elif group in ("band", "neighbors"):
                     instantiate(cfg[group])
+                elif group == "model":  # as a run builds it: KNN-DL's max_rank from the run's neighbor selector
+                    instantiate(model_config_for_neighbors(cfg.model, instantiate(cfg.neighbors)))
     GlobalHydra.instance().clear()
 
 
