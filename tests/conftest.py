@@ -13,6 +13,11 @@ from graf.run.config import CONF_DIR
 
 os.environ.setdefault("WANDB_MODE", "offline")
 os.environ.setdefault("WANDB_SILENT", "true")
+if os.environ.get("PYTEST_XDIST_WORKER"):  # pytest -n 2: one core per worker, for its own work and its subprocesses
+    os.environ["OMP_NUM_THREADS"] = "1"  # (two workers of two threads each on two cores slow each other many times)
+    import torch
+
+    torch.set_num_threads(1)
 
 EMBEDDED_S23 = Path(__file__).resolve().parents[1] / "src" / "graf" / "embedded" / "rfid_s23_200"
 

@@ -86,6 +86,7 @@ def test_neighbors_never_cross_scenes_and_never_are_the_target(compose_cfg, data
             assert (dm.row_scene[src] == dm.row_scene[rows[i]]).all() and (src != rows[i]).all()
 
 
+@pytest.mark.slow  # 15-25 s: zero-shot testing end to end stays in the default set in test_finetune
 def test_a_checkpoint_is_tested_zero_shot_on_a_scene_it_was_not_trained_on(compose_cfg, data_root, tmp_path):
     cfg = compose_cfg("train", ("scene=rfid_s23", "trainer.max_steps=2", "model.use_scene_index=true", *FAST))
     train(cfg)

@@ -117,6 +117,7 @@ GRAF_TINY = [
 ]
 
 
+@pytest.mark.slow  # 15-25 s: fine-tuning end to end stays in the default set (test_finetune_and_zero_shot_...)
 def test_a_checkpoint_of_another_band_or_scene_index_setting_is_refused(compose_cfg, small_room_root, tmp_path):
     tiny = [*GRAF_TINY, *QUIET, f"data_root={small_room_root}", "sim_num_tx=24"]
     base = compose_cfg(

@@ -84,6 +84,7 @@ def test_killed_training_resumes_from_its_last_checkpoint(tmp_path):
     assert all(torch.equal(v, whole[k]) for k, v in resumed["state_dict"].items())
 
 
+@pytest.mark.slow  # 15-25 s: GRaF's two training steps stay in the default set
 def test_finetune_starts_from_a_checkpoints_weights_and_rejects_another_architecture(compose_cfg, tmp_path):
     cfg = compose_cfg("train", ("experiment=graf_rfid_s23", "trainer.max_steps=2", *FAST))
     train(cfg)
