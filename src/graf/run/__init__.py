@@ -4,7 +4,7 @@ notebook without a Hydra app.
 - :mod:`.config`: where the configs are, the scenes and bands a config selects, held-out layouts, the task wrapper;
 - :mod:`.build`: bands, scenes, neighbor selector, datamodules, model, loggers, callbacks and trainer from a config;
 - :mod:`.evaluation`: validation, test, neighbor reliance and baselines of a built run;
-- :mod:`.record`: the run record (``results.json``) and what a task returns; :mod:`.report`: the record made,
+- :mod:`.record`: the run record (``results.json``) and what a task returns; :mod:`.writer`: the record made,
   written and printed;
 - :mod:`.finetune`, :mod:`.resume`: starting from a checkpoint's weights, resuming or stopping a training run;
 - :mod:`.train` (graf-train), :mod:`.evaluate` (graf-eval): ``train(cfg) -> Results``, ``evaluate(cfg) -> Results``.
