@@ -34,8 +34,9 @@ Training: ``rays_per_step`` random pixels per step, split evenly across the batc
 without replacement per target, seeded from the global step), per-ray L2 loss; Adam with an exponential
 learning-rate decay by ``lr_decay`` over ``decay_steps`` steps (stepped every optimiser step).
 Inference (:meth:`GRaFModule.predict_spectra`): all 32400 rays in chunks of at most ``chunk_rays`` rays
-(over the whole batch); neighbor tokens are computed once per batch.  Checkpoints written before
-``model/features`` load through :mod:`graf.models.graf.legacy`.
+(over the whole batch), spread over the CPU's threads, the blocks through a fused attention kernel
+(``fast_inference``, :mod:`graf.models.graf.inference`); neighbor tokens are computed once per batch.
+Checkpoints written before ``model/features`` load through :mod:`graf.models.graf.legacy`.
 """
 
 from __future__ import annotations
@@ -57,6 +58,7 @@ from graf.models.graf.cache import EvalCache, weights_stamp
 from graf.models.graf.encoder import ResNetEncoder
 from graf.models.graf.features import Dims, build_features
 from graf.models.graf.features.base import mlp
+from graf.models.graf.inference import fast_path, map_chunks, ray_transformer, scene_blocks
 from graf.models.graf.legacy import upgrade_arguments, upgrade_hparams, upgrade_optimizer_states, upgrade_state_dict
 from graf.models.graf.residual import KNNBase, NoBase
 from graf.models.graf.settings import check_settings
@@ -71,7 +73,7 @@ SCENE_TABLE_VOXELS = 2_000_000  # scenes with more voxels per spectrum compute t
 
 
 class GRaFModule(SpectrumModule):
-    INFERENCE_SETTINGS = ("chunk_rays",)  # graf-eval may change these on a trained checkpoint
+    INFERENCE_SETTINGS = ("chunk_rays", "fast_inference")  # graf-eval may change these on a trained checkpoint
     LAYOUT = 3
     LAYOUT_CHANGES = {
         2: "positions are now metres in the gateway frame (layout 1 normalised them by each scene's "
@@ -97,6 +99,9 @@ class GRaFModule(SpectrumModule):
             log(MSE of the target's rays + 1e-6): the training counterpart of the mean per-spectrum PSNR, so
             spectra that are already well predicted are not traded for the badly predicted ones).
         use_scene_index: 4-D positions (x, y, z, scene index) for cross-scene training.
+        fast_inference: at inference on a CPU in fp32, run the blocks through the fused attention kernel and the
+            chunks of a spectrum on all threads (:mod:`graf.models.graf.inference`): the same output within float
+            rounding; false: the plain path (the blocks' own forward), as in training.
         features: the neighbor-feature component's config (``conf/model/features/<mode>.yaml``: a mapping with
             ``_target_`` and the mode's own settings), or a mode name (its default settings).
         **legacy: ``neighbor_features`` (or ``neighbour_features``), ``ray_feature_dim``, ``pixel_window`` of a
@@ -130,6 +135,7 @@ class GRaFModule(SpectrumModule):
         ray_window: int = 0,
         attention: str = "auto",
         features: Mapping | str = "pooled",
+        fast_inference: bool = True,
         **legacy,
     ):
         super().__init__()
@@ -145,6 +151,7 @@ class GRaFModule(SpectrumModule):
         self.residual, self.use_scene_index = bool(residual), bool(use_scene_index)
         self.loss_name, self.length_unit = loss, float(length_unit)
         self.sample_spacing, self.ray_window = float(voxel_wavelengths), int(ray_window)
+        self.fast_inference = bool(fast_inference)
         self._ray_tables: dict = {}  # geometry only: per scene geometry and band, never stale
         self.eval_cache = EvalCache()  # weights-dependent tables of evaluation (see _cached)
         self.base = KNNBase(weighting) if self.residual else NoBase()
@@ -308,20 +315,6 @@ class GRaFModule(SpectrumModule):
         compute = partial(flat_scene_voxels, table, self._voxel_inputs, wl, scene_index, self.d_model, device)
         return self._cached("voxels", stamp, (id(table), scene_index, wl, autocast), compute)
 
-    def _ray_transformer(self, v: torch.Tensor) -> torch.Tensor:
-        """The ray blocks over ``v [n, S, d]``: full self-attention along the ray, or, with ``ray_window`` W
-        and S > W, attention within consecutive windows of W voxels (cost linear in S; for large scenes)."""
-        n, S, d = v.shape
-        W = self.ray_window
-        for blk in self.ray_blocks:
-            if not W or S <= W:
-                v = blk(v)
-            else:
-                k = S // W
-                head = blk(v[:, : k * W].reshape(n * k, W, d)).view(n, k * W, d)
-                v = head if k * W == S else torch.cat([head, blk(v[:, k * W :])], dim=1)
-        return v
-
     def _render_group(self, ctx: dict, bi: torch.Tensor, pix: torch.Tensor, S: int) -> torch.Tensor:
         """``[n, 2]`` (re, im) of ``n`` rays with ``S`` voxels each (items ``bi [n]``, pixels ``pix [n]``)."""
         n = pix.shape[0]
@@ -343,10 +336,10 @@ class GRaFModule(SpectrumModule):
             q, code = self._voxel_inputs(pix, t_in, step, ctx["wavelength"][bi], ctx["scene_index"][bi], S)
         q = q + ctx["target_query"][bi][:, None, :]
         x, tokens, key_mask, ray = self.features.scene_inputs(ctx, q, bi, pix, one_item)
-        for blk in self.scene_blocks:
-            x = blk(x, tokens, key_mask)
+        fast = fast_path(self.fast_inference, self.training, x)
+        x = scene_blocks(self.scene_blocks, x, tokens, key_mask, fast)
         v = self.mlp2(x).view(n, S, self.d_model) + code
-        v = self._ray_transformer(v)
+        v = ray_transformer(self.ray_blocks, v, self.ray_window, fast)
         return self.features.output(v.float().mean(dim=1), ray)
 
     def render(self, ctx: dict, pix: torch.Tensor) -> torch.Tensor:
@@ -375,7 +368,8 @@ class GRaFModule(SpectrumModule):
         B = ctx["mask"].shape[0]
         order = torch.stack([t["order"] for t in ctx["tables"]])  # [B, P]
         per = max(1, self.chunk_rays // B)
-        out = torch.cat([self.render(ctx, order[:, s : s + per]) for s in range(0, N_RAYS, per)], dim=1)
+        chunks = map_chunks(lambda s: self.render(ctx, order[:, s : s + per]), range(0, N_RAYS, per), order.device)
+        out = torch.cat(chunks, dim=1)
         spectra = torch.empty_like(out)
         spectra.scatter_(1, order, out)
         return spectra.view(B, N_ELEVATION, N_AZIMUTH).float()

@@ -1,0 +1,102 @@
+"""How GRaF's Transformer blocks run, and how a whole spectrum's chunks of rays are spread over the CPU's cores.
+
+**Fast path** (:func:`fast_path`): at inference on a CPU in fp32 (eval mode, no autograd, no autocast, the
+model's ``fast_inference`` on) the blocks run feature-major through :mod:`graf.models.graf.kernels` (a fused
+attention kernel): the same function within float rounding (tests/test_graf_fast.py).  Everywhere else (training,
+GPUs, reduced precision) the blocks' own ``forward`` runs: the *plain path*.
+
+**Chunks in parallel** (:func:`map_chunks`): on a CPU, a spectrum's chunks of rays go to ``torch.get_num_threads()``
+worker threads, each running its chunk's operations on one thread (torch's intra-op threads set to 1 meanwhile).
+GRaF's operations are many and small (width 16), so splitting each one over threads costs a synchronisation per
+operation; with another process on the machine one thread of each operation waits for a time slice and every
+operation waits for it (GRaF slowed 30x beside one busy process).  Whole chunks per thread need no
+synchronisation but the end: quiet, about as fast; beside a busy process, slowed as much as the lost core.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+
+import torch
+from torch import nn
+
+from graf.models.graf.kernels.blocks import block_forward
+
+FAST_PIECE_VOXELS = 4096  # voxels per piece through the ray transformer on the fast path (stays in cache)
+
+
+def fast_path(enabled: bool, training: bool, x: torch.Tensor) -> bool:
+    """Whether the blocks take the fast path for ``x`` (see module doc)."""
+    return (
+        enabled
+        and not training
+        and not torch.is_grad_enabled()
+        and x.device.type == "cpu"
+        and x.dtype == torch.float32
+        and not torch.is_autocast_enabled("cpu")
+    )
+
+
+def scene_blocks(
+    blocks: nn.ModuleList, x: torch.Tensor, tokens: torch.Tensor, key_mask: torch.Tensor | None, fast: bool
+) -> torch.Tensor:
+    """The cross-attention blocks: queries ``x [B, N, d]`` over ``tokens [B, L, d]``."""
+    for blk in blocks:
+        x = block_forward(blk, x, tokens, key_mask) if fast else blk(x, tokens, key_mask)
+    return x
+
+
+def _self_blocks(blocks: nn.ModuleList, v: torch.Tensor, fast: bool) -> torch.Tensor:
+    if not fast:
+        for blk in blocks:
+            v = blk(v)
+        return v
+    per = max(1, FAST_PIECE_VOXELS // v.shape[1])
+    pieces = []
+    for piece in v.split(per):  # each piece through every block while it is in cache
+        for blk in blocks:
+            piece = block_forward(blk, piece)
+        pieces.append(piece)
+    return pieces[0] if len(pieces) == 1 else torch.cat(pieces)
+
+
+def ray_transformer(blocks: nn.ModuleList, v: torch.Tensor, window: int, fast: bool) -> torch.Tensor:
+    """The ray blocks over ``v [n, S, d]``: full self-attention along the ray, or, with ``window`` W and S > W,
+    attention within consecutive windows of W voxels (the last window holds the remainder)."""
+    n, S, d = v.shape
+    if not window or S <= window:
+        return _self_blocks(blocks, v, fast)
+    k = S // window
+    if fast:  # every block on the windows: the blocks are per window, so the windows can go through all at once
+        head = _self_blocks(blocks, v[:, : k * window].reshape(n * k, window, d), fast).view(n, k * window, d)
+        return head if k * window == S else torch.cat([head, _self_blocks(blocks, v[:, k * window :], fast)], dim=1)
+    for blk in blocks:
+        head = blk(v[:, : k * window].reshape(n * k, window, d)).view(n, k * window, d)
+        v = head if k * window == S else torch.cat([head, blk(v[:, k * window :])], dim=1)
+    return v
+
+
+def map_chunks(fn: Callable, items: Sequence, device: torch.device, workers: int | None = None) -> list:
+    """``[fn(item) for item in items]``; on a CPU the first in this thread (it fills the model's evaluation
+    caches), the rest spread over ``workers`` threads (default ``torch.get_num_threads()``) with torch's intra-op
+    threads at 1 meanwhile (see module doc).  Only without autograd or autocast (both thread-local in torch);
+    otherwise in order in this thread.  Results in order."""
+    workers = torch.get_num_threads() if workers is None else int(workers)
+    serial = torch.is_grad_enabled() or torch.is_autocast_enabled("cpu")  # thread-local modes: not carried over
+    if device.type != "cpu" or workers <= 1 or len(items) <= 2 or serial:
+        return [fn(item) for item in items]
+
+    def run(item):
+        with torch.no_grad():
+            return fn(item)
+
+    first = fn(items[0])
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="graf-chunk") as pool:
+            rest = list(pool.map(run, items[1:]))
+    finally:
+        torch.set_num_threads(threads)
+    return [first, *rest]

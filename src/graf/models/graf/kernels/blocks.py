@@ -1,0 +1,109 @@
+"""GRaF's Transformer blocks at inference on a CPU, feature-major: the same function as the blocks' ``forward``
+(:mod:`graf.models.graf.attention`), within float rounding, at a fraction of its cost.
+
+GRaF's attention runs over many short sequences (a ray's S voxels, or its L neighbor tokens) with narrow heads
+(10 of 8 in the ray transformer, 1 of 16 in the scene blocks).  The plain path splits the projections into
+heads (copies), writes every score matrix to memory, runs softmax over rows of S and multiplies tiny
+matrices, one call per (ray, head).  Here:
+
+- the q, k and v projections are one batched matmul whose output is already *feature-major* per head,
+  ``[rays, heads, (q | k | v), head_dim, S]`` (the weights are reordered, the ``1/sqrt(head_dim)`` scale folded
+  into q's), so heads and rays merge into one batch axis without a copy;
+- the attention itself is :func:`graf.models.graf.kernels.native.attention` (scores, softmax and the weighted
+  sum fused, 16 queries per vector) where the compiled kernel is available, else the same arithmetic in torch
+  (:func:`torch_attention`);
+- the output projection reads the feature-major result directly.
+
+Everything else (residuals, LayerNorms, FFNs) is the block's own modules.  Inference only: no autograd.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from graf.models.graf.kernels import native
+
+
+def torch_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    """:func:`native.attention`'s arithmetic in torch operations (where the kernel is not available)."""
+    a = torch.bmm(q.transpose(1, 2), k)  # [B, Sq, Sk]
+    if mask is not None:
+        a = a.masked_fill(~mask.bool()[:, None, :], float("-inf"))
+    return torch.bmm(v, a.softmax(dim=-1).transpose(1, 2))
+
+
+def attention_fm(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    """Feature-major attention ``[B, Dk, Sq]``, ``[B, Dk, Sk]``, ``[B, Dv, Sk]`` -> ``[B, Dv, Sq]``: the kernel
+    where it takes the operands, else torch."""
+    if native.supports(q, k, v):
+        return native.attention(q, k, v, mask)
+    return torch_attention(q, k, v, mask)
+
+
+def _project(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """``x [B, N, d]`` -> ``(x W^T + b)^T [B, R, N]`` (feature-major) with one batched matmul."""
+    B, N, d = x.shape
+    R = weight.shape[0]
+    return torch.baddbmm(bias[None, :, None].expand(B, R, N), weight.expand(B, R, d), x.transpose(1, 2))
+
+
+def _head_major(attn: nn.Module, parts: tuple[str, ...], scale_q: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """The projections ``parts`` (of ``q``, ``k``, ``v``) stacked per head: rows ``(head, part, head_dim)``."""
+    H, Dh = attn.num_heads, attn.head_dim
+    d = attn.q.in_features
+    s = Dh**-0.5
+    ws = [getattr(attn, p).weight * (s if p == "q" and scale_q else 1.0) for p in parts]
+    bs = [getattr(attn, p).bias * (s if p == "q" and scale_q else 1.0) for p in parts]
+    w = torch.stack([w.view(H, Dh, d) for w in ws], dim=1).reshape(H * len(parts) * Dh, d)
+    b = torch.stack([b.view(H, Dh) for b in bs], dim=1).reshape(-1)
+    return w, b
+
+
+def _output(attn: nn.Module, o: torch.Tensor, B: int, N: int) -> torch.Tensor:
+    """Heads' outputs ``[B * H, Dh, N]`` -> the output projection, token-major ``[B, N, d]``."""
+    o = o.view(B, attn.num_heads * attn.head_dim, N)
+    return _project_fm(o, attn.out.weight, attn.out.bias).transpose(1, 2)
+
+
+def _project_fm(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """Feature-major ``x [B, C, N]`` -> ``W x + b [B, R, N]``."""
+    B, C, N = x.shape
+    R = weight.shape[0]
+    return torch.baddbmm(bias[None, :, None].expand(B, R, N), weight.expand(B, R, C), x)
+
+
+def self_attention(attn: nn.Module, x: torch.Tensor) -> torch.Tensor:
+    """``attn(x, x)`` without a key mask: ``x [B, N, d]`` -> ``[B, N, d]``."""
+    B, N, _ = x.shape
+    H, Dh = attn.num_heads, attn.head_dim
+    w, b = _head_major(attn, ("q", "k", "v"), scale_q=True)
+    qkv = _project(x, w, b).view(B * H, 3 * Dh, N)
+    o = attention_fm(qkv[:, :Dh], qkv[:, Dh : 2 * Dh], qkv[:, 2 * Dh :], None)
+    return _output(attn, o, B, N)
+
+
+def cross_attention(
+    attn: nn.Module, x: torch.Tensor, context: torch.Tensor, key_mask: torch.Tensor | None
+) -> torch.Tensor:
+    """``attn(x, context, key_mask)``: queries ``x [B, Nq, d]``, context ``[B, Nk, d]`` -> ``[B, Nq, d]``."""
+    B, Nq, _ = x.shape
+    Nk = context.shape[1]
+    H, Dh = attn.num_heads, attn.head_dim
+    wq, bq = _head_major(attn, ("q",), scale_q=True)
+    wkv, bkv = _head_major(attn, ("k", "v"), scale_q=False)
+    q = _project(x, wq, bq).view(B * H, Dh, Nq)
+    kv = _project(context, wkv, bkv).view(B * H, 2 * Dh, Nk)
+    mask = None if key_mask is None else key_mask.bool().repeat_interleave(H, dim=0)
+    o = attention_fm(q, kv[:, :Dh], kv[:, Dh:], mask)
+    return _output(attn, o, B, Nq)
+
+
+def block_forward(
+    blk: nn.Module, x: torch.Tensor, context: torch.Tensor | None = None, key_mask: torch.Tensor | None = None
+) -> torch.Tensor:
+    """A post-norm block (:class:`graf.models.graf.attention.CrossAttentionBlock` with ``context``, else
+    :class:`~graf.models.graf.attention.SelfAttentionBlock`) at inference, feature-major."""
+    a = self_attention(blk.attn, x) if context is None else cross_attention(blk.attn, x, context, key_mask)
+    x = blk.norm1(x + a)
+    return blk.norm2(x + blk.ffn(x))

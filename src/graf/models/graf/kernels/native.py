@@ -1,0 +1,148 @@
+"""The compiled attention kernel (``attention_cpu.cpp`` beside this file), built at first use and called through
+ctypes.
+
+The source is compiled once per machine with the system's C++ compiler (``$CXX``, else ``c++``/``g++``:
+``-O3 -march=native -fno-math-errno -shared -fPIC``) into ``$GRAF_KERNEL_DIR`` (default
+``~/.cache/graf/kernels``), named by a hash of the source, the flags and the CPU, written atomically (two
+processes building at once both succeed).  Where there is no compiler, or the build or the load fails, or
+``GRAF_NATIVE_KERNELS=0``, :func:`library` returns None once with a warning and callers use their torch path
+(the same arithmetic in torch operations).  No Python headers, no torch headers, no ninja: the library exports
+plain C functions on raw float pointers.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import logging
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+import threading
+from pathlib import Path
+
+import torch
+
+log = logging.getLogger(__name__)
+
+SOURCE = Path(__file__).with_name("attention_cpu.cpp")
+FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-shared", "-fPIC")
+_lock = threading.Lock()
+_state: dict = {}
+
+
+def kernel_dir() -> Path:
+    return Path(os.environ.get("GRAF_KERNEL_DIR") or Path.home() / ".cache" / "graf" / "kernels")
+
+
+def _compiler() -> str | None:
+    for name in (os.environ.get("CXX"), "c++", "g++", "clang++"):
+        if name and shutil.which(name):
+            return shutil.which(name)
+    return None
+
+
+def _cpu_id() -> str:
+    """What ``-march=native`` compiles for: the CPU's model name and flags (from /proc/cpuinfo where there is one)."""
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+        keep = [ln for ln in lines if ln.startswith(("model name", "flags"))][:2]
+        return "\n".join(keep) or platform.processor()
+    except OSError:
+        return platform.machine() + platform.processor()
+
+
+def _build(cxx: str) -> Path:
+    src = SOURCE.read_bytes()
+    key = hashlib.sha256(src + " ".join((cxx,) + FLAGS).encode() + _cpu_id().encode()).hexdigest()[:16]
+    out = kernel_dir() / f"graf_attention_{key}.so"
+    if out.exists():
+        return out
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=out.parent) as tmp:
+        tmp_so = Path(tmp) / out.name
+        proc = subprocess.run([cxx, *FLAGS, str(SOURCE), "-o", str(tmp_so)], capture_output=True, text=True)
+        if proc.returncode != 0:
+            raise RuntimeError(f"{cxx} failed on {SOURCE}: {proc.stderr.strip()[-2000:]}")
+        os.replace(tmp_so, out)  # atomic: a concurrent build of the same key writes the same bytes
+    return out
+
+
+def _load() -> ctypes.CDLL | None:
+    if os.environ.get("GRAF_NATIVE_KERNELS", "1") == "0":
+        return None
+    cxx = _compiler()
+    if cxx is None:
+        log.warning("no C++ compiler found: GRaF's CPU inference uses its torch path (slower, same results)")
+        return None
+    try:
+        lib = ctypes.CDLL(str(_build(cxx)))
+    except (OSError, RuntimeError) as exc:
+        log.warning("the attention kernel could not be built or loaded (%s): GRaF uses its torch path", exc)
+        return None
+    fn = lib.graf_attention
+    fn.restype = None
+    fn.argtypes = [ctypes.c_void_p] * 5 + [ctypes.c_int64] * 11
+    lib.graf_attention_max_dim.restype = ctypes.c_int
+    lib.graf_attention_max_keys.restype = ctypes.c_int
+    return lib
+
+
+def library() -> ctypes.CDLL | None:
+    """The loaded kernel library, or None where it cannot be had (built at most once per process)."""
+    if "lib" not in _state:
+        with _lock:
+            if "lib" not in _state:
+                _state["lib"] = _load()
+    return _state["lib"]
+
+
+def available() -> bool:
+    return library() is not None
+
+
+def _feature_major(x: torch.Tensor) -> bool:
+    """``[B, D, N]`` float32 on the CPU, each entry's rows contiguous (strides ``(any, N, 1)``)."""
+    return x.dtype == torch.float32 and x.device.type == "cpu" and x.stride(2) == 1 and x.stride(1) == x.shape[2]
+
+
+def supports(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor) -> bool:
+    """Whether the kernel takes these operands (see :func:`attention`) on this machine."""
+    lib = library()
+    if lib is None or not all(_feature_major(t) for t in (q, k, v)):
+        return False
+    return max(q.shape[1], v.shape[1]) <= lib.graf_attention_max_dim() and k.shape[2] <= lib.graf_attention_max_keys()
+
+
+def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """``softmax(q^T k) v^T``, transposed: queries ``q [B, Dk, Sq]``, keys ``k [B, Dk, Sk]``, values ``v [B, Dv,
+    Sk]`` (feature-major; the scale already in ``q``), optional key mask ``[B, Sk]`` (True = attend; at least one
+    per entry) -> ``[B, Dv, Sq]``.  Single-threaded: callers parallelise over chunks of rays.  Only where
+    :func:`supports` says so."""
+    lib = library()
+    B, Dk, Sq = q.shape
+    Dv, Sk = v.shape[1], k.shape[2]
+    out = torch.empty(B, Dv, Sq, dtype=torch.float32)
+    if mask is not None:
+        mask = mask.to(torch.uint8).expand(B, Sk).contiguous()
+    lib.graf_attention(
+        q.data_ptr(),
+        k.data_ptr(),
+        v.data_ptr(),
+        None if mask is None else mask.data_ptr(),
+        out.data_ptr(),
+        0,
+        B,
+        Dk,
+        Dv,
+        Sq,
+        Sk,
+        q.stride(0),
+        k.stride(0),
+        v.stride(0),
+        0 if mask is None else mask.stride(0),
+        out.stride(0),
+    )
+    return out

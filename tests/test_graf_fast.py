@@ -1,0 +1,144 @@
+"""GRaF's fast CPU inference (graf.models.graf.inference, graf.models.graf.kernels) gives the plain path's output
+within float rounding: the compiled attention kernel and its torch stand-in against the blocks' own forward, and
+whole spectra for every neighbor-feature mode, attention kernel and ray window, trained-looking weights (every
+parameter perturbed, so no zero-initialised head hides the blocks), batches of one and of two targets."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from graf.models.graf.attention import CrossAttentionBlock, SelfAttentionBlock
+from graf.models.graf.inference import map_chunks, ray_transformer
+from graf.models.graf.kernels import blocks as fast_blocks
+from graf.models.graf.kernels import native
+from tests.test_graf_model import _datamodule, _eval_batch, _small
+
+ATOL = 2e-5
+
+
+@pytest.fixture
+def tiny(make_scene):
+    return _datamodule(make_scene(n=16))
+
+
+def _perturbed(model, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.2 * torch.randn(p.shape, generator=g))
+    return model.eval()
+
+
+@pytest.fixture(params=["native", "torch"])
+def kernel(request, monkeypatch):
+    """Both implementations of the fused attention: the compiled kernel (where this machine builds it) and torch."""
+    if request.param == "native":
+        if not native.available():
+            pytest.skip("no C++ compiler here: the kernel cannot be built (the torch stand-in is tested)")
+    else:
+        monkeypatch.setattr(native, "supports", lambda *a: False)
+    return request.param
+
+
+SHAPES = [(7, 8, 8, 25, 25), (3, 16, 16, 1, 1), (2, 16, 16, 40, 3), (5, 8, 9, 17, 130)]
+
+
+@pytest.mark.parametrize("B,Dk,Dv,Sq,Sk", SHAPES)
+def test_fused_attention_equals_softmax_attention(kernel, B, Dk, Dv, Sq, Sk):
+    g = torch.Generator().manual_seed(B * Sq + Sk)
+    q, k = torch.randn(B, Dk, Sq, generator=g), torch.randn(B, Dk, Sk, generator=g)
+    v = torch.randn(B, Dv, Sk, generator=g)
+    mask = torch.rand(B, Sk, generator=g) > 0.5
+    mask[:, -1] = True  # every entry attends to at least one key
+    for m in (None, mask):
+        a = q.transpose(1, 2) @ k
+        if m is not None:
+            a = a.masked_fill(~m[:, None, :], float("-inf"))
+        expect = v @ a.softmax(-1).transpose(1, 2)
+        assert torch.allclose(fast_blocks.attention_fm(q, k, v, m), expect, atol=1e-5, rtol=1e-5)
+
+
+def test_fused_attention_at_the_extremes(kernel):
+    """Huge scores (the row maximum is subtracted: no overflow), one key, a single unmasked key, equal keys."""
+    q = torch.full((2, 8, 20), 40.0)
+    k = torch.linspace(-3, 3, 2 * 8 * 5).view(2, 8, 5)
+    v = torch.randn(2, 8, 5)
+    out = fast_blocks.attention_fm(q, k, v, None)
+    expect = v @ (q.transpose(1, 2) @ k).softmax(-1).transpose(1, 2)
+    assert torch.isfinite(out).all() and torch.allclose(out, expect, atol=1e-5)
+    only = torch.zeros(2, 5, dtype=torch.bool)
+    only[:, 2] = True
+    out = fast_blocks.attention_fm(q, k, v, only)
+    assert torch.allclose(out, v[:, :, 2:3].expand(-1, -1, 20), atol=1e-6)
+    same = fast_blocks.attention_fm(torch.randn(1, 8, 3), torch.ones(1, 8, 4), v[:1, :, :4], None)
+    assert torch.allclose(same, v[:1, :, :4].mean(-1, keepdim=True).expand(-1, -1, 3), atol=1e-6)
+
+
+def test_fast_blocks_equal_the_blocks_forward(kernel):
+    torch.manual_seed(0)
+    self_blk = _perturbed(SelfAttentionBlock(16, 10, 8, 64))
+    cross_blk = _perturbed(CrossAttentionBlock(16, 1, 16, 64))
+    x, ctx = torch.randn(6, 23, 16), torch.randn(6, 5, 16)
+    mask = torch.rand(6, 5) > 0.4
+    mask[:, 0] = True
+    with torch.no_grad():
+        assert torch.allclose(fast_blocks.block_forward(self_blk, x), self_blk(x), atol=ATOL)
+        for m in (None, mask):
+            assert torch.allclose(fast_blocks.block_forward(cross_blk, x, ctx, m), cross_blk(x, ctx, m), atol=ATOL)
+        one = ctx[:1]  # one context for every query row (the pooled mode's one-item batches)
+        assert torch.allclose(
+            fast_blocks.block_forward(cross_blk, x.reshape(1, -1, 16), one, None),
+            cross_blk(x.reshape(1, -1, 16), one, None),
+            atol=ATOL,
+        )
+
+
+@pytest.mark.parametrize("window", [0, 3])
+def test_ray_transformer_fast_equals_plain(kernel, window):
+    model = _perturbed(_small(max_samples=8, ray_window=window))
+    v = torch.randn(9, 8, model.d_model)
+    with torch.no_grad():
+        fast = ray_transformer(model.ray_blocks, v, window, fast=True)
+        plain = ray_transformer(model.ray_blocks, v, window, fast=False)
+    assert torch.allclose(fast, plain, atol=ATOL)
+
+
+CASES = [(f, "auto", 0) for f in ("pooled", "ray", "ray_knn", "ray_weights")] + [
+    (f, a, w) for f in ("pooled", "ray_weights") for a, w in (("sdpa", 0), ("math", 0), ("auto", 3))
+]
+
+
+@pytest.mark.parametrize("features,attention,window", CASES)
+def test_whole_spectra_fast_equal_plain(tiny, features, attention, window):
+    """predict_spectra with fast_inference (the kernel, chunks on two threads) equals it without, every mode,
+    attention kernel and ray window, for a batch of two targets and of one."""
+    model = _perturbed(
+        _small(max_samples=8, chunk_rays=5000, attention=attention, ray_window=window, features=features), seed=1
+    )
+    batch = _eval_batch(tiny)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        for b in (batch, {k: v[:1] if torch.is_tensor(v) else v for k, v in batch.items()}):
+            with torch.no_grad():
+                fast = model.predict_spectra(b)
+                model.fast_inference = False
+                plain = model.predict_spectra(b)
+                model.fast_inference = True
+            assert torch.allclose(fast, plain, atol=ATOL), (fast - plain).abs().max()
+            assert plain.std() > 1e-3  # the blocks' output reaches the prediction
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.get_num_threads() == 2 or threads != 2
+
+
+def test_map_chunks_keeps_order_and_threads():
+    threads = torch.get_num_threads()
+    with torch.no_grad():
+        out = map_chunks(lambda i: torch.full((3,), float(i)) * 2, range(7), torch.device("cpu"), workers=2)
+    assert [float(o[0]) for o in out] == [2.0 * i for i in range(7)]
+    assert torch.get_num_threads() == threads
+    with torch.enable_grad():  # autograd mode is thread-local: chunks stay in this thread
+        out = map_chunks(lambda i: torch.is_grad_enabled(), range(4), torch.device("cpu"), workers=2)
+    assert out == [True] * 4
