@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from pathlib import Path
 
 import pytest
@@ -16,6 +17,7 @@ import graf.studies.bench as bench_cli
 from graf.errors import ConfigError
 from graf.run.config import CONF_DIR
 from graf.studies.bench import bench, ensure_simulated, scene_and_band
+from graf.studies.bench_load import Competitor, LoadMeter, disturbances, spread
 from graf.studies.bench_report import add_ratios
 
 REQUIRED = {
@@ -33,6 +35,11 @@ REQUIRED = {
     "checkpoint_mb",
     "infer_ratio_to_graf",
     "train_ratio_to_graf",
+    "infer_load_cores",
+    "train_load_cores",
+    "infer_spread",
+    "train_spread",
+    "disturbed",
 }
 TINY_GRAF = ("models.graf_cpu.max_samples=4", "models.graf_cpu.encoder_widths=[4,8,8,8]")
 
@@ -71,7 +78,8 @@ def _results(cfg) -> dict:
 
 def test_the_default_config_benchmarks_every_method_on_a_real_and_a_simulated_scene(bench_cfg):
     cfg = bench_cfg()
-    assert set(cfg.models) == {"graf", "graf_cpu", "nerf2", "nerf2_cpu", "knn_dl", "knn"}
+    assert set(cfg.models) == {"graf", "graf_cpu", "graf_cpu_ray", "nerf2", "nerf2_cpu", "knn_dl", "knn"}
+    assert cfg.bench.compete is False
     assert cfg.scenes.real.name == "rfid_s23" and cfg.bands.real.name == "915mhz"
     assert cfg.scenes.room.name == "conference_v1" and cfg.bands.room.name == "2.4ghz"
     assert cfg.bench.rays_per_step == 5120 and cfg.bench.sim_num_tx == 64
@@ -175,3 +183,34 @@ def test_unknown_models_and_scenes_are_config_errors(bench_cfg):
         bench(bench_cfg("bench.models=[nope]"))
     with pytest.raises(ConfigError, match=r"\+band@bands.office"):
         bench(bench_cfg("+scene_catalog@scenes.office=office_v1"))
+
+
+def test_the_load_meter_sees_a_competing_process_and_the_row_is_flagged():
+    """Other processes' CPU time is measured, a competing process shows up in it, and a row with that load or a
+    wide spread of repeated timings is flagged (why, in words)."""
+    with Competitor(), LoadMeter() as busy:
+        time.sleep(1.0)
+    assert busy.cores is not None and busy.cores > 0.5  # the competitor took about one core
+    row = {"infer_load_cores": busy.cores, "infer_spread": 0.02, "train_load_cores": None, "train_spread": None}
+    flags = disturbances(row)
+    assert len(flags) == 1 and flags[0].startswith("infer: other processes used")
+    assert disturbances({"infer_load_cores": 0.0, "infer_spread": 0.4}) == [
+        "infer: repeated timings spread 40% (limit 15%)"
+    ]
+    assert spread([1.0]) is None and spread([1.0, 1.2, 1.1]) == pytest.approx(0.2 / 1.1, rel=1e-3)
+
+
+def test_compete_times_each_row_again_beside_a_busy_process(bench_cfg):
+    cfg = bench_cfg("bench.scenes=[real]", "bench.models=[graf_cpu,knn]", "bench.compete=true", *TINY_GRAF)
+    bench(cfg)
+    r = _results(cfg)
+    assert r["compete"] is True and r["disturbance_limits"] == {"load_cores": 0.2, "spread": 0.15}
+    for row in r["rows"]:
+        loaded_load = row["infer_load_cores_loaded"]  # None: a phase too short for /proc's 10 ms ticks
+        assert row["infer_s_per_spectrum_loaded"] > 0 and (loaded_load is None or loaded_load > 0.5)
+        assert row["infer_slowdown"] == pytest.approx(
+            row["infer_s_per_spectrum_loaded"] / row["infer_s_per_spectrum"], rel=2e-3
+        )
+        assert isinstance(row["disturbed"], bool) and isinstance(row["disturbances"], list)
+    md = (Path(cfg.paths.output_dir) / "bench.md").read_text()
+    assert "beside a busy process" in md and "slowdown" in md

@@ -37,6 +37,14 @@ simulated conference_v1 at 2.4 GHz) and every model of ``models`` (default: ``gr
   over that of the scene's *ratio base*: the row of preset ``graf`` (the paper's sizes) on the same scene,
   or, where that is absent or failed, the scene's first row whose method is GRaF (``graf``/``graf-residual``);
   null where there is none.  ``ratio_base`` in results.json names it per scene.
+- ``infer_load_cores`` / ``train_load_cores``: the cores other processes used while the phase was timed
+  (``/proc``: :mod:`graf.studies.bench_load`); ``infer_spread`` / ``train_spread``: ``(max - min) / median`` of
+  the repeated timings (null for one); ``disturbed`` and ``disturbances``: the row's timings are not a quiet
+  measurement (load above 0.2 cores or spread above 15%: ``disturbance_limits``).
+- ``bench.compete=true``: after the quiet timing, the model's evaluation caches are emptied and the warm-up and
+  the timed spectra run again beside a competing single-threaded process the bench starts
+  (``infer_s_per_spectrum_loaded``, ``infer_load_cores_loaded``) and ``infer_slowdown`` = loaded / quiet: the
+  methods side by side under the same load.
 
 Everything runs on the GPU when ``torch.cuda.is_available()`` (``device_type``: ``cuda``; the table's first
 line names the device), else on the CPU with ``threads`` threads (null: torch's default; recorded).
@@ -75,6 +83,7 @@ from graf.errors import ConfigError
 from graf.run.build import build_datamodule, model_config_for_neighbors
 from graf.run.config import CONF_DIR, band_choices, output_dir, task_wrapper
 from graf.sim_commands.simulate import simulate
+from graf.studies.bench_load import LOAD_LIMIT, SPREAD_LIMIT, disturbances
 from graf.studies.bench_measure import (
     checkpoint_mb,
     device_name,
@@ -104,6 +113,11 @@ ROW_KEYS = (
     "checkpoint_mb",
     "infer_ratio_to_graf",
     "train_ratio_to_graf",
+    "infer_load_cores",
+    "train_load_cores",
+    "infer_spread",
+    "train_spread",
+    "disturbed",
 )
 WARMUP = {
     "whole": "one whole spectrum before the timed ones; one whole training step before the timed ones",
@@ -217,6 +231,8 @@ def bench(cfg: DictConfig) -> dict:
         "train_steps_timed": steps,
         "warmup": WARMUP["light" if quick else "whole"],
         "rays_per_step": cfg.bench.get("rays_per_step"),
+        "compete": bool(cfg.bench.get("compete")),
+        "disturbance_limits": {"load_cores": LOAD_LIMIT, "spread": SPREAD_LIMIT},
         "memory": memory_method(device),
         "ratio_base": {},
         "rows": [],
@@ -294,11 +310,13 @@ def _bench_model(cfg: DictConfig, m: str, scene_name: str, infer: list, train: l
         row["checkpoint_mb"] = round(checkpoint_mb(model), 3)
         model = model.to(device)
         row["samples_per_ray"] = samples_per_ray(model, infer[0])
-        row.update(measure_inference(model, infer, device, light_warmup=quick))
+        row.update(measure_inference(model, infer, device, light_warmup=quick, compete=bool(cfg.bench.get("compete"))))
         if row["trainable_parameters"]:
             row.update(measure_training(model, train, device, light_warmup=quick))
         else:
             row.update(dict.fromkeys(("train_s_per_step", "train_rays_per_step", "train_rays_per_s", "peak_mb_train")))
+        row["disturbances"] = disturbances(row)
+        row["disturbed"] = bool(row["disturbances"])
         peaks = [v for v in (row.get("peak_mb_train"), row.get("peak_mb_infer")) if v is not None]
         row["peak_mb"] = max(peaks) if peaks else None
         row["device"] = device.type

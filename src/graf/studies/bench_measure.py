@@ -17,6 +17,8 @@ from pathlib import Path
 import lightning as L
 import torch
 
+from graf.studies.bench_load import Competitor, LoadMeter, spread
+
 N_RAYS = 90 * 360  # rays (pixels) of one spectrum
 LIGHT_WARMUP_RAYS = 256  # rays of quick=true's warm-up training step
 
@@ -225,17 +227,43 @@ def warm_up_inference(model, batch: dict, light: bool) -> None:
         model.predict_spectra(batch)
 
 
-def measure_inference(model, batches: list[dict], device: torch.device, light_warmup: bool = False) -> dict:
-    """Warm-up on ``batches[0]``, then each later batch timed on its own; median seconds and peak memory."""
+def _timed_spectra(
+    model, batches: list[dict], device: torch.device, light_warmup: bool
+) -> tuple[list[float], LoadMeter]:
+    """The warm-up on ``batches[0]``, then each later batch timed on its own (the load measured meanwhile)."""
+    warm_up_inference(model, batches[0], light_warmup)
+    with LoadMeter() as load:
+        times = [_timed(lambda b=b: model.predict_spectra(b), device) for b in batches[1:]]
+    return times, load
+
+
+def measure_inference(
+    model, batches: list[dict], device: torch.device, light_warmup: bool = False, compete: bool = False
+) -> dict:
+    """Warm-up on ``batches[0]``, then each later batch timed on its own; median seconds, peak memory, the other
+    processes' load and the spread of the timings.  ``compete``: then again (the model's evaluation caches
+    emptied, the warm-up repeated) beside a competing process (:class:`Competitor`), and the slowdown."""
     model.eval()
     with torch.no_grad(), PeakMemory(device) as mem:
-        warm_up_inference(model, batches[0], light_warmup)
-        times = [_timed(lambda b=b: model.predict_spectra(b), device) for b in batches[1:]]
-    return {
+        times, load = _timed_spectra(model, batches, device, light_warmup)
+    out = {
         "infer_s_per_spectrum": _median(times),
         "infer_times_s": [round(t, 6) for t in times],
+        "infer_load_cores": load.cores,
+        "infer_spread": spread(times),
         "peak_mb_infer": None if mem.mb is None else round(mem.mb, 1),
     }
+    if compete:
+        cache = getattr(model, "eval_cache", None)
+        if cache is not None:
+            cache.clear()
+        with torch.no_grad(), Competitor():
+            loaded, load = _timed_spectra(model, batches, device, light_warmup)
+        out["infer_s_per_spectrum_loaded"] = _median(loaded)
+        out["infer_times_s_loaded"] = [round(t, 6) for t in loaded]
+        out["infer_load_cores_loaded"] = load.cores
+        out["infer_slowdown"] = round(_median(loaded) / _median(times), 3) if times and _median(times) else None
+    return out
 
 
 def measure_training(model, batches: list[dict], device: torch.device, light_warmup: bool = False) -> dict:
@@ -262,7 +290,8 @@ def measure_training(model, batches: list[dict], device: torch.device, light_war
         finally:
             if rays is not None:
                 model.rays_per_step = rays
-        times = [_timed(lambda b=b, i=i: step(b, i), device) for i, b in enumerate(batches[1:], start=1)]
+        with LoadMeter() as load:
+            times = [_timed(lambda b=b, i=i: step(b, i), device) for i, b in enumerate(batches[1:], start=1)]
     opt = sched = None  # the optimiser state is released before the next measurement
     B = int(batches[0]["tgt_pos"].shape[0])
     rays = rays_per_train_step(model, B)
@@ -270,6 +299,8 @@ def measure_training(model, batches: list[dict], device: torch.device, light_war
     return {
         "train_s_per_step": s,
         "train_times_s": [round(t, 6) for t in times],
+        "train_load_cores": load.cores,
+        "train_spread": spread(times),
         "train_batch_size": B,
         "train_rays_per_step": rays,
         "train_rays_per_s": round(rays / s, 1) if s else None,

@@ -48,7 +48,14 @@ def markdown(result: dict) -> str:
         f"graf-bench on {result['device']} ({result['device_type']}, {result['threads']} threads, torch "
         f"{result['torch']}): median of {result['spectra_timed']} spectra and of {result['train_steps_timed']} "
         f"training steps (warm-up: {result['warmup']}); peak memory: {result['memory']}; "
-        "ratios: to the scene's GRaF row (paper size where present)."
+        "ratios: to the scene's GRaF row (paper size where present); load: cores other processes used while the "
+        "row's inference / training was timed; trusted: no where that load or the spread of repeated timings "
+        f"passed its limit ({result.get('disturbance_limits')})."
+        + (
+            " Each row's spectra timed again beside a competing single-threaded process (slowdown = beside / quiet)."
+            if result.get("compete")
+            else ""
+        )
     )
     cols = [
         "scene",
@@ -65,7 +72,12 @@ def markdown(result: dict) -> str:
         "peak MB infer",
         "parameters",
         "checkpoint MB",
+        "load (cores)",
+        "trusted",
     ]
+    compete = bool(result.get("compete"))
+    if compete:
+        cols += ["s/spectrum beside a busy process", "slowdown"]
     lines = [head, "", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for r in result["rows"]:
         if r.get("error"):
@@ -86,7 +98,11 @@ def markdown(result: dict) -> str:
                 fmt(r["peak_mb_infer"], ".1f"),
                 fmt(r["parameters"], ","),
                 fmt(r["checkpoint_mb"], ".2f"),
+                "/".join(fmt(r.get(f"{p}_load_cores"), ".2f") for p in ("infer", "train")),
+                "no: " + "; ".join(r["disturbances"]) if r.get("disturbed") else "yes",
             ]
+            if compete:
+                cells += [fmt(r.get("infer_s_per_spectrum_loaded")), fmt(r.get("infer_slowdown"), ".3g")]
         lines.append("| " + " | ".join(str(c).replace("|", "/") for c in cells) + " |")
     return "\n".join(lines) + "\n"
 
