@@ -18,8 +18,10 @@ LOAD_LIMIT = 0.2  # cores other processes may use during a phase before its row 
 SPREAD_LIMIT = 0.15  # (max - min) / median of repeated timings before a row is flagged
 MIN_LOAD_WINDOW_S = 0.25  # /proc counts CPU time in ticks of 10 ms: a shorter phase's load is not measured (None)
 # the competing process: a stream of short evaluations in one thread (what a second user's script does)
+# (it ends itself when the bench is gone, however the bench ended)
 COMPETITOR_CODE = (
-    "import math\nwhile True:\n    s = 0.0\n    for i in range(20000):\n        s += math.sin(i) * math.sqrt(i + 1.0)\n"
+    "import math, os\nparent = os.getppid()\nwhile os.getppid() == parent:\n    s = 0.0\n"
+    "    for i in range(20000):\n        s += math.sin(i) * math.sqrt(i + 1.0)\n"
 )
 _TICK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 

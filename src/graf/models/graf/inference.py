@@ -21,7 +21,7 @@ from concurrent.futures import ThreadPoolExecutor
 import torch
 from torch import nn
 
-from graf.models.graf.kernels.blocks import block_forward
+from graf.models.graf.kernels.blocks import run_blocks
 
 FAST_PIECE_VOXELS = 4096  # voxels per piece through the ray transformer on the fast path (stays in cache)
 
@@ -42,8 +42,10 @@ def scene_blocks(
     blocks: nn.ModuleList, x: torch.Tensor, tokens: torch.Tensor, key_mask: torch.Tensor | None, fast: bool
 ) -> torch.Tensor:
     """The cross-attention blocks: queries ``x [B, N, d]`` over ``tokens [B, L, d]``."""
+    if fast:
+        return run_blocks(blocks, x, tokens, key_mask)
     for blk in blocks:
-        x = block_forward(blk, x, tokens, key_mask) if fast else blk(x, tokens, key_mask)
+        x = blk(x, tokens, key_mask)
     return x
 
 
@@ -53,11 +55,7 @@ def _self_blocks(blocks: nn.ModuleList, v: torch.Tensor, fast: bool) -> torch.Te
             v = blk(v)
         return v
     per = max(1, FAST_PIECE_VOXELS // v.shape[1])
-    pieces = []
-    for piece in v.split(per):  # each piece through every block while it is in cache
-        for blk in blocks:
-            piece = block_forward(blk, piece)
-        pieces.append(piece)
+    pieces = [run_blocks(blocks, piece) for piece in v.split(per)]  # each piece through every block in cache
     return pieces[0] if len(pieces) == 1 else torch.cat(pieces)
 
 
@@ -69,7 +67,7 @@ def ray_transformer(blocks: nn.ModuleList, v: torch.Tensor, window: int, fast: b
         return _self_blocks(blocks, v, fast)
     k = S // window
     if fast:  # every block on the windows: the blocks are per window, so the windows can go through all at once
-        head = _self_blocks(blocks, v[:, : k * window].reshape(n * k, window, d), fast).view(n, k * window, d)
+        head = _self_blocks(blocks, v[:, : k * window].reshape(n * k, window, d), fast).reshape(n, k * window, d)
         return head if k * window == S else torch.cat([head, _self_blocks(blocks, v[:, k * window :], fast)], dim=1)
     for blk in blocks:
         head = blk(v[:, : k * window].reshape(n * k, window, d)).view(n, k * window, d)

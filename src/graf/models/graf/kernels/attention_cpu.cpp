@@ -5,6 +5,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <vector>
 
 typedef float vf __attribute__((vector_size(64)));  // 16 lanes: 16 queries at once
 typedef int32_t vi __attribute__((vector_size(64)));
@@ -30,8 +31,7 @@ static inline vf vexp(vf x) {
     p = p * r + 5.0000001201e-1f;
     p = p * r * r + r + 1.0f;
     vi e = (__builtin_convertvector(n, vi) + 127) << 23;
-    vf s = (vf)e;
-    return x < lo ? splat(0.0f) : p * s;
+    return p * (vf)e;  // below -87.3: exp(-87.3) ~ 1e-38, nothing beside a softmax's maximum term of 1
 }
 
 extern "C" int graf_attention_max_dim() { return MAX_DIM; }
@@ -83,4 +83,181 @@ extern "C" void graf_attention(const float *q, const float *k, const float *v, c
             }
         }
     }
+}
+
+// ------------------------------------------------------------------------------------------------ whole blocks
+// One post-norm Transformer block (graf.models.graf.attention._PostNormBlock) fused:
+//   y = LN1(x + Wo Attention(Wq x, Wk c, Wv c) + bo);  out = LN2(y + W2 relu(W1 y + b1) + b2)
+// over feature-major entries (x [d, S] per entry: row c holds channel c of every position), 16 positions per
+// vector.  c is x itself (self-attention) or the entry's context [d, L] (cross-attention; a context stride of
+// 0 shares one context among all entries, its keys and values computed once).
+struct BlockWeights {
+    const float *wq, *bq;    // [H*Dh, d], [H*Dh]: the query projection, 1/sqrt(Dh) folded in
+    const float *wkv, *bkv;  // [H*2*Dh, d], [H*2*Dh]: rows (head, key | value, Dh)
+    const float *wo, *bo;    // [d, H*Dh], [d]
+    const float *g1, *be1;   // LayerNorm 1 [d]
+    const float *w1, *b1;    // [F, d], [F]
+    const float *w2, *b2;    // [d, F], [d]
+    const float *g2, *be2;   // LayerNorm 2 [d]
+    float eps1, eps2;
+    int64_t d, H, Dh, F;
+};
+
+static const int MAX_MODEL = 64;   // d
+static const int MAX_INNER = 256;  // H * Dh and F
+
+extern "C" int graf_block_limits(int which) { return which == 0 ? MAX_MODEL : MAX_INNER; }
+
+static inline vf load_lanes(const float *p, int64_t nl) {
+    if (nl == LANES) {
+        vf v;
+        std::memcpy(&v, p, sizeof v);
+        return v;
+    }
+    float tmp[LANES] = {0};
+    std::memcpy(tmp, p, nl * sizeof(float));
+    vf v;
+    std::memcpy(&v, tmp, sizeof v);
+    return v;
+}
+
+static inline void store_lanes(float *p, vf v, int64_t nl) {
+    float tmp[LANES];
+    std::memcpy(tmp, &v, sizeof tmp);
+    std::memcpy(p, tmp, nl * sizeof(float));
+}
+
+static inline void layer_norm(vf *x, int64_t d, const float *g, const float *b, float eps) {
+    vf mean = splat(0.0f), var = splat(0.0f);
+    for (int64_t c = 0; c < d; c++) mean += x[c];
+    mean = mean / (float)d;
+    for (int64_t c = 0; c < d; c++) {
+        vf t = x[c] - mean;
+        var += t * t;
+    }
+    var = var / (float)d;
+    float tmp[LANES];
+    std::memcpy(tmp, &var, sizeof tmp);
+    for (int l = 0; l < LANES; l++) tmp[l] = 1.0f / std::sqrt(tmp[l] + eps);
+    vf inv;
+    std::memcpy(&inv, tmp, sizeof inv);
+    for (int64_t c = 0; c < d; c++) x[c] = (x[c] - mean) * inv * g[c] + b[c];
+}
+
+// Sizes known at compile time for the common blocks (D, DH, FF; 0 = read from the weights at run time): the
+// compiler then unrolls the short loops and keeps the vectors in registers.
+#define SIZE(K, runtime) ((K) ? (int64_t)(K) : (int64_t)(runtime))
+
+// keys and values of one entry's context: kv [H*2*Dh][Lp] (Lp: L rounded up to whole vectors)
+template <int D, int DH, int FF>
+static void keys_values(const BlockWeights *w, const float *c, int64_t L, int64_t Lp, float *kv) {
+    const int64_t d = SIZE(D, w->d), R = 2 * w->H * SIZE(DH, w->Dh);
+    for (int64_t j0 = 0; j0 < L; j0 += LANES) {
+        const int64_t nl = L - j0 < LANES ? L - j0 : LANES;
+        vf cv[MAX_MODEL];
+        for (int64_t k = 0; k < d; k++) cv[k] = load_lanes(c + k * L + j0, nl);
+        for (int64_t r = 0; r < R; r++) {
+            vf acc = splat(w->bkv[r]);
+            const float *wr = w->wkv + r * d;
+            for (int64_t k = 0; k < d; k++) acc += cv[k] * wr[k];
+            std::memcpy(kv + r * Lp + j0, &acc, sizeof acc);
+        }
+    }
+}
+
+// 16 query positions (their inputs xv [d]) through the whole block; the result back into xv
+template <int D, int DH, int FF>
+static void block_lanes(const BlockWeights *w, vf *xv, const float *kv, int64_t L, int64_t Lp, const uint8_t *mask) {
+    const int64_t d = SIZE(D, w->d), H = w->H, Dh = SIZE(DH, w->Dh), F = SIZE(FF, w->F), HD = H * Dh;
+    static thread_local vf s[MAX_KEYS];
+    vf q[MAX_INNER], o[MAX_INNER];
+    for (int64_t r = 0; r < HD; r++) {
+        vf acc = splat(w->bq[r]);
+        const float *wr = w->wq + r * d;
+        for (int64_t k = 0; k < d; k++) acc += xv[k] * wr[k];
+        q[r] = acc;
+    }
+    for (int64_t h = 0; h < H; h++) {
+        const vf *qh = q + h * Dh;
+        const float *kh = kv + (h * 2 * Dh) * Lp, *vh = kh + Dh * Lp;
+        vf mx = splat(-INFINITY);
+        for (int64_t j = 0; j < L; j++) {
+            if (mask && !mask[j]) continue;
+            vf acc = qh[0] * kh[j];
+            for (int64_t e = 1; e < Dh; e++) acc += qh[e] * kh[e * Lp + j];
+            s[j] = acc;
+            mx = acc > mx ? acc : mx;
+        }
+        vf *oh = o + h * Dh;
+        for (int64_t e = 0; e < Dh; e++) oh[e] = splat(0.0f);
+        vf sum = splat(0.0f);
+        for (int64_t j = 0; j < L; j++) {
+            if (mask && !mask[j]) continue;
+            vf p = vexp(s[j] - mx);
+            sum += p;
+            for (int64_t e = 0; e < Dh; e++) oh[e] += p * vh[e * Lp + j];
+        }
+        for (int64_t e = 0; e < Dh; e++) oh[e] = oh[e] / sum;
+    }
+    vf y[MAX_MODEL], hdn[MAX_INNER];
+    for (int64_t c = 0; c < d; c++) {
+        vf acc = splat(w->bo[c]) + xv[c];
+        const float *wr = w->wo + c * HD;
+        for (int64_t r = 0; r < HD; r++) acc += o[r] * wr[r];
+        y[c] = acc;
+    }
+    layer_norm(y, d, w->g1, w->be1, w->eps1);
+    for (int64_t f = 0; f < F; f++) {
+        vf acc = splat(w->b1[f]);
+        const float *wr = w->w1 + f * d;
+        for (int64_t c = 0; c < d; c++) acc += y[c] * wr[c];
+        hdn[f] = acc > 0.0f ? acc : splat(0.0f);
+    }
+    for (int64_t c = 0; c < d; c++) {
+        vf acc = splat(w->b2[c]) + y[c];
+        const float *wr = w->w2 + c * F;
+        for (int64_t f = 0; f < F; f++) acc += hdn[f] * wr[f];
+        xv[c] = acc;
+    }
+    layer_norm(xv, d, w->g2, w->be2, w->eps2);
+}
+
+template <int D, int DH, int FF>
+static void block_entries(const BlockWeights *w, const float *x, int64_t x_stride, float *y, int64_t y_stride,
+                          int64_t e0, int64_t e1, int64_t S, const float *ctx, int64_t ctx_stride, int64_t L,
+                          const uint8_t *mask, int64_t mask_stride) {
+    const int64_t d = SIZE(D, w->d);
+    const int64_t keys = ctx ? L : S, Lp = (keys + LANES - 1) / LANES * LANES;
+    static thread_local std::vector<float> kv;
+    kv.resize((size_t)(2 * w->H * w->Dh * Lp));
+    for (int64_t e = e0; e < e1; e++) {
+        const float *xe = x + e * x_stride;
+        if (!ctx) {
+            keys_values<D, DH, FF>(w, xe, S, Lp, kv.data());
+        } else if (ctx_stride != 0 || e == e0) {
+            keys_values<D, DH, FF>(w, ctx + e * ctx_stride, L, Lp, kv.data());
+        }
+        const uint8_t *me = mask ? mask + e * mask_stride : nullptr;
+        float *ye = y + e * y_stride;
+        for (int64_t i0 = 0; i0 < S; i0 += LANES) {
+            const int64_t nl = S - i0 < LANES ? S - i0 : LANES;
+            vf xv[MAX_MODEL];
+            for (int64_t c = 0; c < d; c++) xv[c] = load_lanes(xe + c * S + i0, nl);
+            block_lanes<D, DH, FF>(w, xv, kv.data(), keys, Lp, me);
+            for (int64_t c = 0; c < d; c++) store_lanes(ye + c * S + i0, xv[c], nl);
+        }
+    }
+}
+
+// Entries [e0, e1) of x [n][d][S] (entry stride x_stride) -> y (same layout, y_stride).  ctx: null for
+// self-attention, else [n][d][L] (ctx_stride; 0: one context for all); mask [n][keys] (mask_stride; 0: shared).
+extern "C" void graf_block(const BlockWeights *w, const float *x, int64_t x_stride, float *y, int64_t y_stride,
+                           int64_t e0, int64_t e1, int64_t S, const float *ctx, int64_t ctx_stride, int64_t L,
+                           const uint8_t *mask, int64_t mask_stride) {
+    if (w->d == 16 && w->Dh == 8 && w->F == 64)  // GRaF's ray transformer (10 heads of 8)
+        block_entries<16, 8, 64>(w, x, x_stride, y, y_stride, e0, e1, S, ctx, ctx_stride, L, mask, mask_stride);
+    else if (w->d == 16 && w->Dh == 16 && w->F == 64)  // GRaF's scene blocks (1 head of 16)
+        block_entries<16, 16, 64>(w, x, x_stride, y, y_stride, e0, e1, S, ctx, ctx_stride, L, mask, mask_stride);
+    else
+        block_entries<0, 0, 0>(w, x, x_stride, y, y_stride, e0, e1, S, ctx, ctx_stride, L, mask, mask_stride);
 }

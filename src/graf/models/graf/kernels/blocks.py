@@ -14,7 +14,10 @@ matrices, one call per (ray, head).  Here:
   (:func:`torch_attention`);
 - the output projection reads the feature-major result directly.
 
-Everything else (residuals, LayerNorms, FFNs) is the block's own modules.  Inference only: no autograd.
+Everything else (residuals, LayerNorms, FFNs) is the block's own modules.  Where the compiled library is there,
+:func:`run_blocks` goes further: each whole block (projections, attention, residuals, LayerNorms, FFN) is one
+call of :func:`graf.models.graf.kernels.native.block`, 16 positions per vector, nothing but the block's input
+and output in memory.  Inference only: no autograd.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from graf.models.graf.cache import weights_stamp
 from graf.models.graf.kernels import native
 
 
@@ -107,3 +111,51 @@ def block_forward(
     a = self_attention(blk.attn, x) if context is None else cross_attention(blk.attn, x, context, key_mask)
     x = blk.norm1(x + a)
     return blk.norm2(x + blk.ffn(x))
+
+
+def block_weights(blk: nn.Module) -> native.BlockWeights:
+    """The fused kernel's weights of a post-norm block (cached on the block while its weights are unchanged)."""
+    stamp = weights_stamp(blk)
+    cached = getattr(blk, "_fused_weights", None)
+    if cached is not None and cached[0] == stamp:
+        return cached[1]
+    attn = blk.attn
+    wq, bq = _head_major(attn, ("q",), scale_q=True)
+    wkv, bkv = _head_major(attn, ("k", "v"), scale_q=False)
+    lin1, lin2 = blk.ffn[0], blk.ffn[2]
+    keep = [t.detach().float().contiguous() for t in (wq, bq, wkv, bkv, attn.out.weight, attn.out.bias)]
+    keep += [t.detach().float().contiguous() for t in (blk.norm1.weight, blk.norm1.bias, lin1.weight, lin1.bias)]
+    keep += [t.detach().float().contiguous() for t in (lin2.weight, lin2.bias, blk.norm2.weight, blk.norm2.bias)]
+    w = native.BlockWeights(*[t.data_ptr() for t in keep], blk.norm1.eps, blk.norm2.eps)
+    w.d, w.H, w.Dh, w.F = attn.q.in_features, attn.num_heads, attn.head_dim, lin1.out_features
+    w.keep = keep  # the tensors the pointers point into live as long as the struct
+    blk._fused_weights = (stamp, w)
+    return w
+
+
+def _fusable(blocks: nn.ModuleList, keys: int) -> bool:
+    return all(
+        isinstance(b.ffn[1], nn.ReLU)
+        and native.block_supported(
+            b.attn.q.in_features, max(b.attn.num_heads * b.attn.head_dim, b.ffn[0].out_features), keys
+        )
+        for b in blocks
+    )
+
+
+def run_blocks(
+    blocks: nn.ModuleList, x: torch.Tensor, context: torch.Tensor | None = None, key_mask: torch.Tensor | None = None
+) -> torch.Tensor:
+    """``blocks`` one after the other over token-major ``x [B, N, d]`` (cross-attention over ``context [B or 1,
+    L, d]`` with ``key_mask [B or 1, L]`` when given): each a fused kernel call where the library is there and
+    takes the sizes, else :func:`block_forward`.  Returns ``[B, N, d]``."""
+    keys = x.shape[1] if context is None else context.shape[1]
+    if not _fusable(blocks, keys):
+        for blk in blocks:
+            x = block_forward(blk, x, context, key_mask)
+        return x
+    xf = x.transpose(1, 2).contiguous()
+    cf = None if context is None else context.transpose(1, 2).contiguous()
+    for blk in blocks:
+        xf = native.block(block_weights(blk), xf, cf, key_mask)
+    return xf.transpose(1, 2)

@@ -87,7 +87,23 @@ def _load() -> ctypes.CDLL | None:
     fn.argtypes = [ctypes.c_void_p] * 5 + [ctypes.c_int64] * 11
     lib.graf_attention_max_dim.restype = ctypes.c_int
     lib.graf_attention_max_keys.restype = ctypes.c_int
+    lib.graf_block_limits.restype = ctypes.c_int
+    lib.graf_block_limits.argtypes = [ctypes.c_int]
+    blk = lib.graf_block
+    blk.restype = None
+    blk.argtypes = [ctypes.POINTER(BlockWeights), ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_int64]
+    blk.argtypes += [ctypes.c_int64] * 3 + [ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_void_p]
+    blk.argtypes += [ctypes.c_int64]
     return lib
+
+
+class BlockWeights(ctypes.Structure):
+    """``struct BlockWeights`` of attention_cpu.cpp: one post-norm block's weights (pointers) and sizes."""
+
+    _fields_ = [(n, ctypes.c_void_p) for n in ("wq", "bq", "wkv", "bkv", "wo", "bo", "g1", "be1")]
+    _fields_ += [(n, ctypes.c_void_p) for n in ("w1", "b1", "w2", "b2", "g2", "be2")]
+    _fields_ += [("eps1", ctypes.c_float), ("eps2", ctypes.c_float)]
+    _fields_ += [(n, ctypes.c_int64) for n in ("d", "H", "Dh", "F")]
 
 
 def library() -> ctypes.CDLL | None:
@@ -146,3 +162,49 @@ def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, mask: torch.Ten
         out.stride(0),
     )
     return out
+
+
+def block_supported(d: int, inner: int, keys: int) -> bool:
+    """Whether :func:`block` takes a block of width ``d``, inner widths (heads x head size, FFN) at most
+    ``inner`` and ``keys`` keys per entry, on this machine."""
+    lib = library()
+    return (
+        lib is not None
+        and d <= lib.graf_block_limits(0)
+        and inner <= lib.graf_block_limits(1)
+        and keys <= lib.graf_attention_max_keys()
+    )
+
+
+def block(
+    weights: BlockWeights,
+    x: torch.Tensor,
+    context: torch.Tensor | None = None,
+    mask: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """One fused post-norm block over feature-major entries ``x [n, d, S]`` (contiguous float32): self-attention,
+    or cross-attention over ``context [n or 1, d, L]`` with an optional key mask ``[n or 1, keys]`` (True =
+    attend).  Returns ``[n, d, S]``.  ``weights``: from :func:`graf.models.graf.kernels.blocks.block_weights`."""
+    lib = library()
+    n, _, S = x.shape
+    y = torch.empty_like(x)
+    if context is not None:
+        context = context.contiguous()
+    if mask is not None:
+        mask = mask.to(torch.uint8).contiguous()
+    lib.graf_block(
+        ctypes.byref(weights),
+        x.data_ptr(),
+        x.stride(0),
+        y.data_ptr(),
+        y.stride(0),
+        0,
+        n,
+        S,
+        None if context is None else context.data_ptr(),
+        0 if context is None or context.shape[0] == 1 else context.stride(0),
+        0 if context is None else context.shape[2],
+        None if mask is None else mask.data_ptr(),
+        0 if mask is None or mask.shape[0] == 1 else mask.stride(0),
+    )
+    return y
