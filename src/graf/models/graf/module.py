@@ -328,8 +328,13 @@ class GRaFModule(SpectrumModule):
             b = int(bi[0])
             t = tables[b]
             qf, cf = self._scene_voxels(t, float(ctx["wavelength"][b]), int(ctx["scene_index"][b]), pix.device)
-            idx = t["offsets"][pix][:, None] + torch.arange(S, device=pix.device)
-            q, code = qf[idx], cf[idx]
+            offs = t["offsets"][pix]
+            start, steps = int(offs[0]), torch.arange(n, device=pix.device) * S
+            if torch.equal(offs - start, steps):  # consecutive rays of the table (predict_spectra's chunks): a slice
+                q, code = qf[start : start + n * S].view(n, S, -1), cf[start : start + n * S].view(n, S, -1)
+            else:
+                idx = offs[:, None] + torch.arange(S, device=pix.device)
+                q, code = qf[idx], cf[idx]
         else:
             t_in = torch.stack([tables[b]["t_in"] for b in range(len(tables))])[bi, pix]
             step = torch.stack([tables[b]["step"] for b in range(len(tables))])[bi, pix]

@@ -15,20 +15,24 @@ SCENE_TABLE_CHUNK = 65_536  # voxels per piece while building a scene's table
 
 def scene_ray_table(geo: tuple, wl: float, spacing: float, max_samples: int, device) -> dict:
     """``geo``: the gateway's position ``[3]``, rotation ``[3, 3]`` and the scene box ``[2, 3]``; voxels of
-    ``spacing`` wavelengths ``wl`` (metres), at most ``max_samples`` per ray.  ``t_in [P]`` (m, where the ray
-    enters the box), ``step [P]`` (m, the voxel length), ``samples [P]`` (long), the pixel order by sample
-    count (``order [P]``), each ray's first voxel in a flat table (``offsets [P]``), the voxels of all rays
-    (``voxels``) and those each ray needs uncapped (``needed [P]``, on the CPU)."""
+        ``spacing`` wavelengths ``wl`` (metres), at most ``max_samples`` per ray.  ``t_in [P]`` (m, where the ray
+        enters the box), ``step [P]`` (m, the voxel length), ``samples [P]`` (long), the pixel order by sample
+        count (``order [P]``), each ray's first voxel in a flat table whose rays lie in that order (``offsets [P]``: the
+    consecutive rays of a chunk of ``order`` with the same count are one slice of it), the voxels of all rays
+        (``voxels``) and those each ray needs uncapped (``needed [P]``, on the CPU)."""
     t_in, t_out = box_segments(*(g.detach().cpu() for g in geo), local_directions(dtype=torch.float64))
     samples, step = segment_samples(t_in, t_out, spacing * wl, max_samples)
+    order = torch.argsort(samples, stable=True)
+    offsets = torch.empty_like(samples)
+    offsets[order] = torch.cumsum(samples[order], 0) - samples[order]  # rays in ``order``: a chunk is one slice
     needed = torch.ceil((t_out - t_in) / (spacing * wl) - 1e-6).clamp_min(1).long()
     return {
         "t_in": t_in.float().to(device),
         "step": step.float().to(device),
         "samples": samples.to(device),
-        "order": torch.argsort(samples, stable=True).to(device),
+        "order": order.to(device),
         "needed": needed,
-        "offsets": (torch.cumsum(samples, 0) - samples).to(device),
+        "offsets": offsets.to(device),
         "voxels": int(samples.sum()),
     }
 
@@ -55,7 +59,7 @@ def flat_scene_voxels(
     table: dict, voxel_inputs: Callable, wl: float, scene_index: int, d_model: int, device
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``voxel_inputs`` (GRaF's ``(query, distance code)`` of rays' voxels) of every voxel of a scene's spectrum,
-    flat ``[V, d_model]`` each (pixel-major, each ray's first voxel at ``table["offsets"]``), computed in
+    flat ``[V, d_model]`` each (rays in ``table["order"]``, each ray's first voxel at ``table["offsets"]``), computed in
     pieces of about :data:`SCENE_TABLE_CHUNK` voxels."""
     qs, cs = [], []
     for S in torch.unique(table["samples"]).tolist():

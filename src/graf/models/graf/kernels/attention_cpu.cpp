@@ -34,6 +34,26 @@ static inline vf vexp(vf x) {
     return p * (vf)e;  // below -87.3: exp(-87.3) ~ 1e-38, nothing beside a softmax's maximum term of 1
 }
 
+// 2^x for x <= 0 (the whole blocks' scores are in base 2: log2(e) is folded into their query weights): the
+// nearest integer n split off exactly, 2^(x - n) by its Taylor series in (x - n) ln 2 to degree 7 (truncation
+// below 1e-8 relative); below -126 the result is 2^-126.
+static inline vf vexp2(vf x) {
+    vf lo = splat(-126.0f);
+    vf xc = x < lo ? lo : x;
+    vf n = (xc + 12582912.0f) - 12582912.0f;  // round to nearest
+    vf r = xc - n;                             // [-0.5, 0.5], exact
+    vf p = splat(1.5252733804059840e-05f);
+    p = p * r + 1.5403530393381606e-04f;
+    p = p * r + 1.3333558146428443e-03f;
+    p = p * r + 9.6181291076284772e-03f;
+    p = p * r + 5.5504108664821580e-02f;
+    p = p * r + 2.4022650695910071e-01f;
+    p = p * r + 6.9314718055994531e-01f;
+    p = p * r + 1.0f;
+    vi e = (__builtin_convertvector(n, vi) + 127) << 23;
+    return p * (vf)e;
+}
+
 extern "C" int graf_attention_max_dim() { return MAX_DIM; }
 extern "C" int graf_attention_max_keys() { return MAX_KEYS; }
 
@@ -92,7 +112,7 @@ extern "C" void graf_attention(const float *q, const float *k, const float *v, c
 // vector.  c is x itself (self-attention) or the entry's context [d, L] (cross-attention; a context stride of
 // 0 shares one context among all entries, its keys and values computed once).
 struct BlockWeights {
-    const float *wq, *bq;    // [H*Dh, d], [H*Dh]: the query projection, 1/sqrt(Dh) folded in
+    const float *wq, *bq;    // [H*Dh, d], [H*Dh]: the query projection, log2(e)/sqrt(Dh) folded in (base-2 scores)
     const float *wkv, *bkv;  // [H*2*Dh, d], [H*2*Dh]: rows (head, key | value, Dh)
     const float *wo, *bo;    // [d, H*Dh], [d]
     const float *g1, *be1;   // LayerNorm 1 [d]
@@ -193,7 +213,7 @@ static void block_lanes(const BlockWeights *w, vf *xv, const float *kv, int64_t 
         vf sum = splat(0.0f);
         for (int64_t j = 0; j < L; j++) {
             if (mask && !mask[j]) continue;
-            vf p = vexp(s[j] - mx);
+            vf p = vexp2(s[j] - mx);
             sum += p;
             for (int64_t e = 0; e < Dh; e++) oh[e] += p * vh[e * Lp + j];
         }

@@ -28,6 +28,8 @@ from torch import nn
 from graf.models.graf.cache import weights_stamp
 from graf.models.graf.kernels import native
 
+LOG2_E = 1.4426950408889634
+
 
 def torch_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
     """:func:`native.attention`'s arithmetic in torch operations (where the kernel is not available)."""
@@ -120,7 +122,7 @@ def block_weights(blk: nn.Module) -> native.BlockWeights:
     if cached is not None and cached[0] == stamp:
         return cached[1]
     attn = blk.attn
-    wq, bq = _head_major(attn, ("q",), scale_q=True)
+    wq, bq = (t * LOG2_E for t in _head_major(attn, ("q",), scale_q=True))  # the kernel's scores are in base 2
     wkv, bkv = _head_major(attn, ("k", "v"), scale_q=False)
     lin1, lin2 = blk.ffn[0], blk.ffn[2]
     keep = [t.detach().float().contiguous() for t in (wq, bq, wkv, bkv, attn.out.weight, attn.out.bias)]
