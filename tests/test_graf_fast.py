@@ -38,6 +38,7 @@ def kernel(request, monkeypatch):
             pytest.skip("no C++ compiler here: the kernel cannot be built (the torch stand-in is tested)")
     else:
         monkeypatch.setattr(native, "supports", lambda *a: False)
+        monkeypatch.setattr(native, "block_supported", lambda *a: False)
     return request.param
 
 
@@ -92,6 +93,32 @@ def test_fast_blocks_equal_the_blocks_forward(kernel):
             cross_blk(x.reshape(1, -1, 16), one, None),
             atol=ATOL,
         )
+
+
+def test_whole_blocks_equal_the_blocks_forward(kernel):
+    """run_blocks (each block one fused kernel call where the library is there): self-attention over rays of
+    several lengths (vector tails), cross-attention with per-entry and shared contexts and key masks."""
+    torch.manual_seed(1)
+    selfs = torch.nn.ModuleList(_perturbed(SelfAttentionBlock(16, 10, 8, 64)) for _ in range(2))
+    crosses = torch.nn.ModuleList(_perturbed(CrossAttentionBlock(16, 1, 16, 64)) for _ in range(2))
+    odd = torch.nn.ModuleList([_perturbed(SelfAttentionBlock(12, 3, 4, 24))])  # sizes not specialised
+    with torch.no_grad():
+        for S in (1, 16, 17, 40):
+            x = torch.randn(5, S, 16)
+            expect = x
+            for blk in selfs:
+                expect = blk(expect)
+            assert torch.allclose(fast_blocks.run_blocks(selfs, x), expect, atol=ATOL)
+        x, ctx = torch.randn(4, 23, 16), torch.randn(4, 10, 16)
+        mask = torch.rand(4, 10) > 0.5
+        mask[:, 3] = True
+        for c, m in ((ctx, mask), (ctx, None), (ctx[:1], mask[:1])):
+            expect = x
+            for blk in crosses:
+                expect = blk(expect, c.expand(4, -1, -1), None if m is None else m.expand(4, -1))
+            assert torch.allclose(fast_blocks.run_blocks(crosses, x, c, m), expect, atol=ATOL)
+        y = torch.randn(3, 9, 12)
+        assert torch.allclose(fast_blocks.run_blocks(odd, y), odd[0](y), atol=ATOL)
 
 
 @pytest.mark.parametrize("window", [0, 3])

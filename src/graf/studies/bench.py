@@ -48,6 +48,8 @@ simulated conference_v1 at 2.4 GHz) and every model of ``models`` (default: ``gr
 
 Everything runs on the GPU when ``torch.cuda.is_available()`` (``device_type``: ``cuda``; the table's first
 line names the device), else on the CPU with ``threads`` threads (null: torch's default; recorded).
+``precision=bf16``: every row's measurements under ``torch.autocast`` to bfloat16 (``32``, the default: none;
+recorded as ``precision``).
 
 Simulated scenes read their limited dataset ``<data_root>/sim/<scene>/<band>-n<N>.h5`` (N =
 ``bench.sim_num_tx`` unless the scene sets ``num_tx``); when the file is missing it is made first, by the
@@ -70,6 +72,7 @@ still runs.  ``warmup`` in results.json says which warm-up ran.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from pathlib import Path
@@ -97,6 +100,7 @@ from graf.studies.bench_measure import (
 from graf.studies.bench_report import fmt, markdown, write_result
 
 log = logging.getLogger("graf")
+PRECISIONS = ("32", "bf16")
 
 ROW_KEYS = (
     "method",
@@ -193,6 +197,14 @@ def prepare_scene(cfg: DictConfig, key: str, spectra: int, train_steps: int):
     return dm, infer, train, band.name
 
 
+def autocast(cfg: DictConfig, device: torch.device):
+    """``precision=bf16``: torch.autocast to bfloat16 on ``device`` around a row's measurements; ``32``: nothing."""
+    precision = str(cfg.get("precision", 32))
+    if precision not in PRECISIONS:
+        raise ConfigError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+    return torch.autocast(device.type, dtype=torch.bfloat16) if precision == "bf16" else contextlib.nullcontext()
+
+
 def _selected(cfg: DictConfig, group: str, only_key: str) -> list[str]:
     keys = [k for k, v in (cfg.get(group) or {}).items() if isinstance(v, DictConfig) and "_target_" in v]
     only = cfg.bench.get(only_key)
@@ -215,6 +227,7 @@ def bench(cfg: DictConfig) -> dict:
     steps = 1 if quick else int(cfg.bench.train_steps)
     if spectra < 1 or steps < 1:
         raise ConfigError("bench.spectra and bench.train_steps must be at least 1")
+    autocast(cfg, torch.device("cpu"))  # an unknown precision is refused before anything runs
     scene_keys, model_keys = _selected(cfg, "scenes", "scenes"), _selected(cfg, "models", "models")
     for key in scene_keys:
         scene_and_band(cfg, key)  # every scene has its band before anything runs
@@ -232,6 +245,7 @@ def bench(cfg: DictConfig) -> dict:
         "warmup": WARMUP["light" if quick else "whole"],
         "rays_per_step": cfg.bench.get("rays_per_step"),
         "compete": bool(cfg.bench.get("compete")),
+        "precision": str(cfg.get("precision", 32)),
         "disturbance_limits": {"load_cores": LOAD_LIMIT, "spread": SPREAD_LIMIT},
         "memory": memory_method(device),
         "ratio_base": {},
@@ -310,10 +324,12 @@ def _bench_model(cfg: DictConfig, m: str, scene_name: str, infer: list, train: l
         row["checkpoint_mb"] = round(checkpoint_mb(model), 3)
         model = model.to(device)
         row["samples_per_ray"] = samples_per_ray(model, infer[0])
-        row.update(measure_inference(model, infer, device, light_warmup=quick, compete=bool(cfg.bench.get("compete"))))
-        if row["trainable_parameters"]:
-            row.update(measure_training(model, train, device, light_warmup=quick))
-        else:
+        with autocast(cfg, device):
+            compete = bool(cfg.bench.get("compete"))
+            row.update(measure_inference(model, infer, device, light_warmup=quick, compete=compete))
+            if row["trainable_parameters"]:
+                row.update(measure_training(model, train, device, light_warmup=quick))
+        if not row["trainable_parameters"]:
             row.update(dict.fromkeys(("train_s_per_step", "train_rays_per_step", "train_rays_per_s", "peak_mb_train")))
         row["disturbances"] = disturbances(row)
         row["disturbed"] = bool(row["disturbances"])

@@ -46,7 +46,8 @@ def markdown(result: dict) -> str:
     """The table of ``result["rows"]`` with a line on how it was measured."""
     head = (
         f"graf-bench on {result['device']} ({result['device_type']}, {result['threads']} threads, torch "
-        f"{result['torch']}): median of {result['spectra_timed']} spectra and of {result['train_steps_timed']} "
+        f"{result['torch']}, precision {result.get('precision', '32')}): median of {result['spectra_timed']} "
+        f"spectra and of {result['train_steps_timed']} "
         f"training steps (warm-up: {result['warmup']}); peak memory: {result['memory']}; "
         "ratios: to the scene's GRaF row (paper size where present); load: cores other processes used while the "
         "row's inference / training was timed; trusted: no where that load or the spread of repeated timings "

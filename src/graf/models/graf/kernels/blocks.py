@@ -99,8 +99,10 @@ def cross_attention(
     wq, bq = _head_major(attn, ("q",), scale_q=True)
     wkv, bkv = _head_major(attn, ("k", "v"), scale_q=False)
     q = _project(x, wq, bq).view(B * H, Dh, Nq)
-    kv = _project(context, wkv, bkv).view(B * H, 2 * Dh, Nk)
-    mask = None if key_mask is None else key_mask.bool().repeat_interleave(H, dim=0)
+    kv = _project(context, wkv, bkv).view(context.shape[0] * H, 2 * Dh, Nk)
+    if context.shape[0] != B:  # one context for every entry
+        kv = kv.repeat(B, 1, 1)
+    mask = None if key_mask is None else key_mask.bool().expand(B, -1).repeat_interleave(H, dim=0)
     o = attention_fm(q, kv[:, :Dh], kv[:, Dh:], mask)
     return _output(attn, o, B, Nq)
 
