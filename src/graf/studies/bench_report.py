@@ -42,9 +42,9 @@ def fmt(v, spec: str = ".4g", none: str = "-") -> str:
     return format(v, spec)
 
 
-def markdown(result: dict) -> str:
-    """The table of ``result["rows"]`` with a line on how it was measured."""
-    head = (
+def _headline(result: dict) -> str:
+    """The line above the table: where and how the rows were measured."""
+    return (
         f"graf-bench on {result['device']} ({result['device_type']}, {result['threads']} threads, torch "
         f"{result['torch']}, precision {result.get('precision', '32')}): median of {result['spectra_timed']} "
         f"spectra and of {result['train_steps_timed']} "
@@ -58,6 +58,11 @@ def markdown(result: dict) -> str:
             else ""
         )
     )
+
+
+def markdown(result: dict) -> str:
+    """The table of ``result["rows"]`` with a line on how it was measured."""
+    head = _headline(result)
     cols = [
         "scene",
         "preset",

@@ -11,6 +11,9 @@ GRaF's operations are many and small (width 16), so splitting each one over thre
 operation; with another process on the machine one thread of each operation waits for a time slice and every
 operation waits for it (GRaF slowed 30x beside one busy process).  Whole chunks per thread need no
 synchronisation but the end: quiet, about as fast; beside a busy process, slowed as much as the lost core.
+What still runs on torch's intra-op threads (the neighbor encoder, the first slice of rays that fills the
+evaluation caches) gets the cores the other processes leave free (:func:`serial_threads`: their load read from
+``/proc`` by :class:`graf.machine.LoadMonitor`), never more than the threads set.
 """
 
 from __future__ import annotations
@@ -21,8 +24,10 @@ from concurrent.futures import ThreadPoolExecutor
 import torch
 from torch import nn
 
+from graf.machine import available_cores, monitor
 from graf.models.graf.kernels.blocks import run_blocks
 
+BUSY_CORES = 0.5  # other processes' load (cores) from which the serial phases leave cores to them
 FAST_PIECE_VOXELS = 4096  # voxels per piece through the ray transformer on the fast path (stays in cache)
 
 
@@ -75,6 +80,34 @@ def ray_transformer(blocks: nn.ModuleList, v: torch.Tensor, window: int, fast: b
     return v
 
 
+def serial_threads(threads: int | None = None) -> int:
+    """torch threads for a spectrum's serial phases: ``threads`` (default ``torch.get_num_threads()``) less the
+    cores other processes are using (rounded), at least 1; ``threads`` while they use less than
+    :data:`BUSY_CORES` (a different thread count can change a result's last bits: a quiet machine keeps one)."""
+    threads = torch.get_num_threads() if threads is None else int(threads)
+    other = monitor().other()
+    if other is None or other < BUSY_CORES:  # a quiet machine: the threads set (the same rounding every call)
+        return threads
+    return max(1, min(threads, round(available_cores() - other)))
+
+
+class SerialThreads:
+    """``with SerialThreads(device):`` torch's intra-op threads at :func:`serial_threads` (CPU only), restored after."""
+
+    def __init__(self, device: torch.device):
+        self.device = device
+
+    def __enter__(self):
+        self.threads = torch.get_num_threads()
+        if self.device.type == "cpu":
+            torch.set_num_threads(serial_threads(self.threads))
+        return self
+
+    def __exit__(self, *exc):
+        torch.set_num_threads(self.threads)
+        return False
+
+
 def map_chunks(fn: Callable, items: Sequence, device: torch.device, workers: int | None = None) -> list:
     """``[fn(item) for item in items]``; on a CPU the first in this thread (it fills the model's evaluation
     caches), the rest spread over ``workers`` threads (default ``torch.get_num_threads()``) with torch's intra-op
@@ -89,7 +122,8 @@ def map_chunks(fn: Callable, items: Sequence, device: torch.device, workers: int
         with torch.no_grad():
             return fn(item)
 
-    first = fn(items[0])
+    with SerialThreads(device):
+        first = fn(items[0])
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -98,3 +132,14 @@ def map_chunks(fn: Callable, items: Sequence, device: torch.device, workers: int
     finally:
         torch.set_num_threads(threads)
     return [first, *rest]
+
+
+def rays_in_chunks(render: Callable, order: torch.Tensor, chunk_rays: int) -> torch.Tensor:
+    """``render(pixels [B, n]) -> [B, n]`` over all of ``order [B, P]`` in chunks of at most ``chunk_rays`` rays over
+    the batch (memory bounded by the chunk), through :func:`map_chunks`: a first ray alone (it fills the evaluation
+    caches), then the chunks on the worker threads.  ``[B, P]``."""
+    B, P = order.shape
+    per = max(1, chunk_rays // B)
+    bounds = [0, 1, *range(1 + per, P, per), P]
+    parts = map_chunks(lambda i: render(order[:, bounds[i] : bounds[i + 1]]), range(len(bounds) - 1), order.device)
+    return torch.cat(parts, dim=1)

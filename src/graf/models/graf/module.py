@@ -50,7 +50,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from graf.geometry.encoding import PositionalEncoding, sinusoidal_encoding, to_gateway_axes, to_gateway_frame
-from graf.geometry.grid import N_AZIMUTH, N_ELEVATION, N_RAYS, local_directions
+from graf.geometry.grid import N_AZIMUTH, N_ELEVATION, local_directions
 from graf.geometry.rays import fp32, random_pixels
 from graf.models.base import SpectrumModule, adam_exponential_decay
 from graf.models.graf.attention import CrossAttentionBlock, SelfAttentionBlock
@@ -58,7 +58,7 @@ from graf.models.graf.cache import EvalCache, weights_stamp
 from graf.models.graf.encoder import ResNetEncoder
 from graf.models.graf.features import Dims, build_features
 from graf.models.graf.features.base import mlp
-from graf.models.graf.inference import fast_path, map_chunks, ray_transformer, scene_blocks
+from graf.models.graf.inference import SerialThreads, fast_path, ray_transformer, rays_in_chunks, scene_blocks
 from graf.models.graf.legacy import upgrade_arguments, upgrade_hparams, upgrade_optimizer_states, upgrade_state_dict
 from graf.models.graf.residual import KNNBase, NoBase
 from graf.models.graf.settings import check_settings
@@ -369,15 +369,13 @@ class GRaFModule(SpectrumModule):
     def predict_spectra(self, batch: dict) -> torch.Tensor:
         """Whole spectra ``[B, 90, 360]``: each item's pixels in order of voxel count, in chunks of at most
         ``chunk_rays`` rays over the batch (memory bounded by the chunk), so a chunk holds few groups."""
-        ctx = self.prepare(batch)
-        B = ctx["mask"].shape[0]
+        with SerialThreads(batch["tgt_pos"].device):
+            ctx = self.prepare(batch)
         order = torch.stack([t["order"] for t in ctx["tables"]])  # [B, P]
-        per = max(1, self.chunk_rays // B)
-        chunks = map_chunks(lambda s: self.render(ctx, order[:, s : s + per]), range(0, N_RAYS, per), order.device)
-        out = torch.cat(chunks, dim=1)
+        out = rays_in_chunks(lambda pix: self.render(ctx, pix), order, self.chunk_rays)
         spectra = torch.empty_like(out)
         spectra.scatter_(1, order, out)
-        return spectra.view(B, N_ELEVATION, N_AZIMUTH).float()
+        return spectra.view(-1, N_ELEVATION, N_AZIMUTH).float()
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         B = batch["tgt_pos"].shape[0]
