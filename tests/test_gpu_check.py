@@ -31,5 +31,5 @@ def test_the_gpu_check_runs_at_toy_sizes_on_a_cpu(tmp_path):
     assert all(b["infer_s_per_spectrum"] > 0 and b["train_s_per_step"] > 0 for b in summary["bench"])
     job = summary["main_job"]
     assert job["method"] == "graf-ray-weights" and job["global_step"] == 2
-    assert {"PSNR", "SSIM", "LPIPS"} <= set(job["metrics"])
+    assert {"test/psnr", "test/ssim", "test/lpips"} <= set(job["metrics"])
     assert "| bf16 | rfid_s23 | nerf2 |" in (tmp_path / "out" / "gpu_check.md").read_text()
