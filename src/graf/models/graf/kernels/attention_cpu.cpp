@@ -147,6 +147,21 @@ static inline void store_lanes(float *p, vf v, int64_t nl) {
     std::memcpy(p, tmp, nl * sizeof(float));
 }
 
+// sum_k a[k] * w[k * stride] + init over n terms, in four independent chains (the multiply-adds of one chain
+// wait for each other; four keep the vector units busy)
+static inline vf dot(const vf *a, const float *w, int64_t n, vf init, int64_t stride = 1) {
+    vf s0 = init, s1 = splat(0.0f), s2 = splat(0.0f), s3 = splat(0.0f);
+    const vf *end4 = a + (n & ~(int64_t)3), *end = a + n;
+    for (; a < end4; a += 4, w += 4 * stride) {
+        s0 += a[0] * w[0];
+        s1 += a[1] * w[stride];
+        s2 += a[2] * w[2 * stride];
+        s3 += a[3] * w[3 * stride];
+    }
+    for (; a < end; a++, w += stride) s0 += a[0] * w[0];
+    return (s0 + s1) + (s2 + s3);
+}
+
 static inline void layer_norm(vf *x, int64_t d, const float *g, const float *b, float eps) {
     vf mean = splat(0.0f), var = splat(0.0f);
     for (int64_t c = 0; c < d; c++) mean += x[c];
@@ -177,9 +192,7 @@ static void keys_values(const BlockWeights *w, const float *c, int64_t L, int64_
         vf cv[MAX_MODEL];
         for (int64_t k = 0; k < d; k++) cv[k] = load_lanes(c + k * L + j0, nl);
         for (int64_t r = 0; r < R; r++) {
-            vf acc = splat(w->bkv[r]);
-            const float *wr = w->wkv + r * d;
-            for (int64_t k = 0; k < d; k++) acc += cv[k] * wr[k];
+            vf acc = dot(cv, w->wkv + r * d, d, splat(w->bkv[r]));
             std::memcpy(kv + r * Lp + j0, &acc, sizeof acc);
         }
     }
@@ -192,10 +205,7 @@ static void block_lanes(const BlockWeights *w, vf *xv, const float *kv, int64_t 
     static thread_local vf s[MAX_KEYS];
     vf q[MAX_INNER], o[MAX_INNER];
     for (int64_t r = 0; r < HD; r++) {
-        vf acc = splat(w->bq[r]);
-        const float *wr = w->wq + r * d;
-        for (int64_t k = 0; k < d; k++) acc += xv[k] * wr[k];
-        q[r] = acc;
+        q[r] = dot(xv, w->wq + r * d, d, splat(w->bq[r]));
     }
     for (int64_t h = 0; h < H; h++) {
         const vf *qh = q + h * Dh;
@@ -203,8 +213,7 @@ static void block_lanes(const BlockWeights *w, vf *xv, const float *kv, int64_t 
         vf mx = splat(-INFINITY);
         for (int64_t j = 0; j < L; j++) {
             if (mask && !mask[j]) continue;
-            vf acc = qh[0] * kh[j];
-            for (int64_t e = 1; e < Dh; e++) acc += qh[e] * kh[e * Lp + j];
+            vf acc = dot(qh, kh + j, Dh, splat(0.0f), Lp);
             s[j] = acc;
             mx = acc > mx ? acc : mx;
         }
@@ -221,23 +230,15 @@ static void block_lanes(const BlockWeights *w, vf *xv, const float *kv, int64_t 
     }
     vf y[MAX_MODEL], hdn[MAX_INNER];
     for (int64_t c = 0; c < d; c++) {
-        vf acc = splat(w->bo[c]) + xv[c];
-        const float *wr = w->wo + c * HD;
-        for (int64_t r = 0; r < HD; r++) acc += o[r] * wr[r];
-        y[c] = acc;
+        y[c] = dot(o, w->wo + c * HD, HD, splat(w->bo[c]) + xv[c]);
     }
     layer_norm(y, d, w->g1, w->be1, w->eps1);
     for (int64_t f = 0; f < F; f++) {
-        vf acc = splat(w->b1[f]);
-        const float *wr = w->w1 + f * d;
-        for (int64_t c = 0; c < d; c++) acc += y[c] * wr[c];
+        vf acc = dot(y, w->w1 + f * d, d, splat(w->b1[f]));
         hdn[f] = acc > 0.0f ? acc : splat(0.0f);
     }
     for (int64_t c = 0; c < d; c++) {
-        vf acc = splat(w->b2[c]) + y[c];
-        const float *wr = w->w2 + c * F;
-        for (int64_t f = 0; f < F; f++) acc += hdn[f] * wr[f];
-        xv[c] = acc;
+        xv[c] = dot(hdn, w->w2 + c * F, F, splat(w->b2[c]) + y[c]);
     }
     layer_norm(xv, d, w->g2, w->be2, w->eps2);
 }
