@@ -18,6 +18,7 @@ evaluation caches) gets the cores the other processes leave free (:func:`serial_
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 
@@ -29,6 +30,8 @@ from graf.models.graf.kernels.blocks import run_blocks
 
 BUSY_CORES = 0.5  # other processes' load (cores) from which the serial phases leave cores to them
 FAST_PIECE_VOXELS = 4096  # voxels per piece through the ray transformer on the fast path (stays in cache)
+log = logging.getLogger("graf")
+_told: list = []  # the thread reduction is logged once per process
 
 
 def fast_path(enabled: bool, training: bool, x: torch.Tensor) -> bool:
@@ -88,7 +91,17 @@ def serial_threads(threads: int | None = None) -> int:
     other = monitor().other()
     if other is None or other < BUSY_CORES:  # a quiet machine: the threads set (the same rounding every call)
         return threads
-    return max(1, min(threads, round(available_cores() - other)))
+    fewer = max(1, min(threads, round(available_cores() - other)))
+    if fewer < threads and not _told:
+        _told.append(True)
+        log.info(
+            "other processes are using %.1f of %d cores: GRaF's encoder runs on %d of the %d threads set (once told)",
+            other,
+            available_cores(),
+            fewer,
+            threads,
+        )
+    return fewer
 
 
 class SerialThreads:

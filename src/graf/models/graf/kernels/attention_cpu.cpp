@@ -54,80 +54,6 @@ static inline vf vexp2(vf x) {
     return p * (vf)e;
 }
 
-extern "C" int graf_attention_max_dim() { return MAX_DIM; }
-extern "C" int graf_attention_max_keys() { return MAX_KEYS; }
-
-// For each batch entry b in [b0, b1): queries q [Dk, Sq], keys k [Dk, Sk], values v [Dv, Sk] (feature-major:
-// row d holds feature d of every position, row stride = the sequence length), optional key mask [Sk] (nonzero
-// = attend; at least one per entry), output o [Dv, Sq] = (softmax(q^T k) v^T)^T.  Entry b's arrays start at
-// b times the given strides (elements).
-extern "C" void graf_attention(const float *q, const float *k, const float *v, const uint8_t *mask, float *o,
-                               int64_t b0, int64_t b1, int64_t Dk, int64_t Dv, int64_t Sq, int64_t Sk,
-                               int64_t q_stride, int64_t k_stride, int64_t v_stride, int64_t mask_stride,
-                               int64_t o_stride) {
-    static thread_local vf s[MAX_KEYS];
-    for (int64_t b = b0; b < b1; b++) {
-        const float *qb = q + b * q_stride, *kb = k + b * k_stride, *vb = v + b * v_stride;
-        const uint8_t *mb = mask ? mask + b * mask_stride : nullptr;
-        float *ob = o + b * o_stride;
-        for (int64_t i0 = 0; i0 < Sq; i0 += LANES) {
-            const int64_t nl = Sq - i0 < LANES ? Sq - i0 : LANES;
-            vf qv[MAX_DIM];
-            for (int64_t d = 0; d < Dk; d++) {
-                float tmp[LANES] = {0};
-                std::memcpy(tmp, qb + d * Sq + i0, nl * sizeof(float));
-                std::memcpy(&qv[d], tmp, sizeof tmp);
-            }
-            vf mx = splat(-INFINITY);
-            for (int64_t j = 0; j < Sk; j++) {
-                if (mb && !mb[j]) continue;
-                vf acc = qv[0] * kb[j];
-                for (int64_t d = 1; d < Dk; d++) acc += qv[d] * kb[d * Sk + j];
-                s[j] = acc;
-                mx = acc > mx ? acc : mx;
-            }
-            vf out[MAX_DIM];
-            for (int64_t d = 0; d < Dv; d++) out[d] = splat(0.0f);
-            vf sum = splat(0.0f);
-            for (int64_t j = 0; j < Sk; j++) {
-                if (mb && !mb[j]) continue;
-                vf e = vexp(s[j] - mx);
-                sum += e;
-                for (int64_t d = 0; d < Dv; d++) out[d] += e * vb[d * Sk + j];
-            }
-            for (int64_t d = 0; d < Dv; d++) {
-                float tmp[LANES];
-                vf r = out[d] / sum;
-                std::memcpy(tmp, &r, sizeof tmp);
-                std::memcpy(ob + d * Sq + i0, tmp, nl * sizeof(float));
-            }
-        }
-    }
-}
-
-// ------------------------------------------------------------------------------------------------ whole blocks
-// One post-norm Transformer block (graf.models.graf.attention._PostNormBlock) fused:
-//   y = LN1(x + Wo Attention(Wq x, Wk c, Wv c) + bo);  out = LN2(y + W2 relu(W1 y + b1) + b2)
-// over feature-major entries (x [d, S] per entry: row c holds channel c of every position), 16 positions per
-// vector.  c is x itself (self-attention) or the entry's context [d, L] (cross-attention; a context stride of
-// 0 shares one context among all entries, its keys and values computed once).
-struct BlockWeights {
-    const float *wq, *bq;    // [H*Dh, d], [H*Dh]: the query projection, log2(e)/sqrt(Dh) folded in (base-2 scores)
-    const float *wkv, *bkv;  // [H*2*Dh, d], [H*2*Dh]: rows (head, key | value, Dh)
-    const float *wo, *bo;    // [d, H*Dh], [d]
-    const float *g1, *be1;   // LayerNorm 1 [d]
-    const float *w1, *b1;    // [F, d], [F]
-    const float *w2, *b2;    // [d, F], [d]
-    const float *g2, *be2;   // LayerNorm 2 [d]
-    float eps1, eps2;
-    int64_t d, H, Dh, F;
-};
-
-static const int MAX_MODEL = 64;   // d
-static const int MAX_INNER = 256;  // H * Dh and F
-
-extern "C" int graf_block_limits(int which) { return which == 0 ? MAX_MODEL : MAX_INNER; }
-
 static inline vf load_lanes(const float *p, int64_t nl) {
     if (nl == LANES) {
         vf v;
@@ -161,6 +87,79 @@ static inline vf dot(const vf *a, const float *w, int64_t n, vf init, int64_t st
     for (; a < end; a++, w += stride) s0 += a[0] * w[0];
     return (s0 + s1) + (s2 + s3);
 }
+
+// One vector of 16 queries (q [Dk]) attends to L keys: key j's feature e at k[e * stride + j], its value's feature
+// e at v[e * stride + j]; out [Dv] = the softmax-weighted sum of the values (keys with mask[j] == 0 left out).
+// BASE2: the scores are in base 2 (log2 e folded into the queries).
+template <bool BASE2>
+static inline void attend_one(const vf *q, int64_t Dk, const float *k, const float *v, int64_t Dv, int64_t stride,
+                              int64_t L, const uint8_t *mask, vf *out) {
+    static thread_local vf s[MAX_KEYS];
+    vf mx = splat(-INFINITY);
+    for (int64_t j = 0; j < L; j++) {
+        if (mask && !mask[j]) continue;
+        vf acc = dot(q, k + j, Dk, splat(0.0f), stride);
+        s[j] = acc;
+        mx = acc > mx ? acc : mx;
+    }
+    for (int64_t e = 0; e < Dv; e++) out[e] = splat(0.0f);
+    vf sum = splat(0.0f);
+    for (int64_t j = 0; j < L; j++) {
+        if (mask && !mask[j]) continue;
+        vf p = BASE2 ? vexp2(s[j] - mx) : vexp(s[j] - mx);
+        sum += p;
+        for (int64_t e = 0; e < Dv; e++) out[e] += p * v[e * stride + j];
+    }
+    for (int64_t e = 0; e < Dv; e++) out[e] = out[e] / sum;
+}
+
+extern "C" int graf_attention_max_dim() { return MAX_DIM; }
+extern "C" int graf_attention_max_keys() { return MAX_KEYS; }
+
+// For each batch entry b in [b0, b1): queries q [Dk, Sq], keys k [Dk, Sk], values v [Dv, Sk] (feature-major:
+// row d holds feature d of every position, row stride = the sequence length), optional key mask [Sk] (nonzero
+// = attend; at least one per entry), output o [Dv, Sq] = (softmax(q^T k) v^T)^T.  Entry b's arrays start at
+// b times the given strides (elements).
+extern "C" void graf_attention(const float *q, const float *k, const float *v, const uint8_t *mask, float *o,
+                               int64_t b0, int64_t b1, int64_t Dk, int64_t Dv, int64_t Sq, int64_t Sk,
+                               int64_t q_stride, int64_t k_stride, int64_t v_stride, int64_t mask_stride,
+                               int64_t o_stride) {
+    for (int64_t b = b0; b < b1; b++) {
+        const float *qb = q + b * q_stride, *kb = k + b * k_stride, *vb = v + b * v_stride;
+        const uint8_t *mb = mask ? mask + b * mask_stride : nullptr;
+        float *ob = o + b * o_stride;
+        for (int64_t i0 = 0; i0 < Sq; i0 += LANES) {
+            const int64_t nl = Sq - i0 < LANES ? Sq - i0 : LANES;
+            vf qv[MAX_DIM], out[MAX_DIM];
+            for (int64_t d = 0; d < Dk; d++) qv[d] = load_lanes(qb + d * Sq + i0, nl);
+            attend_one<false>(qv, Dk, kb, vb, Dv, Sk, Sk, mb, out);
+            for (int64_t d = 0; d < Dv; d++) store_lanes(ob + d * Sq + i0, out[d], nl);
+        }
+    }
+}
+
+// ------------------------------------------------------------------------------------------------ whole blocks
+// One post-norm Transformer block (graf.models.graf.attention._PostNormBlock) fused:
+//   y = LN1(x + Wo Attention(Wq x, Wk c, Wv c) + bo);  out = LN2(y + W2 relu(W1 y + b1) + b2)
+// over feature-major entries (x [d, S] per entry: row c holds channel c of every position), 16 positions per
+// vector.  c is x itself (self-attention) or the entry's context [d, L] (cross-attention; a context stride of
+// 0 shares one context among all entries, its keys and values computed once).
+struct BlockWeights {
+    const float *wq, *bq;    // [H*Dh, d], [H*Dh]: the query projection, log2(e)/sqrt(Dh) folded in (base-2 scores)
+    const float *wkv, *bkv;  // [H*2*Dh, d], [H*2*Dh]: rows (head, key | value, Dh)
+    const float *wo, *bo;    // [d, H*Dh], [d]
+    const float *g1, *be1;   // LayerNorm 1 [d]
+    const float *w1, *b1;    // [F, d], [F]
+    const float *w2, *b2;    // [d, F], [d]
+    const float *g2, *be2;   // LayerNorm 2 [d]
+    float eps1, eps2;
+    int64_t d, H, Dh, F;
+};
+
+static const int MAX_MODEL = 64;   // d
+static const int MAX_INNER = 256;  // H * Dh and F
+
+extern "C" int graf_block_limits(int which) { return which == 0 ? MAX_MODEL : MAX_INNER; }
 
 static inline void layer_norm(vf *x, int64_t d, const float *g, const float *b, float eps) {
     vf mean = splat(0.0f), var = splat(0.0f);
@@ -202,31 +201,13 @@ static void keys_values(const BlockWeights *w, const float *c, int64_t L, int64_
 template <int D, int DH, int FF>
 static void block_lanes(const BlockWeights *w, vf *xv, const float *kv, int64_t L, int64_t Lp, const uint8_t *mask) {
     const int64_t d = SIZE(D, w->d), H = w->H, Dh = SIZE(DH, w->Dh), F = SIZE(FF, w->F), HD = H * Dh;
-    static thread_local vf s[MAX_KEYS];
     vf q[MAX_INNER], o[MAX_INNER];
     for (int64_t r = 0; r < HD; r++) {
         q[r] = dot(xv, w->wq + r * d, d, splat(w->bq[r]));
     }
     for (int64_t h = 0; h < H; h++) {
-        const vf *qh = q + h * Dh;
-        const float *kh = kv + (h * 2 * Dh) * Lp, *vh = kh + Dh * Lp;
-        vf mx = splat(-INFINITY);
-        for (int64_t j = 0; j < L; j++) {
-            if (mask && !mask[j]) continue;
-            vf acc = dot(qh, kh + j, Dh, splat(0.0f), Lp);
-            s[j] = acc;
-            mx = acc > mx ? acc : mx;
-        }
-        vf *oh = o + h * Dh;
-        for (int64_t e = 0; e < Dh; e++) oh[e] = splat(0.0f);
-        vf sum = splat(0.0f);
-        for (int64_t j = 0; j < L; j++) {
-            if (mask && !mask[j]) continue;
-            vf p = vexp2(s[j] - mx);
-            sum += p;
-            for (int64_t e = 0; e < Dh; e++) oh[e] += p * vh[e * Lp + j];
-        }
-        for (int64_t e = 0; e < Dh; e++) oh[e] = oh[e] / sum;
+        const float *kh = kv + (h * 2 * Dh) * Lp;
+        attend_one<true>(q + h * Dh, Dh, kh, kh + Dh * Lp, Dh, Lp, L, mask, o + h * Dh);
     }
     vf y[MAX_MODEL], hdn[MAX_INNER];
     for (int64_t c = 0; c < d; c++) {

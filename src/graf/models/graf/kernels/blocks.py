@@ -48,10 +48,8 @@ def attention_fm(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, mask: torch.
 
 
 def _project(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
-    """``x [B, N, d]`` -> ``(x W^T + b)^T [B, R, N]`` (feature-major) with one batched matmul."""
-    B, N, d = x.shape
-    R = weight.shape[0]
-    return torch.baddbmm(bias[None, :, None].expand(B, R, N), weight.expand(B, R, d), x.transpose(1, 2))
+    """Token-major ``x [B, N, d]`` -> ``(x W^T + b)^T [B, R, N]`` (feature-major) with one batched matmul."""
+    return _project_fm(x.transpose(1, 2), weight, bias)
 
 
 def _head_major(attn: nn.Module, parts: tuple[str, ...], scale_q: bool) -> tuple[torch.Tensor, torch.Tensor]:
