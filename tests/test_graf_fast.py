@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from graf.models.graf.attention import CrossAttentionBlock, SelfAttentionBlock
+from graf.models.graf import inference
 from graf.models.graf.inference import map_chunks, ray_transformer
 from graf.models.graf.kernels import blocks as fast_blocks
 from graf.models.graf.kernels import native
@@ -41,6 +42,7 @@ def kernel(request, monkeypatch):
     else:
         monkeypatch.setattr(native, "supports", lambda *a: False)
         monkeypatch.setattr(native, "block_supported", lambda *a: False)
+        monkeypatch.setattr(native, "mlp_supported", lambda *a: False)
     return request.param
 
 
@@ -121,6 +123,46 @@ def test_whole_blocks_equal_the_blocks_forward(kernel):
             assert torch.allclose(fast_blocks.run_blocks(crosses, x, c, m), expect, atol=ATOL)
         y = torch.randn(3, 9, 12)
         assert torch.allclose(fast_blocks.run_blocks(odd, y), odd[0](y), atol=ATOL)
+
+
+def test_fused_mlp_equals_the_mlp():
+    """MLP2 fused with the distance code (native.mlp, feature-major) against ``mlp2(x) + code``, vector tails
+    (no torch stand-in: without the library the plain MLP runs)."""
+    if not native.available():
+        pytest.skip("no C++ compiler here: the kernel cannot be built")
+    torch.manual_seed(2)
+    for d, m in ((16, 64), (12, 24)):  # GRaF's (specialised) and sizes read at run time
+        seq = _perturbed(torch.nn.Sequential(torch.nn.Linear(d, m), torch.nn.ReLU(), torch.nn.Linear(m, d)))
+        assert fast_blocks.mlp_fusable(seq)
+        for S in (1, 16, 17, 40):
+            x, code = torch.randn(3, S, d), torch.randn(3, S, d)
+            with torch.no_grad():
+                fused = native.mlp(fast_blocks.mlp_weights(seq), x.transpose(1, 2).contiguous(), code)
+                assert torch.allclose(fused.transpose(1, 2), seq(x) + code, atol=ATOL)
+
+
+@pytest.mark.parametrize("d_model", [16, 12])
+def test_ray_pass_fast_equals_plain(kernel, d_model):
+    """inference.ray_pass (scene blocks, MLP2 + code, ray blocks, mean): on the fast path one compiled call per
+    group of rays (every stage per ray while it is in cache), against the plain path; rays of several lengths,
+    per-ray and shared tokens, with and without a key mask, GRaF's sizes and sizes not specialised."""
+    model = _perturbed(_small(max_samples=64, d_model=d_model, mlp_dim=2 * d_model), seed=3)
+    n, L, d = 6, 7, d_model
+    g = torch.Generator().manual_seed(4)
+    for S in (1, 16, 17, 40):
+        x, code = torch.randn(n, S, d, generator=g), torch.randn(n, S, d, generator=g)
+        tokens = torch.randn(n, L, d, generator=g)
+        mask = torch.rand(n, L, generator=g) > 0.5
+        mask[:, 0] = True
+        for t, m in ((tokens, None), (tokens, mask), (tokens[:1], mask[:1])):
+            assert inference._fused_ok(model, x, t, n, S) == (kernel == "native")
+            with torch.no_grad():
+                fast = inference.ray_pass(model, x, t, m, code, fast=True)
+                plain = inference.ray_pass(
+                    model, x, t.expand(n, -1, -1), None if m is None else m.expand(n, -1), code, fast=False
+                )
+            assert fast.shape == (n, d)
+            assert torch.allclose(fast, plain, atol=ATOL), (fast - plain).abs().max()
 
 
 @pytest.mark.parametrize("window", [0, 3])

@@ -26,7 +26,8 @@ import torch
 from torch import nn
 
 from graf.machine import available_cores, monitor
-from graf.models.graf.kernels.blocks import run_blocks
+from graf.models.graf.kernels import native
+from graf.models.graf.kernels.blocks import fusable, mlp_fusable, ray_pass_weights, run_blocks
 
 BUSY_CORES = 0.5  # other processes' load (cores) from which the serial phases leave cores to them
 FAST_PIECE_VOXELS = 4096  # voxels per piece through the ray transformer on the fast path (stays in cache)
@@ -81,6 +82,38 @@ def ray_transformer(blocks: nn.ModuleList, v: torch.Tensor, window: int, fast: b
         head = blk(v[:, : k * window].reshape(n * k, window, d)).view(n, k * window, d)
         v = head if k * window == S else torch.cat([head, blk(v[:, k * window :])], dim=1)
     return v
+
+
+def ray_pass(model: nn.Module, x: torch.Tensor, tokens: torch.Tensor, key_mask, code: torch.Tensor, fast: bool):
+    """GRaF's rays from their voxel queries to their pooled state ``[n, d]``: the scene blocks (queries ``x [n, S,
+    d]`` over ``tokens [n or 1, L, d]``), MLP2 plus the voxels' distance ``code [n, S, d]``, the ray transformer,
+    the mean over each ray.  On the fast path with the compiled kernels, all of it feature-major on pieces of
+    :data:`FAST_PIECE_VOXELS` voxels (each piece through every stage while it is in cache, MLP2's hidden layer
+    never in memory: :func:`fused_ray_pass`)."""
+    n, S, d = code.shape
+    if fast and _fused_ok(model, x, tokens, n, S):
+        return fused_ray_pass(model, x, tokens, key_mask, code)
+    x = scene_blocks(model.scene_blocks, x, tokens, key_mask, fast)
+    v = model.mlp2(x).view(n, S, d) + code
+    v = ray_transformer(model.ray_blocks, v, model.ray_window, fast)
+    return v.float().mean(dim=1)
+
+
+def _fused_ok(model: nn.Module, x: torch.Tensor, tokens: torch.Tensor, n: int, S: int) -> bool:
+    return (
+        x.shape[:2] == (n, S)
+        and tokens.shape[0] in (1, n)
+        and (not model.ray_window or S <= model.ray_window)
+        and fusable(model.scene_blocks, tokens.shape[1])
+        and fusable(model.ray_blocks, S)
+        and mlp_fusable(model.mlp2)
+    )
+
+
+def fused_ray_pass(model: nn.Module, x: torch.Tensor, tokens: torch.Tensor, key_mask, code: torch.Tensor):
+    """:func:`ray_pass` through the compiled kernels (where :func:`_fused_ok`): one ray at a time, every stage
+    while the ray is in cache (:func:`graf.models.graf.kernels.native.ray_pass`)."""
+    return native.ray_pass(ray_pass_weights(model), x, tokens, key_mask, code)
 
 
 def serial_threads(threads: int | None = None) -> int:

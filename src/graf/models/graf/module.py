@@ -58,7 +58,7 @@ from graf.models.graf.cache import EvalCache, weights_stamp
 from graf.models.graf.encoder import ResNetEncoder
 from graf.models.graf.features import Dims, build_features
 from graf.models.graf.features.base import mlp
-from graf.models.graf.inference import SerialThreads, fast_path, ray_transformer, rays_in_chunks, scene_blocks
+from graf.models.graf.inference import SerialThreads, fast_path, ray_pass, rays_in_chunks
 from graf.models.graf.legacy import upgrade_arguments, upgrade_hparams, upgrade_optimizer_states, upgrade_state_dict
 from graf.models.graf.residual import KNNBase, NoBase
 from graf.models.graf.settings import check_settings
@@ -342,10 +342,7 @@ class GRaFModule(SpectrumModule):
         q = q + ctx["target_query"][bi][:, None, :]
         x, tokens, key_mask, ray = self.features.scene_inputs(ctx, q, bi, pix, one_item)
         fast = fast_path(self.fast_inference, self.training, x)
-        x = scene_blocks(self.scene_blocks, x, tokens, key_mask, fast)
-        v = self.mlp2(x).view(n, S, self.d_model) + code
-        v = ray_transformer(self.ray_blocks, v, self.ray_window, fast)
-        return self.features.output(v.float().mean(dim=1), ray)
+        return self.features.output(ray_pass(self, x, tokens, key_mask, code, fast), ray)
 
     def render(self, ctx: dict, pix: torch.Tensor) -> torch.Tensor:
         """Predicted values ``[B, R]`` of the pixels ``pix [B, R]`` (long, ``r * 360 + c``).  Rays are grouped

@@ -5,6 +5,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <utility>
 #include <vector>
 
 typedef float vf __attribute__((vector_size(64)));  // 16 lanes: 16 queries at once
@@ -262,4 +263,105 @@ extern "C" void graf_block(const BlockWeights *w, const float *x, int64_t x_stri
         block_entries<16, 16, 64>(w, x, x_stride, y, y_stride, e0, e1, S, ctx, ctx_stride, L, mask, mask_stride);
     else
         block_entries<0, 0, 0>(w, x, x_stride, y, y_stride, e0, e1, S, ctx, ctx_stride, L, mask, mask_stride);
+}
+
+// ------------------------------------------------------------------------------------------------ MLP2
+// GRaF's MLP2 between the scene blocks and the ray transformer, fused with the voxels' distance code:
+//   y = W2 relu(W1 x + b1) + b2 + code^T
+// over feature-major entries (x, y [d, S] per entry), 16 positions per vector; code (optional) is token-major
+// [n][S][d] (entry e's position i at code + (e * S + i) * d).  The hidden layer never leaves the registers.
+template <int D, int M>
+static void mlp_entries(const float *w1, const float *b1, const float *w2, const float *b2, int64_t d_rt,
+                        int64_t m_rt, const float *x, int64_t x_stride, const float *code, float *y, int64_t y_stride,
+                        int64_t e0, int64_t e1, int64_t S) {
+    const int64_t d = SIZE(D, d_rt), m = SIZE(M, m_rt);
+    for (int64_t e = e0; e < e1; e++) {
+        const float *xe = x + e * x_stride;
+        float *ye = y + e * y_stride;
+        for (int64_t i0 = 0; i0 < S; i0 += LANES) {
+            const int64_t nl = S - i0 < LANES ? S - i0 : LANES;
+            vf xv[MAX_MODEL], hdn[MAX_INNER], init[MAX_MODEL];
+            for (int64_t c = 0; c < d; c++) xv[c] = load_lanes(xe + c * S + i0, nl);
+            if (code) {
+                float tmp[MAX_MODEL][LANES] = {};
+                const float *ce = code + (e * S + i0) * d;
+                for (int64_t l = 0; l < nl; l++)
+                    for (int64_t c = 0; c < d; c++) tmp[c][l] = ce[l * d + c];
+                for (int64_t c = 0; c < d; c++) std::memcpy(&init[c], tmp[c], sizeof(vf));
+            } else {
+                for (int64_t c = 0; c < d; c++) init[c] = splat(0.0f);
+            }
+            for (int64_t f = 0; f < m; f++) {
+                vf acc = dot(xv, w1 + f * d, d, splat(b1[f]));
+                hdn[f] = acc > 0.0f ? acc : splat(0.0f);
+            }
+            for (int64_t c = 0; c < d; c++) {
+                vf out = dot(hdn, w2 + c * m, m, splat(b2[c])) + init[c];
+                store_lanes(ye + c * S + i0, out, nl);
+            }
+        }
+    }
+}
+
+// Entries [e0, e1) of x [n][d][S] (entry stride x_stride) -> y (y_stride); w1 [m, d], b1 [m], w2 [d, m], b2 [d];
+// code null or [n][S][d].  d <= graf_block_limits(0), m <= graf_block_limits(1).
+extern "C" void graf_mlp(const float *w1, const float *b1, const float *w2, const float *b2, int64_t d, int64_t m,
+                         const float *x, int64_t x_stride, const float *code, float *y, int64_t y_stride, int64_t e0,
+                         int64_t e1, int64_t S) {
+    if (d == 16 && m == 64)  // GRaF's MLP2
+        mlp_entries<16, 64>(w1, b1, w2, b2, d, m, x, x_stride, code, y, y_stride, e0, e1, S);
+    else
+        mlp_entries<0, 0>(w1, b1, w2, b2, d, m, x, x_stride, code, y, y_stride, e0, e1, S);
+}
+
+// ------------------------------------------------------------------------------------------------ whole rays
+// GRaF's rays from their voxel queries to their pooled state, one ray at a time with everything in cache: the
+// scene blocks (cross-attention over the ray's own tokens), MLP2 plus the distance code, the ray transformer's
+// blocks, the mean over the ray.  The same arithmetic as graf_block and graf_mlp in turn.
+struct RayPass {
+    const BlockWeights *const *scene;  // n_scene scene blocks (cross-attention)
+    const BlockWeights *const *ray;    // n_ray ray blocks (self-attention)
+    const float *w1, *b1, *w2, *b2;    // MLP2: [m, d], [m], [d, m], [d]
+    int64_t n_scene, n_ray, d, m;
+};
+
+static void graf_block_one(const BlockWeights *w, const float *x, float *y, int64_t S, const float *ctx, int64_t L,
+                           const uint8_t *mask) {
+    graf_block(w, x, 0, y, 0, 0, 1, S, ctx, 0, L, mask, 0);
+}
+
+// Rays [e0, e1): queries x [n][S][d] and tokens [n or 1][L][d] token-major (tok_stride: 0 = shared), key mask
+// [n or 1][L] (mask_stride) or null, distance code [n][S][d]; out [n][d].
+extern "C" void graf_ray_pass(const RayPass *p, const float *x, const float *tok, int64_t tok_stride, int64_t L,
+                              const uint8_t *mask, int64_t mask_stride, const float *code, float *out, int64_t e0,
+                              int64_t e1, int64_t S) {
+    const int64_t d = p->d;
+    static thread_local std::vector<float> a, b, c;
+    a.resize((size_t)(d * S));
+    b.resize((size_t)(d * S));
+    c.resize((size_t)(d * L));
+    for (int64_t e = e0; e < e1; e++) {
+        const float *xe = x + e * S * d, *te = tok + e * tok_stride;
+        for (int64_t i = 0; i < S; i++)
+            for (int64_t k = 0; k < d; k++) a[k * S + i] = xe[i * d + k];
+        for (int64_t j = 0; j < L; j++)
+            for (int64_t k = 0; k < d; k++) c[k * L + j] = te[j * d + k];
+        const uint8_t *me = mask ? mask + e * mask_stride : nullptr;
+        float *src = a.data(), *dst = b.data();
+        for (int64_t s = 0; s < p->n_scene; s++) {
+            graf_block_one(p->scene[s], src, dst, S, c.data(), L, me);
+            std::swap(src, dst);
+        }
+        graf_mlp(p->w1, p->b1, p->w2, p->b2, d, p->m, src, 0, code + e * S * d, dst, 0, 0, 1, S);
+        std::swap(src, dst);
+        for (int64_t s = 0; s < p->n_ray; s++) {
+            graf_block_one(p->ray[s], src, dst, S, nullptr, 0, nullptr);
+            std::swap(src, dst);
+        }
+        for (int64_t k = 0; k < d; k++) {
+            float sum = 0.0f;
+            for (int64_t i = 0; i < S; i++) sum += src[k * S + i];
+            out[e * d + k] = sum / (float)S;
+        }
+    }
 }

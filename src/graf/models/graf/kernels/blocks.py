@@ -135,13 +135,35 @@ def block_weights(blk: nn.Module) -> native.BlockWeights:
     return w
 
 
-def _fusable(blocks: nn.ModuleList, keys: int) -> bool:
+def fusable(blocks: nn.ModuleList, keys: int) -> bool:
     return all(
         isinstance(b.ffn[1], nn.ReLU)
         and native.block_supported(
             b.attn.q.in_features, max(b.attn.num_heads * b.attn.head_dim, b.ffn[0].out_features), keys
         )
         for b in blocks
+    )
+
+
+def mlp_weights(seq: nn.Sequential) -> tuple[torch.Tensor, ...]:
+    """``(W1, b1, W2, b2)`` of an MLP ``Linear, ReLU, Linear`` for :func:`native.mlp` (cached on it while its
+    weights are unchanged)."""
+    stamp = weights_stamp(seq)
+    cached = getattr(seq, "_fused_weights", None)
+    if cached is None or cached[0] != stamp:
+        keep = tuple(t.detach().float().contiguous() for t in (seq[0].weight, seq[0].bias, seq[2].weight, seq[2].bias))
+        cached = seq._fused_weights = (stamp, keep)
+    return cached[1]
+
+
+def mlp_fusable(seq: nn.Module) -> bool:
+    """Whether :func:`native.mlp` runs ``seq`` (``Linear(d, m), ReLU, Linear(m, d)``) on this machine."""
+    return (
+        isinstance(seq, nn.Sequential)
+        and len(seq) == 3
+        and isinstance(seq[1], nn.ReLU)
+        and seq[0].in_features == seq[2].out_features
+        and native.mlp_supported(seq[0].in_features, seq[0].out_features)
     )
 
 
@@ -152,12 +174,32 @@ def run_blocks(
     L, d]`` with ``key_mask [B or 1, L]`` when given): each a fused kernel call where the library is there and
     takes the sizes, else :func:`block_forward`.  Returns ``[B, N, d]``."""
     keys = x.shape[1] if context is None else context.shape[1]
-    if not _fusable(blocks, keys):
+    if not fusable(blocks, keys):
         for blk in blocks:
             x = block_forward(blk, x, context, key_mask)
         return x
-    xf = x.transpose(1, 2).contiguous()
     cf = None if context is None else context.transpose(1, 2).contiguous()
+    return fused_blocks(blocks, x.transpose(1, 2).contiguous(), cf, key_mask).transpose(1, 2)
+
+
+def fused_blocks(
+    blocks: nn.ModuleList, xf: torch.Tensor, cf: torch.Tensor | None = None, key_mask: torch.Tensor | None = None
+) -> torch.Tensor:
+    """:func:`run_blocks` feature-major, fused only (where :func:`fusable`): ``xf [B, d, N]``, ``cf [B or 1, d,
+    L]`` (contiguous) -> ``[B, d, N]``."""
     for blk in blocks:
         xf = native.block(block_weights(blk), xf, cf, key_mask)
-    return xf.transpose(1, 2)
+    return xf
+
+
+def ray_pass_weights(model: nn.Module) -> native.RayPass:
+    """:func:`native.ray_pass`'s weights of a GRaF model (its ``scene_blocks``, ``mlp2`` and ``ray_blocks``; cached
+    on the model while their weights are unchanged)."""
+    stamp = weights_stamp(model.scene_blocks, model.mlp2, model.ray_blocks)
+    cached = getattr(model, "_fused_ray_pass", None)
+    if cached is None or cached[0] != stamp:
+        scene = [block_weights(b) for b in model.scene_blocks]
+        ray = [block_weights(b) for b in model.ray_blocks]
+        cached = (stamp, native.ray_pass_weights(scene, ray, mlp_weights(model.mlp2)))
+        model._fused_ray_pass = cached
+    return cached[1]

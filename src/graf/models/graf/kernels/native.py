@@ -94,6 +94,14 @@ def _load() -> ctypes.CDLL | None:
     blk.argtypes = [ctypes.POINTER(BlockWeights), ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_int64]
     blk.argtypes += [ctypes.c_int64] * 3 + [ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_void_p]
     blk.argtypes += [ctypes.c_int64]
+    mlp_fn = lib.graf_mlp
+    mlp_fn.restype = None
+    mlp_fn.argtypes = [ctypes.c_void_p] * 4 + [ctypes.c_int64] * 2 + [ctypes.c_void_p, ctypes.c_int64]
+    mlp_fn.argtypes += [ctypes.c_void_p, ctypes.c_void_p] + [ctypes.c_int64] * 4
+    rp = lib.graf_ray_pass
+    rp.restype = None
+    rp.argtypes = [ctypes.POINTER(RayPass), ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64]
+    rp.argtypes += [ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p] + [ctypes.c_int64] * 3
     return lib
 
 
@@ -104,6 +112,17 @@ class BlockWeights(ctypes.Structure):
     _fields_ += [(n, ctypes.c_void_p) for n in ("w1", "b1", "w2", "b2", "g2", "be2")]
     _fields_ += [("eps1", ctypes.c_float), ("eps2", ctypes.c_float)]
     _fields_ += [(n, ctypes.c_int64) for n in ("d", "H", "Dh", "F")]
+
+
+class RayPass(ctypes.Structure):
+    """``struct RayPass`` of attention_cpu.cpp: GRaF's scene blocks, MLP2 and ray blocks (pointers) and sizes."""
+
+    _fields_ = [
+        ("scene", ctypes.POINTER(ctypes.POINTER(BlockWeights))),
+        ("ray", ctypes.POINTER(ctypes.POINTER(BlockWeights))),
+    ]
+    _fields_ += [(n, ctypes.c_void_p) for n in ("w1", "b1", "w2", "b2")]
+    _fields_ += [(n, ctypes.c_int64) for n in ("n_scene", "n_ray", "d", "m")]
 
 
 def library() -> ctypes.CDLL | None:
@@ -208,3 +227,81 @@ def block(
         0 if mask is None or mask.shape[0] == 1 else mask.stride(0),
     )
     return y
+
+
+def mlp_supported(d: int, hidden: int) -> bool:
+    """Whether :func:`mlp` takes an MLP ``d -> hidden -> d`` on this machine."""
+    lib = library()
+    return lib is not None and d <= lib.graf_block_limits(0) and hidden <= lib.graf_block_limits(1)
+
+
+def mlp(weights: tuple[torch.Tensor, ...], x: torch.Tensor, code: torch.Tensor | None = None) -> torch.Tensor:
+    """``W2 relu(W1 x + b1) + b2 (+ code)`` over feature-major entries ``x [n, d, S]`` (contiguous float32), with
+    ``code`` token-major ``[n, S, d]`` (contiguous) added: ``[n, d, S]``.  ``weights``: ``(W1 [m, d], b1 [m],
+    W2 [d, m], b2 [d])``, contiguous float32; only where :func:`mlp_supported` says so."""
+    lib = library()
+    w1, b1, w2, b2 = weights
+    n, d, S = x.shape
+    y = torch.empty_like(x)
+    if code is not None:
+        code = code.contiguous()
+    lib.graf_mlp(
+        w1.data_ptr(),
+        b1.data_ptr(),
+        w2.data_ptr(),
+        b2.data_ptr(),
+        d,
+        w1.shape[0],
+        x.data_ptr(),
+        x.stride(0),
+        None if code is None else code.data_ptr(),
+        y.data_ptr(),
+        y.stride(0),
+        0,
+        n,
+        S,
+    )
+    return y
+
+
+def ray_pass_weights(scene: list[BlockWeights], ray: list[BlockWeights], mlp: tuple[torch.Tensor, ...]) -> RayPass:
+    """The :func:`ray_pass` weights: the scene blocks', the ray blocks' (:class:`BlockWeights`, kept alive by the
+    struct) and MLP2's ``(W1 [m, d], b1, W2 [d, m], b2)`` (contiguous float32)."""
+    ptr = ctypes.POINTER(BlockWeights)
+    scene_arr = (ptr * len(scene))(*[ctypes.pointer(w) for w in scene])
+    ray_arr = (ptr * len(ray))(*[ctypes.pointer(w) for w in ray])
+    w1, b1, w2, b2 = mlp
+    p = RayPass(scene_arr, ray_arr, w1.data_ptr(), b1.data_ptr(), w2.data_ptr(), b2.data_ptr())
+    p.n_scene, p.n_ray, p.d, p.m = len(scene), len(ray), w1.shape[1], w1.shape[0]
+    p.keep = (scene, ray, mlp, scene_arr, ray_arr)
+    return p
+
+
+def ray_pass(
+    weights: RayPass, x: torch.Tensor, tokens: torch.Tensor, mask: torch.Tensor | None, code: torch.Tensor
+) -> torch.Tensor:
+    """GRaF's rays through the scene blocks, MLP2 (plus ``code``), the ray blocks and the mean over each ray, one
+    ray at a time: queries ``x [n, S, d]``, ``tokens [n or 1, L, d]``, key ``mask [n or 1, L]`` (True = attend) or
+    None, distance ``code [n, S, d]`` (token-major) -> ``[n, d]``.  Where :func:`block_supported` and
+    :func:`mlp_supported` hold for every part."""
+    lib = library()
+    n, S, d = x.shape
+    x, tokens, code = x.contiguous(), tokens.contiguous(), code.contiguous()
+    if mask is not None:
+        mask = mask.to(torch.uint8).contiguous()
+    out = torch.empty(n, d, dtype=torch.float32)
+    lib.graf_ray_pass(
+        ctypes.byref(weights),
+        x.data_ptr(),
+        tokens.data_ptr(),
+        0 if tokens.shape[0] == 1 else tokens.stride(0),
+        tokens.shape[1],
+        None if mask is None else mask.data_ptr(),
+        0 if mask is None or mask.shape[0] == 1 else mask.stride(0),
+        code.data_ptr(),
+        out.data_ptr(),
+        0,
+        n,
+        S,
+    )
+    return out
