@@ -11,7 +11,7 @@ import torch
 
 from graf.models.graf import GRaFModule
 from graf.models.graf.features import MODES, RayFeatures
-from graf.models.graf.ray_features import pad_wrap, pixel_window, sample_wrap, upsample_wrap
+from graf.models.graf.ray_features import all_pixel_inputs, pad_wrap, pixel_window, sample_wrap, upsample_wrap
 from graf.models.knn import KNNModule
 from graf.run.train import train
 
@@ -55,6 +55,26 @@ def test_sampling_at_the_drawn_pixels_equals_the_upsampled_map_bit_for_bit():
     bi, pix = torch.randint(0, 2, (500,)), torch.randint(0, 32400, (500,))
     pix[:4] = torch.tensor([0, 359, 32040, 32399])  # the seam and the poles
     assert torch.equal(sample_wrap(pad_wrap(m), bi, pix, 12), up[bi, :, :, pix // 360, pix % 360])
+
+
+@pytest.mark.parametrize("radius", [0, 1, 2])
+def test_every_pixels_inputs_at_once_equal_the_per_ray_reads(radius):
+    """Inference reads every pixel's ray inputs at once (all_pixel_inputs): bit for bit what sample_wrap and
+    pixel_window give the drawn pixels, the seams and the elevation ends included; padded neighbors stay zero."""
+    g = torch.Generator().manual_seed(radius)
+    maps = pad_wrap(torch.randn(2, 3, 5, 12, 45, generator=g))  # [B, L, k, h, w + 2]
+    spectra = torch.rand(2, 3, 90, 360, generator=g)
+    maps[1, 2], spectra[1, 2] = 0.0, 0.0  # a padded neighbor
+    every = all_pixel_inputs(maps, spectra, radius)
+    assert every.shape == (2, 90 * 360, 3, 5 + (2 * radius + 1) ** 2)
+    pix = torch.cat(
+        [torch.tensor([0, 359, 360, 89 * 360, 90 * 360 - 1]), torch.randint(0, 90 * 360, (200,), generator=g)]
+    )
+    for b in (0, 1):
+        bi = torch.full_like(pix, b)
+        per_ray = torch.cat([sample_wrap(maps, bi, pix, 45), pixel_window(spectra, bi, pix, radius)], dim=-1)
+        assert torch.equal(every[b, pix], per_ray)
+    assert every[1, :, 2].abs().max() == 0
 
 
 def test_pixel_window_reads_the_rays_own_pixel_and_wraps_the_azimuth_seam():

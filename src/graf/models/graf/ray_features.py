@@ -114,5 +114,24 @@ class RayNeighborTokens(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """``feats [n, L, k]``, ``window [n, L, K]``, ``geo_part [n, L, hidden]`` -> ``(tokens [n, L, d],
         weight logits [n, L])``."""
-        h = F.relu(self.ray_in(torch.cat([feats, window], dim=-1)) + geo_part)
+        return self.from_inputs(torch.cat([feats, window], dim=-1), geo_part)
+
+    def from_inputs(self, inputs: torch.Tensor, geo_part: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`forward` from its concatenated per-ray inputs ``[n, L, k + K]`` (feature, then window)."""
+        h = F.relu(self.ray_in(inputs) + geo_part)
         return self.out(h), self.weight_logits(h).squeeze(-1)
+
+
+def all_pixel_inputs(maps_padded: torch.Tensor, spectra: torch.Tensor, radius: int) -> torch.Tensor:
+    """Every pixel's per-ray inputs at once, ``[B, 90 * 360, L, k + K]`` (pixel-major: a ray's row is one
+    contiguous read): :func:`sample_wrap` and :func:`pixel_window` of every pixel of every item, the same values
+    (``upsample_wrap`` is ``sample_wrap`` at all pixels).  ``maps_padded [B, L, k, h, w + 2]``, ``spectra [B, L,
+    90, 360]``.  For inference over whole spectra, where every pixel is read once."""
+    B, L, k, h, w2 = maps_padded.shape
+    P = N_ELEVATION * N_AZIMUTH
+    feats = upsample_wrap(maps_padded[..., 1:-1].reshape(B * L, k, h, w2 - 2))  # [B L, k, 90, 360]
+    feats = feats.view(B, L, k, P).permute(0, 3, 1, 2)  # [B, P, L, k]
+    bi = torch.arange(B, device=spectra.device).repeat_interleave(P)
+    pix = torch.arange(P, device=spectra.device).repeat(B)
+    window = pixel_window(spectra, bi, pix, radius).view(B, P, L, -1)  # [B, P, L, K]
+    return torch.cat([feats, window], dim=-1).contiguous()

@@ -15,7 +15,7 @@ import torch
 from torch import nn
 
 from graf.models.graf.features.base import Dims, NeighborFeatures, complex_head
-from graf.models.graf.ray_features import RayNeighborTokens, pad_wrap, pixel_window, sample_wrap
+from graf.models.graf.ray_features import RayNeighborTokens, all_pixel_inputs, pad_wrap, pixel_window, sample_wrap
 from graf.models.knn.weights import idw_weights
 
 
@@ -66,18 +66,26 @@ class RayFeatures(NeighborFeatures):
         ray_maps[mask] = maps
         offset, pe_off = model.neighbor_offsets(batch)
         dist_wl = torch.linalg.vector_norm(offset, dim=-1, keepdim=True) / batch["wavelength"].float()[:, None, None]
-        return {
+        ctx = {
             "ray_maps": ray_maps,
             "src": spectra.masked_fill(~mask[..., None, None], 0.0),
             "geo": self.ray_tokens.geometry(torch.cat([pe_off, torch.log1p(dist_wl)], dim=-1)),
         }
+        if not (model.training or torch.is_grad_enabled()):  # inference renders every pixel once: read all at once
+            ctx["ray_inputs"] = all_pixel_inputs(ray_maps, ctx["src"], self.pixel_window)
+        return ctx
 
     def scene_inputs(self, ctx: dict, q: torch.Tensor, bi: torch.Tensor, pix: torch.Tensor, one_item: bool):
         """Each ray's voxels attend to that ray's own L neighbor tokens; the per-ray state holds the window of
         neighbor values ``window [n, L, K]``, the tokens ``[n, L, d]`` and their weight logits ``[n, L]``."""
-        window = pixel_window(ctx["src"], bi, pix, self.pixel_window)  # [n, L, K]
-        feats = sample_wrap(ctx["ray_maps"], bi, pix, ctx["ray_maps"].shape[-1] - 2)  # [n, L, k]
-        tokens, logits = self.ray_tokens(feats, window, ctx["geo"][bi])
+        if "ray_inputs" in ctx:  # inference: every pixel's inputs read at once (prepare)
+            inputs = ctx["ray_inputs"][bi, pix]  # [n, L, k + K]
+            window = inputs[..., ctx["ray_maps"].shape[2] :]
+            tokens, logits = self.ray_tokens.from_inputs(inputs, ctx["geo"][bi])
+        else:
+            window = pixel_window(ctx["src"], bi, pix, self.pixel_window)  # [n, L, K]
+            feats = sample_wrap(ctx["ray_maps"], bi, pix, ctx["ray_maps"].shape[-1] - 2)  # [n, L, k]
+            tokens, logits = self.ray_tokens(feats, window, ctx["geo"][bi])
         key_mask = None if ctx["key_mask"] is None else ctx["key_mask"][bi]
         return q, tokens, key_mask, {"window": window, "tokens": tokens, "logits": logits}
 
