@@ -91,8 +91,11 @@ def ray_pass(model: nn.Module, x: torch.Tensor, tokens: torch.Tensor, key_mask, 
     :data:`FAST_PIECE_VOXELS` voxels (each piece through every stage while it is in cache, MLP2's hidden layer
     never in memory: :func:`fused_ray_pass`)."""
     n, S, d = code.shape
-    if fast and _fused_ok(model, x, tokens, n, S):
-        return fused_ray_pass(model, x, tokens, key_mask, code)
+    if fast:
+        # one long query axis over shared tokens (pooled): the scene blocks act per position, so per ray as well
+        xr = x.view(n, S, d) if x.shape[:2] == (1, n * S) and tokens.shape[0] == 1 else x
+        if _fused_ok(model, xr, tokens, n, S):
+            return fused_ray_pass(model, xr, tokens, key_mask, code)
     x = scene_blocks(model.scene_blocks, x, tokens, key_mask, fast)
     v = model.mlp2(x).view(n, S, d) + code
     v = ray_transformer(model.ray_blocks, v, model.ray_window, fast)
