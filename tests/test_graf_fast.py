@@ -165,6 +165,28 @@ def test_ray_pass_fast_equals_plain(kernel, d_model):
             assert torch.allclose(fast, plain, atol=ATOL), (fast - plain).abs().max()
 
 
+@pytest.mark.parametrize("d_model", [16, 12])
+def test_ray_pass_layouts_give_the_same_bits(d_model):
+    """The fused ray pass with 16 positions of a ray per vector and with 16 rays per vector: the same arithmetic
+    in the same order, so the same bits, for short and long rays, group sizes off the vector width, per-ray and
+    shared tokens, with and without a key mask; auto picks rays for short rays in groups of many."""
+    if not native.available():
+        pytest.skip("no C++ compiler here: the kernel cannot be built")
+    model = _perturbed(_small(max_samples=64, d_model=d_model, mlp_dim=2 * d_model), seed=5)
+    weights = fast_blocks.ray_pass_weights(model)
+    g = torch.Generator().manual_seed(6)
+    for n, S in ((37, 3), (16, 1), (5, 40), (33, 17)):
+        x, code = torch.randn(n, S, d_model, generator=g), torch.randn(n, S, d_model, generator=g)
+        tokens = torch.randn(n, 7, d_model, generator=g)
+        mask = torch.rand(n, 7, generator=g) > 0.5
+        mask[:, 0] = True
+        for t, m in ((tokens, None), (tokens, mask), (tokens[:1], mask[:1])):
+            by_positions = native.ray_pass(weights, x, t, m, code, layout="positions")
+            assert torch.equal(native.ray_pass(weights, x, t, m, code, layout="rays"), by_positions)
+    assert native.choose_layout(1000, 3) == "rays" and native.choose_layout(2, 3) == "positions"
+    assert native.choose_layout(1000, 32) == "positions" and native.choose_layout(1000, 17) == "rays"
+
+
 @pytest.mark.parametrize("window", [0, 3])
 def test_ray_transformer_fast_equals_plain(kernel, window):
     model = _perturbed(_small(max_samples=8, ray_window=window))

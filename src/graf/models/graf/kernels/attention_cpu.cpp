@@ -365,3 +365,136 @@ extern "C" void graf_ray_pass(const RayPass *p, const float *x, const float *tok
         }
     }
 }
+
+// ------------------------------------------------------------------------------------------------ rays in lanes
+// The same ray pass with 16 *rays* per vector: the rays of a group all have S voxels, lane r holds ray r0 + r at
+// every position, and each lane attends to its own ray's keys.  No lane idles whatever S (the position-major
+// layout above fills a vector with 16 positions of one ray: a 3-voxel ray leaves 13 of 16 lanes idle).
+
+// sum_k a[k] * b[k * stride] + init over vectors, in four chains
+static inline vf dotv(const vf *a, const vf *b, int64_t n, vf init, int64_t stride) {
+    vf s0 = init, s1 = splat(0.0f), s2 = splat(0.0f), s3 = splat(0.0f);
+    int64_t k = 0;
+    for (; k + 4 <= n; k += 4) {
+        s0 += a[k] * b[k * stride];
+        s1 += a[k + 1] * b[(k + 1) * stride];
+        s2 += a[k + 2] * b[(k + 2) * stride];
+        s3 += a[k + 3] * b[(k + 3) * stride];
+    }
+    for (; k < n; k++) s0 += a[k] * b[k * stride];
+    return (s0 + s1) + (s2 + s3);
+}
+
+// One block over a group's positions X [d][S] (in place); ctx [d][L] (cross-attention: each lane its ray's
+// tokens) or null (self-attention over X), key mask [L] (lanes 0 / 1) or null; kv: scratch [2*H*Dh][keys].
+template <int D, int DH, int FF>
+static void block_rays(const BlockWeights *w, vf *X, int64_t S, const vf *ctx, int64_t L, const vf *mask, vf *kv) {
+    const int64_t d = SIZE(D, w->d), H = w->H, Dh = SIZE(DH, w->Dh), F = SIZE(FF, w->F), HD = H * Dh;
+    const vf *src = ctx ? ctx : X;
+    const int64_t keys = ctx ? L : S, R = 2 * HD;
+    for (int64_t j = 0; j < keys; j++) {
+        vf cv[MAX_MODEL];
+        for (int64_t c = 0; c < d; c++) cv[c] = src[c * keys + j];
+        for (int64_t r = 0; r < R; r++) kv[r * keys + j] = dot(cv, w->wkv + r * d, d, splat(w->bkv[r]));
+    }
+    const vf ninf = splat(-INFINITY), zero = splat(0.0f);
+    static thread_local vf s[MAX_KEYS];
+    for (int64_t i = 0; i < S; i++) {
+        vf xv[MAX_MODEL], q[MAX_INNER], o[MAX_INNER], y[MAX_MODEL], hdn[MAX_INNER];
+        for (int64_t c = 0; c < d; c++) xv[c] = X[c * S + i];
+        for (int64_t r = 0; r < HD; r++) q[r] = dot(xv, w->wq + r * d, d, splat(w->bq[r]));
+        for (int64_t h = 0; h < H; h++) {
+            const vf *kh = kv + (h * 2 * Dh) * keys, *vh = kh + Dh * keys;
+            vf mx = ninf;
+            for (int64_t j = 0; j < keys; j++) {
+                vf acc = dotv(q + h * Dh, kh + j, Dh, zero, keys);
+                if (mask) acc = mask[j] > 0.0f ? acc : ninf;
+                s[j] = acc;
+                mx = acc > mx ? acc : mx;
+            }
+            vf sum = zero;
+            vf *oh = o + h * Dh;
+            for (int64_t e = 0; e < Dh; e++) oh[e] = zero;
+            for (int64_t j = 0; j < keys; j++) {
+                vf p = vexp2(s[j] - mx);
+                if (mask) p = mask[j] > 0.0f ? p : zero;
+                sum += p;
+                for (int64_t e = 0; e < Dh; e++) oh[e] += p * vh[e * keys + j];
+            }
+            for (int64_t e = 0; e < Dh; e++) oh[e] = oh[e] / sum;
+        }
+        for (int64_t c = 0; c < d; c++) y[c] = dot(o, w->wo + c * HD, HD, splat(w->bo[c]) + xv[c]);
+        layer_norm(y, d, w->g1, w->be1, w->eps1);
+        for (int64_t f = 0; f < F; f++) {
+            vf acc = dot(y, w->w1 + f * d, d, splat(w->b1[f]));
+            hdn[f] = acc > 0.0f ? acc : zero;
+        }
+        for (int64_t c = 0; c < d; c++) xv[c] = dot(hdn, w->w2 + c * F, F, splat(w->b2[c]) + y[c]);
+        layer_norm(xv, d, w->g2, w->be2, w->eps2);
+        for (int64_t c = 0; c < d; c++) X[c * S + i] = xv[c];
+    }
+}
+
+static void block_rays_any(const BlockWeights *w, vf *X, int64_t S, const vf *ctx, int64_t L, const vf *mask, vf *kv) {
+    if (w->d == 16 && w->Dh == 8 && w->F == 64)
+        block_rays<16, 8, 64>(w, X, S, ctx, L, mask, kv);
+    else if (w->d == 16 && w->Dh == 16 && w->F == 64)
+        block_rays<16, 16, 64>(w, X, S, ctx, L, mask, kv);
+    else
+        block_rays<0, 0, 0>(w, X, S, ctx, L, mask, kv);
+}
+
+// graf_ray_pass's contract, 16 rays per vector (the rays [e0, e1) all have S voxels).  Lanes past e1 are zeros.
+extern "C" void graf_ray_pass_lanes(const RayPass *p, const float *x, const float *tok, int64_t tok_stride, int64_t L,
+                                    const uint8_t *mask, int64_t mask_stride, const float *code, float *out,
+                                    int64_t e0, int64_t e1, int64_t S) {
+    const int64_t d = p->d, m = p->m;
+    int64_t R = 0;
+    for (int64_t s = 0; s < p->n_scene; s++) R = R > 2 * p->scene[s]->H * p->scene[s]->Dh ? R : 2 * p->scene[s]->H * p->scene[s]->Dh;
+    for (int64_t s = 0; s < p->n_ray; s++) R = R > 2 * p->ray[s]->H * p->ray[s]->Dh ? R : 2 * p->ray[s]->H * p->ray[s]->Dh;
+    static thread_local std::vector<vf> X, C, M, KV;
+    X.resize((size_t)(d * S));
+    C.resize((size_t)(d * L));
+    M.resize((size_t)L);
+    KV.resize((size_t)(R * (S > L ? S : L)));
+    for (int64_t r0 = e0; r0 < e1; r0 += LANES) {
+        const int64_t nl = e1 - r0 < LANES ? e1 - r0 : LANES;
+        float lane[LANES];
+        for (int64_t i = 0; i < S; i++)
+            for (int64_t c = 0; c < d; c++) {
+                for (int64_t l = 0; l < LANES; l++) lane[l] = l < nl ? x[((r0 + l) * S + i) * d + c] : 0.0f;
+                std::memcpy(&X[c * S + i], lane, sizeof(vf));
+            }
+        for (int64_t j = 0; j < L; j++) {
+            for (int64_t c = 0; c < d; c++) {
+                for (int64_t l = 0; l < LANES; l++) lane[l] = l < nl ? tok[(r0 + l) * tok_stride + j * d + c] : 0.0f;
+                std::memcpy(&C[c * L + j], lane, sizeof(vf));
+            }
+            for (int64_t l = 0; l < LANES; l++) lane[l] = (l >= nl || !mask || mask[(r0 + l) * mask_stride + j]) ? 1.0f : 0.0f;
+            std::memcpy(&M[j], lane, sizeof(vf));
+        }
+        for (int64_t s = 0; s < p->n_scene; s++) block_rays_any(p->scene[s], X.data(), S, C.data(), L, mask ? M.data() : nullptr, KV.data());
+        for (int64_t i = 0; i < S; i++) {  // MLP2 plus the distance code
+            vf xv[MAX_MODEL], hdn[MAX_INNER];
+            for (int64_t c = 0; c < d; c++) xv[c] = X[c * S + i];
+            for (int64_t f = 0; f < m; f++) {
+                vf acc = dot(xv, p->w1 + f * d, d, splat(p->b1[f]));
+                hdn[f] = acc > 0.0f ? acc : splat(0.0f);
+            }
+            for (int64_t c = 0; c < d; c++) {
+                for (int64_t l = 0; l < LANES; l++) lane[l] = l < nl ? code[((r0 + l) * S + i) * d + c] : 0.0f;
+                vf cv;
+                std::memcpy(&cv, lane, sizeof cv);
+                X[c * S + i] = dot(hdn, p->w2 + c * m, m, splat(p->b2[c])) + cv;
+            }
+        }
+        for (int64_t s = 0; s < p->n_ray; s++) block_rays_any(p->ray[s], X.data(), S, nullptr, 0, nullptr, KV.data());
+        for (int64_t c = 0; c < d; c++) {
+            vf sum = splat(0.0f);
+            for (int64_t i = 0; i < S; i++) sum += X[c * S + i];
+            sum = sum / (float)S;
+            std::memcpy(lane, &sum, sizeof lane);
+            for (int64_t l = 0; l < nl; l++) out[(r0 + l) * d + c] = lane[l];
+        }
+    }
+}

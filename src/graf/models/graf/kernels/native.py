@@ -102,6 +102,8 @@ def _load() -> ctypes.CDLL | None:
     rp.restype = None
     rp.argtypes = [ctypes.POINTER(RayPass), ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64]
     rp.argtypes += [ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p] + [ctypes.c_int64] * 3
+    lib.graf_ray_pass_lanes.restype = None
+    lib.graf_ray_pass_lanes.argtypes = rp.argtypes
     return lib
 
 
@@ -277,20 +279,49 @@ def ray_pass_weights(scene: list[BlockWeights], ray: list[BlockWeights], mlp: tu
     return p
 
 
+LANES = 16  # floats per vector in the kernels
+
+
+def lane_fill(count: int) -> float:
+    """The share of vector lanes in use when ``count`` items are packed 16 to a vector."""
+    return count / (-(-count // LANES) * LANES)
+
+
+def choose_layout(n: int, S: int) -> str:
+    """:func:`ray_pass`'s layout for ``n`` rays of ``S`` voxels: ``rays`` for short rays whose positions leave
+    many lanes idle (S <= 12, or S <= 24 filling under 70% of its vectors) when the rays fill more lanes than the
+    positions, else ``positions``.  The rays layout loads a vector per key (each lane its own ray's) where the
+    positions layout broadcasts one float, so at full vectors it is slower, and more so as S grows; the bounds
+    are where the two crossed on the reference 2-core AMD EPYC (S = 3: rays 0.21x the time, 8: 0.55x, 17: 0.69x,
+    24: 0.98x, 32: 1.47x, 64: 1.81x; one thread, GRaF's CPU sizes)."""
+    short = S <= 12 or (S <= 24 and lane_fill(S) < 0.7)
+    return "rays" if short and lane_fill(n) > lane_fill(S) else "positions"
+
+
 def ray_pass(
-    weights: RayPass, x: torch.Tensor, tokens: torch.Tensor, mask: torch.Tensor | None, code: torch.Tensor
+    weights: RayPass,
+    x: torch.Tensor,
+    tokens: torch.Tensor,
+    mask: torch.Tensor | None,
+    code: torch.Tensor,
+    layout: str = "auto",
 ) -> torch.Tensor:
-    """GRaF's rays through the scene blocks, MLP2 (plus ``code``), the ray blocks and the mean over each ray, one
-    ray at a time: queries ``x [n, S, d]``, ``tokens [n or 1, L, d]``, key ``mask [n or 1, L]`` (True = attend) or
-    None, distance ``code [n, S, d]`` (token-major) -> ``[n, d]``.  Where :func:`block_supported` and
-    :func:`mlp_supported` hold for every part."""
+    """GRaF's rays through the scene blocks, MLP2 (plus ``code``), the ray blocks and the mean over each ray:
+    queries ``x [n, S, d]``, ``tokens [n or 1, L, d]``, key ``mask [n or 1, L]`` (True = attend) or None, distance
+    ``code [n, S, d]`` (token-major) -> ``[n, d]``.  ``layout``: ``positions`` (16 positions of a ray per vector,
+    ray by ray), ``rays`` (16 rays per vector, position by position; the same arithmetic, the same bits) or
+    ``auto`` (:func:`choose_layout`).  Where
+    :func:`block_supported` and :func:`mlp_supported` hold for every part."""
     lib = library()
     n, S, d = x.shape
+    if layout == "auto":
+        layout = choose_layout(n, S)
+    fn = {"rays": lib.graf_ray_pass_lanes, "positions": lib.graf_ray_pass}[layout]
     x, tokens, code = x.contiguous(), tokens.contiguous(), code.contiguous()
     if mask is not None:
         mask = mask.to(torch.uint8).contiguous()
     out = torch.empty(n, d, dtype=torch.float32)
-    lib.graf_ray_pass(
+    fn(
         ctypes.byref(weights),
         x.data_ptr(),
         tokens.data_ptr(),
