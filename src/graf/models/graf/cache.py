@@ -52,7 +52,9 @@ class EvalCache:
         keys = [hashlib.blake2b(x.contiguous().cpu().numpy().tobytes(), digest_size=16).digest() for x in spectra]
         missing = [i for i, k in enumerate(keys) if k not in items]
         if missing:
-            feats = encoder(spectra[missing].unsqueeze(1).float())
+            from graf.models.graf.inference import split_batch  # here: inference imports this module
+
+            feats = split_batch(encoder, spectra[missing].unsqueeze(1).float())  # pieces on the worker threads
             for i, f in zip(missing, feats):
                 if len(items) >= EVAL_CACHE_FEATURES:
                     items.pop(next(iter(items)))

@@ -141,20 +141,48 @@ def serial_threads(threads: int | None = None) -> int:
 
 
 class SerialThreads:
-    """``with SerialThreads(device):`` torch's intra-op threads at :func:`serial_threads` (CPU only), restored after."""
+    """``with SerialThreads(device):`` torch's intra-op threads at :func:`serial_threads` (CPU only), restored after;
+    :func:`split_batch` inside still spreads its batch over the threads set before."""
+
+    outer: int | None = None  # the threads set outside the innermost SerialThreads in force
 
     def __init__(self, device: torch.device):
         self.device = device
 
     def __enter__(self):
-        self.threads = torch.get_num_threads()
+        self.threads, self.before = torch.get_num_threads(), SerialThreads.outer
+        SerialThreads.outer = self.threads
         if self.device.type == "cpu":
             torch.set_num_threads(serial_threads(self.threads))
         return self
 
     def __exit__(self, *exc):
         torch.set_num_threads(self.threads)
+        SerialThreads.outer = self.before
         return False
+
+
+def split_batch(fn: Callable, x: torch.Tensor) -> torch.Tensor:
+    """``fn(x)`` for a batch ``x [N, ...]`` whose items are independent (the neighbor encoder): on a CPU without
+    autograd or autocast, ``x`` split in one piece per thread set (:attr:`SerialThreads.outer`, else torch's),
+    each piece on a worker thread at one intra-op thread (whole pieces per thread: beside a busy process each
+    slows as much as its core, where one operation split over threads waits for the slowest); else at once."""
+    workers = min(SerialThreads.outer or torch.get_num_threads(), x.shape[0])
+    if x.device.type != "cpu" or workers <= 1 or torch.is_grad_enabled() or torch.is_autocast_enabled("cpu"):
+        return fn(x)
+
+    def run(piece):
+        with torch.no_grad():
+            return fn(piece)
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="graf-batch") as pool:
+            parts = list(pool.map(run, x.chunk(workers)))
+    finally:
+        torch.set_num_threads(threads)
+    return torch.cat(parts)
 
 
 def map_chunks(fn: Callable, items: Sequence, device: torch.device, workers: int | None = None) -> list:

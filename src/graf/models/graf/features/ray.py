@@ -15,6 +15,7 @@ import torch
 from torch import nn
 
 from graf.models.graf.features.base import Dims, NeighborFeatures, complex_head
+from graf.models.graf.inference import split_batch
 from graf.models.graf.ray_features import RayNeighborTokens, all_pixel_inputs, pad_wrap, pixel_window, sample_wrap
 from graf.models.knn.weights import idw_weights
 
@@ -61,7 +62,8 @@ class RayFeatures(NeighborFeatures):
         360]`` (padded ones zero) and the geometry's share of the token MLP ``geo [B, L, hidden]``."""
         spectra, mask = batch["src_spectra"].float(), batch["src_mask"].bool()
         B, L = mask.shape
-        maps = pad_wrap(self.ray_proj(model.encoder.forward_map(spectra[mask].unsqueeze(1))))  # [N, k, h, w + 2]
+        encode = lambda x: self.ray_proj(model.encoder.forward_map(x))  # noqa: E731
+        maps = pad_wrap(split_batch(encode, spectra[mask].unsqueeze(1)))  # [N, k, h, w + 2]
         ray_maps = maps.new_zeros(B, L, *maps.shape[1:])
         ray_maps[mask] = maps
         offset, pe_off = model.neighbor_offsets(batch)
