@@ -168,3 +168,19 @@ def test_a_checkpoint_of_another_band_or_scene_index_setting_is_refused(compose_
     r = json.loads((tmp_path / "y" / "results.json").read_text())
     ev = r["evaluations"][0]
     assert (ev["eval_scene"], ev["within_scene"], ev["scene_index"], ev["band_hz"]) == ("small_room", False, 1, 2.412e9)
+
+
+def test_a_zero_shot_test_records_the_scenes_its_model_was_trained_on():
+    """A zero-shot job tested on rfid_s23 with a model trained on two conference layouts records those layouts as
+    its train_scenes (in scene-index order), not rfid_s23; a fine-tuning run records the scene it trained on."""
+    from types import SimpleNamespace
+
+    from graf.run.record import Finetune
+    from graf.run.writer import trained_scenes
+
+    dm = SimpleNamespace(sets=[SimpleNamespace(name="rfid_s23")])
+    base = {"conference_v2": {"index": 1}, "conference_v1": {"index": 0}}
+    zs = Finetune("ck", "zero-shot", None, 0, "train_split", 160, 160, 0, None, 300, base)
+    assert trained_scenes(dm, zs) == ["conference_v1", "conference_v2"]
+    ft = Finetune("ck", "fine-tune", 0.2, 0, "measured", 32, 160, 50, None, 300, base)
+    assert trained_scenes(dm, ft) == ["rfid_s23"] and trained_scenes(dm, None) == ["rfid_s23"]

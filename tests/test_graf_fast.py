@@ -10,8 +10,8 @@ import time
 import pytest
 import torch
 
-from graf.models.graf.attention import CrossAttentionBlock, SelfAttentionBlock
 from graf.models.graf import inference
+from graf.models.graf.attention import CrossAttentionBlock, SelfAttentionBlock
 from graf.models.graf.inference import map_chunks, ray_transformer
 from graf.models.graf.kernels import blocks as fast_blocks
 from graf.models.graf.kernels import native

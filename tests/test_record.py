@@ -28,6 +28,7 @@ OPAQUE = {
     "changed",
     "base_scenes",
     "applied_overrides",
+    "prediction_sha256",
 }
 FAST = ("trainer.limit_test_batches=1",)
 

@@ -32,6 +32,7 @@ def test_a_study_multirun_trains_its_base_once_resumes_and_reports(small_room_ro
         "eval_scene=same",
         "neighbors.L=2,4",
         "study_steps=2",
+        "study_size=quick",
         "sim_num_tx=24",
         f"data_root={small_room_root}",
         f"hydra.sweep.dir={sweep}",
@@ -41,7 +42,7 @@ def test_a_study_multirun_trains_its_base_once_resumes_and_reports(small_room_ro
     jobs = {int(d.name.split("neighbors.L=")[1].split(",")[0]): d for d in sweep.iterdir() if "neighbors.L=" in d.name}
     assert sorted(jobs) == [2, 4]
     results = {L: json.loads((d / "results.json").read_text()) for L, d in jobs.items()}
-    base = sweep / "base" / "knn_dl_small_room"
+    base = sweep / "base" / "knn_dl_small_room_seed0"
     assert json.loads((base / "results.json").read_text())["global_step"] == 2
     for L, r in results.items():
         assert r["config"]["neighbors"]["L"] == L and r["finetune"]["mode"] == "zero-shot"
@@ -67,7 +68,7 @@ def test_a_study_multirun_trains_its_base_once_resumes_and_reports(small_room_ro
     assert again["metrics"]["test/psnr"] == pytest.approx(results[4]["metrics"]["test/psnr"], abs=1e-5)
 
     # the base model is not reused for other settings
-    p = _run([*cmd[:-4], "study_steps=3", *cmd[-3:]], tmp_path)
+    p = _run(["study_steps=3" if a == "study_steps=2" else a for a in cmd], tmp_path)
     assert "a base model trained with other settings is there" in p.stderr + p.stdout
 
 
@@ -115,6 +116,11 @@ def test_study_jobs_outside_the_design_are_skipped_with_the_reason(compose_cfg):
         "same_family_only: test scenes of family office, training scenes of conference"
     )
     assert reason("same_family_only=true", "scene=conference_v1", "eval_scene=[conference_v2]") is None
+    # NeRF2, a per-scene model, is trained with seed 0 only in the studies' three-seed sweeps
+    assert reason("experiment=cross_scene_matrix", "model=nerf2_study", "seed=1").startswith("single_seed:")
+    assert reason("experiment=cross_scene_matrix", "model=nerf2_study", "seed=0") is None
+    assert reason("experiment=cross_scene_matrix", "model=knn_dl", "seed=2") is None
+    assert reason("experiment=cross_scene_matrix", "study_size=quick", "model=nerf2_study", "seed=1") is None
     assert reason("same_family_only=false", "scene=conference_v1", "eval_scene=[office_v2]") is None
     # base.band=scene: for a simulated scene the same job as with the run's band; measured data keeps its band
     assert "the same job as the one with the run's band" in reason(

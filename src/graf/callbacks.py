@@ -14,22 +14,29 @@ from lightning.pytorch.callbacks import Callback
 
 from graf.geometry.grid import SPECTRUM_SHAPE
 
+PER_SPECTRUM = ("mse", "psnr", "ssim", "lpips")  # the test metrics kept per spectrum (arrays ``metric_<name>``)
+
 
 class PredictionCollector(Callback):
-    """Keeps the test predictions, targets and ids (float32 on CPU) for results files and figures."""
+    """Keeps the test predictions, targets and ids (float32 on CPU) for results files and figures, and each test
+    spectrum's metrics (``metric_mse``, ``metric_psnr``, ...: the values the test loop averaged)."""
 
     def __init__(self):
+        self.on_test_epoch_start(None, None)
+
+    def on_test_epoch_start(self, trainer, pl_module) -> None:
         self.pred: list[torch.Tensor] = []
         self.target: list[torch.Tensor] = []
         self.ids: list[torch.Tensor] = []
-
-    def on_test_epoch_start(self, trainer, pl_module) -> None:
-        self.pred, self.target, self.ids = [], [], []
+        self.values: dict[str, list[torch.Tensor]] = {k: [] for k in PER_SPECTRUM}
 
     def on_test_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0) -> None:
         self.pred.append(outputs["pred"].detach().float().cpu())
         self.target.append(batch["tgt_spectrum"].detach().float().cpu())
         self.ids.append(batch["tgt_id"].detach().cpu())
+        for k, v in (outputs.get("per_spectrum") or {}).items():
+            if k in self.values:
+                self.values[k].append(v.detach().double().cpu().reshape(-1))
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The test predictions, targets and ids in the split's order.  Under data-parallel evaluation each rank
@@ -46,6 +53,8 @@ class PredictionCollector(Callback):
         return self._local()
 
     def _local(self) -> dict[str, np.ndarray]:
+        n = sum(len(i) for i in self.ids)
+        values = {f"metric_{k}": torch.cat(v).numpy() for k, v in self.values.items() if v and sum(map(len, v)) == n}
         if not self.pred:
             return {
                 "pred": np.zeros((0, *SPECTRUM_SHAPE), np.float32),
@@ -56,6 +65,7 @@ class PredictionCollector(Callback):
             "pred": torch.cat(self.pred).numpy().astype(np.float32),
             "target": torch.cat(self.target).numpy().astype(np.float32),
             "ids": torch.cat(self.ids).numpy().astype(np.int64),
+            **values,
         }
 
 

@@ -69,6 +69,9 @@ class SpectrumDataModule(SceneRows, L.LightningDataModule):
     test_pool: where test neighbors come from: ``measured`` (the measured part: default) or
         ``train_split`` (the whole training split, measured or not).
     simulate_missing: a simulated scene whose dataset file is missing is ray-traced first (studies).
+    test_subset / test_subset_seed: test at most ``test_subset`` spectra of each scene's test split, a subset
+        drawn by ``test_subset_seed`` (independent of ``seed``: the same subset for every method, training seed
+        and neighbor count of a study); null: the whole test split.
     """
 
     def __init__(
@@ -88,8 +91,14 @@ class SpectrumDataModule(SceneRows, L.LightningDataModule):
         measured_seed: int = 0,
         test_pool: str = "measured",
         simulate_missing: bool = False,
+        test_subset: int | None = None,
+        test_subset_seed: int = 0,
     ):
         super().__init__()
+        if test_subset is not None and (isinstance(test_subset, bool) or int(test_subset) < 1):
+            raise ConfigError(f"data.test_subset must be a positive integer or null, got {test_subset!r}")
+        self.test_subset = None if test_subset is None else int(test_subset)
+        self.test_subset_seed = int(test_subset_seed)
         if test_pool not in TEST_POOLS:
             raise ConfigError(f"finetune.test_pool must be one of {TEST_POOLS}, got {test_pool!r}")
         if measured_fraction is not None and not 0.0 < float(measured_fraction) <= 1.0:

@@ -15,6 +15,7 @@ splits for results.json.  It reads the datamodule's settings (``scenes``, ``band
 from __future__ import annotations
 
 import logging
+import zlib
 from collections.abc import Sequence
 
 import numpy as np
@@ -41,6 +42,16 @@ def scene_geometry(d: SpectrumSet) -> tuple[torch.Tensor, torch.Tensor, torch.Te
     corners = torch.stack([torch.stack([b[i, 0], b[j, 1], b[m, 2]]) for i in (0, 1) for j in (0, 1) for m in (0, 1)])
     rot = torch.as_tensor(Rotation.from_quat(d.gateway_orientation).as_matrix())
     return p, rot, b, float((corners - p).norm(dim=1).max())
+
+
+def seeded_subset(test: np.ndarray, size: int | None, seed: int, scene: str) -> np.ndarray:
+    """At most ``size`` of a scene's test rows ``test``, drawn by ``seed`` alone (NumPy's PCG64 from ``[seed,
+    crc32(scene)]``: the same subset whatever else a run sets), in their original order; all of them for
+    ``size`` None or at least ``len(test)``."""
+    if size is None or size >= len(test):
+        return test
+    rng = np.random.default_rng([int(seed), zlib.crc32(scene.encode())])
+    return test[np.sort(rng.choice(len(test), size=int(size), replace=False))]
 
 
 def merge_neighbors(parts: list[tuple[torch.Tensor, Neighbors]], T: int, dtype: torch.dtype) -> Neighbors:
@@ -115,7 +126,7 @@ class SceneRows:
             band.name,
             band.wavelength,
         )
-        test = np.asarray(d.test_idx, np.int64) + offset
+        test = seeded_subset(np.asarray(d.test_idx, np.int64), self.test_subset, self.test_subset_seed, d.name) + offset
         return {"train": train, "measured": measured, "fit": fit, "val": val, "test": test}
 
     # ------------------------------------------------------------------ neighbors
@@ -246,6 +257,9 @@ class SceneRows:
             "val_fraction": self.val_fraction,
             "val_seed": self.val_seed,
             "val_ids": [int(i) for i in self.ids[self.val_rows]],
+            "test_subset": self.test_subset,
+            "test_subset_seed": self.test_subset_seed,
+            "test_ids": [int(i) for i in self.ids[self.test_rows]],
             "measured_fraction": self.measured_fraction,
             "measured_seed": self.measured_seed,
             "n_measured": int(len(self.measured_rows)),

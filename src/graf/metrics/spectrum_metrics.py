@@ -57,6 +57,7 @@ class _SpectrumMean(Metric):
         """Add a batch of spectra ``[N, H, W]`` or ``[N, 1, H, W]`` with values in [0, 1]."""
         _check_spectra(type(self).__name__, pred, target)
         values = self._per_sample(pred, target)
+        self.last_values = values.detach()  # the batch's per-spectrum values (per-spectrum records)
         # out-of-place: works whether states/inputs were created inside or outside inference_mode
         self.total = self.total + values.to(device=self.total.device, dtype=self.total.dtype).sum()
         self.count = self.count + values.numel()

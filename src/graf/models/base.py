@@ -24,6 +24,7 @@ import torch
 from graf.data.fingerprint import register_scene
 from graf.errors import UserError
 from graf.metrics import spectrum_metrics
+from graf.models.schedule import exponential_record, run_steps, schedule_length
 
 
 class CheckpointError(UserError):
@@ -66,11 +67,14 @@ def check_checkpoint(ckpt: dict, cls: type, path) -> None:
         )
 
 
-def adam_exponential_decay(module, lr: float, lr_decay: float, decay_steps: int) -> dict:
-    """Adam with the learning rate multiplied by ``lr_decay`` over ``decay_steps`` optimiser steps
-    (exponential, stepped every step): the optimiser of GRaF and KNN-DL, in Lightning's return format."""
+def adam_exponential_decay(module, lr: float, lr_decay: float, decay_steps: int | None) -> dict:
+    """Adam with the learning rate multiplied by ``lr_decay`` over ``decay_steps`` optimiser steps (exponential,
+    stepped every step; None: over the run's ``max_steps``, :mod:`graf.models.schedule`): the optimiser of GRaF
+    and KNN-DL, in Lightning's return format.  What ran is kept in ``module.schedule_record``."""
+    length = schedule_length(module, decay_steps, "decay_steps")
+    module.schedule_record = exponential_record(lr, lr_decay, length, run_steps(module))
     opt = torch.optim.Adam(module.parameters(), lr=lr)
-    sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=lr_decay ** (1.0 / max(1, decay_steps)))
+    sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=lr_decay ** (1.0 / length))
     return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step", "frequency": 1}}
 
 
@@ -145,7 +149,8 @@ class SpectrumModule(L.LightningModule):
         target = batch["tgt_spectrum"].float()
         metrics.update(pred, target)
         self.log_dict(metrics, on_step=False, on_epoch=True, batch_size=pred.shape[0])
-        return {"pred": pred.detach(), "ids": batch["tgt_id"].detach()}
+        per_spectrum = {name.split("/")[-1]: m.last_values for name, m in metrics.items()}  # [B] each
+        return {"pred": pred.detach(), "ids": batch["tgt_id"].detach(), "per_spectrum": per_spectrum}
 
     def validation_step(self, batch: dict, batch_idx: int) -> dict:
         return self._eval_step(batch, self.val_metrics)

@@ -221,6 +221,9 @@ class RunRecord(Record):
     finetune: Finetune | None = optional()
     scene_table: dict | None = optional()
     regime: str | None = optional()
+    per_spectrum: str | None = optional()  # per_spectrum.csv.gz (graf.run.per_spectrum)
+    prediction_sha256: dict | None = optional()  # {test scene: {method: sha256 of its predictions}}
+    schedule: dict | None = optional()  # the learning-rate schedule that ran (graf.models.schedule)
 
     @classmethod
     def read(cls, path: Path) -> RunRecord:

@@ -218,11 +218,12 @@ def finished_result(out: Path) -> dict | None:
 
 
 def skip_reason(cfg: DictConfig) -> str | None:
-    """Why a study job is not run (None: it is).  ``same_family_only``: a job whose test scenes are of no
-    training scene's layout family (conference_v1 -> office_v2).  ``finetune.base.band=scene`` (start from a model
-    trained at
-    the new scene's own band) differs from the run's band only for a scene with a fixed band (measured data:
-    rfid_s23 at 915 MHz); for a simulated scene it would repeat the job with the run's band."""
+    """Why a study job is not run (None: it is).  ``single_seed``: a job of a model trained with one seed only
+    (``single_seed.targets``: NeRF2 in the studies) at another seed.  ``same_family_only``: a job whose test
+    scenes are of no training scene's layout family (conference_v1 -> office_v2).  ``finetune.base.band=scene``
+    (start from a model trained at the new scene's own band) differs from the run's band only for a scene with a
+    fixed band (measured data: rfid_s23 at 915 MHz); for a simulated scene it would repeat the job with the run's
+    band."""
     if cfg.get("same_family_only"):
         train = {family(str(c.get("name"))) for c in scene_configs(cfg.get("scene"))}
         test = {family(str(c.get("name"))) for c in scene_configs(cfg.get("eval_scene"))}
@@ -231,6 +232,10 @@ def skip_reason(cfg: DictConfig) -> str | None:
                 f"same_family_only: test scenes of family {', '.join(sorted(test))}, training scenes of "
                 f"{', '.join(sorted(train))}"
             )
+    one = cfg.get("single_seed") or {}
+    target = str((cfg.get("model") or {}).get("_target_"))
+    if one and target in set(one.get("targets") or []) and int(cfg.get("seed") or 0) != int(one.get("seed", 0)):
+        return f"single_seed: {target} is trained with seed {one.get('seed', 0)} only (a per-scene model)"
     base = (cfg.get("finetune") or {}).get("base") or {}
     if base.get("band") != "scene":
         return None

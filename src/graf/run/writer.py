@@ -24,6 +24,12 @@ from graf.io import atomic_write_json, atomic_write_npz, is_rank_zero
 from graf.plotting import plot_spectra_grid
 from graf.run.build import BuiltRun
 from graf.run.evaluation import SceneTest, evaluate_scenes, ray_sampling, run_device
+from graf.run.per_spectrum import (
+    PER_SPECTRUM_FILE,
+    evaluation_rows,
+    predictions_sha256,
+    write_per_spectrum,
+)
 from graf.run.record import RunFacts, RunRecord, RunResult, SceneEvaluation, Versions
 
 log = logging.getLogger("graf")
@@ -32,7 +38,7 @@ RESULTS_FILE = "results.json"
 PREDICTIONS_FILE = "predictions.npz"
 FIGURE_FILE = "spectra.png"
 # a finished run's files in its output folder (beside Hydra's .hydra/, the log and the loggers' folders)
-RUN_FILES = (RESULTS_FILE, PREDICTIONS_FILE, FIGURE_FILE, "samples", "preempted.json", "checkpoints")
+RUN_FILES = (RESULTS_FILE, PREDICTIONS_FILE, PER_SPECTRUM_FILE, FIGURE_FILE, "samples", "preempted.json", "checkpoints")
 # the name a replaced run's results.json keeps in its folder: tools that collect results.json under a folder
 # (graf-table, graf-report) must not count the replaced run beside the one that replaced it
 REPLACED_RESULTS = "results.replaced.json"
@@ -60,7 +66,7 @@ def run_record(cfg: DictConfig, built: BuiltRun, scenes: list[SceneTest], facts:
     return RunRecord(
         method=method,
         scene=dm.scene_name,
-        train_scenes=[d.name for d in train_dm.sets],
+        train_scenes=trained_scenes(train_dm, facts.finetune),
         eval_scene=first.scene.eval_scene,
         within_scene=bool(first.scene.within_scene),
         band_hz=float(dm.bands[0].frequency_hz),
@@ -91,7 +97,35 @@ def run_record(cfg: DictConfig, built: BuiltRun, scenes: list[SceneTest], facts:
         finetune=facts.finetune,
         scene_table=built.scene_table or None,
         regime=str(cfg.regime) if cfg.get("regime") else None,
+        per_spectrum=PER_SPECTRUM_FILE if per_spectrum_rows(method, scenes) else None,
+        schedule=getattr(model, "schedule_record", None),
+        prediction_sha256={
+            s.scene.eval_scene: {
+                method: predictions_sha256(s.model.arrays),
+                **{b.method: predictions_sha256(b.arrays) for b in s.baselines},
+            }
+            for s in scenes
+        },
     )
+
+
+def per_spectrum_rows(method: str, scenes: list[SceneTest]) -> list[dict]:
+    """Every test spectrum's metrics of the model and its baselines on every test scene."""
+    rows = []
+    for s in scenes:
+        rows += evaluation_rows(s.scene.eval_scene, method, s.model.arrays)
+        for b in s.baselines:
+            rows += evaluation_rows(s.scene.eval_scene, b.method, b.arrays)
+    return rows
+
+
+def trained_scenes(train_dm, finetune) -> list[str]:
+    """The scenes the run trained on: a zero-shot test trains nothing, so its model's are its checkpoint's
+    (``finetune.base_scenes``, in scene-index order), not the scene it is tested on."""
+    base = (finetune.base_scenes if finetune and finetune.mode == "zero-shot" else None) or {}
+    if base:
+        return sorted(base, key=lambda n: (base[n] or {}).get("index", 0))
+    return [d.name for d in train_dm.sets]
 
 
 def is_transfer(built: BuiltRun, scenes: list[SceneTest]) -> bool:
@@ -123,7 +157,9 @@ def write_run(cfg: DictConfig, built: BuiltRun, record: RunRecord, scenes: list[
     results.json (atomically, last: a folder with results.json holds a finished run)."""
     out, first = built.output_dir, scenes[0]
     if record.predictions:
-        atomic_write_npz(out / record.predictions, **first.model.arrays)
+        atomic_write_npz(out / record.predictions, **{k: first.model.arrays[k] for k in ("pred", "target", "ids")})
+    if record.per_spectrum:
+        write_per_spectrum(out / record.per_spectrum, per_spectrum_rows(record.method, scenes))
     if record.figure:
         a = first.model.arrays
         title = f"{record.method} on {record.scene}"

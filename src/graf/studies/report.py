@@ -35,6 +35,7 @@ from omegaconf import DictConfig, OmegaConf
 from graf.io import atomic_write_bytes, atomic_write_json
 from graf.run.config import task_wrapper
 from graf.studies.report_figures import band_figure, curve_figure, matrix_figures, spectra_grids
+from graf.studies.report_intervals import write_intervals
 from graf.studies.report_rows import (
     AXES,
     METRICS,
@@ -150,6 +151,9 @@ def make_report(runs: Path, out: Path, reference: dict) -> dict:
         summary["matrix"] = m["matrices"]
         summary["figures"] += m["figures"]
     summary["figures"] += spectra_grids(rows, runs, out, axes, reference)
+    intervals = write_intervals(runs, out)
+    if intervals is not None:
+        summary["intervals"] = "intervals.md"
     atomic_write_json(out / "rows.json", {"rows": rows})
     atomic_write_json(out / "report.json", summary)
     return summary

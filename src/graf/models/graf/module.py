@@ -93,7 +93,7 @@ class GRaFModule(SpectrumModule):
         max_samples: cap on the voxels per ray (S = min(max_samples, ceil(ray_length / wavelength))).
         rays_per_step: rays per training step, split evenly across the batch's targets.
         chunk_rays: rays per forward chunk at inference (bounds memory).
-        lr / lr_decay / decay_steps: Adam; the lr is multiplied by lr_decay over decay_steps steps.
+        lr / lr_decay / decay_steps: Adam; the lr is multiplied by lr_decay over decay_steps steps (null: the run's).
         residual / weighting: predict |KNN(weighting) + re + j im| instead of |re + j im| (pooled and ray).
         loss: ``mse`` (the seed's per-ray L2) or ``log_mse`` (the mean over the batch's targets of
             log(MSE of the target's rays + 1e-6): the training counterpart of the mean per-spectrum PSNR, so
@@ -125,7 +125,7 @@ class GRaFModule(SpectrumModule):
         chunk_rays: int = 4096,
         lr: float = 5e-4,
         lr_decay: float = 0.1,
-        decay_steps: int = 300_000,
+        decay_steps: int | None = None,
         residual: bool = False,
         weighting: str = "idw",
         use_scene_index: bool = False,
@@ -147,7 +147,8 @@ class GRaFModule(SpectrumModule):
         check_settings(self.hparams)
         self.d_model, self.max_samples = int(d_model), int(max_samples)
         self.rays_per_step, self.chunk_rays = int(rays_per_step), int(chunk_rays)
-        self.lr, self.lr_decay, self.decay_steps = float(lr), float(lr_decay), int(decay_steps)
+        self.lr, self.lr_decay = float(lr), float(lr_decay)
+        self.decay_steps = None if decay_steps is None else int(decay_steps)
         self.residual, self.use_scene_index = bool(residual), bool(use_scene_index)
         self.loss_name, self.length_unit = loss, float(length_unit)
         self.sample_spacing, self.ray_window = float(voxel_wavelengths), int(ray_window)

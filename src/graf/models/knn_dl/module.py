@@ -66,7 +66,7 @@ class KNNDLModule(SpectrumModule):
         (:func:`graf.run.build.run_model_config`); constructed directly, give a number (default 10).
     signed_scale: bound of the signed, zero-sum weight correction (0: convex weights only).
     idw_power: the IDW bias is log(1 / d^idw_power).
-    lr / lr_decay / decay_steps: Adam; the lr is multiplied by lr_decay over decay_steps steps.
+    lr / lr_decay / decay_steps: Adam; the lr is multiplied by lr_decay over decay_steps steps (null: the run's).
     """
 
     def __init__(
@@ -81,7 +81,7 @@ class KNNDLModule(SpectrumModule):
         idw_power: float = 1.0,
         lr: float = 1e-3,
         lr_decay: float = 0.1,
-        decay_steps: int = 10_000,
+        decay_steps: int | None = None,
     ):
         super().__init__()
         if max_rank is None:
@@ -96,7 +96,7 @@ class KNNDLModule(SpectrumModule):
             ("hidden", hidden),
             ("decoder_hidden", decoder_hidden),
             ("max_rank", max_rank),
-            ("decay_steps", decay_steps),
+            ("decay_steps", 1 if decay_steps is None else decay_steps),
         ):
             if int(value) < 1:
                 raise ValueError(f"model.{key} must be >= 1, got {value}")
@@ -110,7 +110,8 @@ class KNNDLModule(SpectrumModule):
             raise ValueError(f"model.{bad} out of range (idw_power > 0, lr > 0, 0 < lr_decay <= 1)")
         self.save_hyperparameters()
         self.signed_scale, self.idw_power = float(signed_scale), float(idw_power)
-        self.lr, self.lr_decay, self.decay_steps = float(lr), float(lr_decay), int(decay_steps)
+        self.lr, self.lr_decay = float(lr), float(lr_decay)
+        self.decay_steps = None if decay_steps is None else int(decay_steps)
         self.net = WeightNet(map_size, int(hidden), int(decoder_hidden), int(pe_freqs), int(dir_freqs), int(max_rank))
 
     @property

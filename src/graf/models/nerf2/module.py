@@ -26,7 +26,8 @@ Choices (where this module is not NeRF2's code verbatim):
   bounded; geometry, encodings and rendering stay fp32 under autocast, the MLPs follow autocast.
 
 Optimiser as NeRF2: Adam (``lr``, ``weight_decay``) and a cosine schedule (``t_max``, ``eta_min``) stepped
-every optimiser step; like NeRF2's ``CosineAnnealingLR`` it rises again after ``t_max`` steps.  NeRF2 is
+every optimiser step (``t_max`` null: the run's ``max_steps``, :mod:`graf.models.schedule`); like NeRF2's
+``CosineAnnealingLR`` it rises again after ``t_max`` steps.  NeRF2 is
 per-scene: for another scene it is fine-tuned from weights trained elsewhere
 (``NeRF2Module.load_from_checkpoint``, which restores the sizes too; ``ray_dirs`` is rebuilt, not stored).
 """
@@ -43,6 +44,7 @@ from graf.geometry.rays import fp32, num_samples, random_pixels, render_spectra,
 from graf.models.base import SpectrumModule
 from graf.models.nerf2.network import NeRF2Network
 from graf.models.nerf2.renderer import render_rays, sample_distances
+from graf.models.schedule import cosine_record, run_steps, schedule_length
 
 
 class NeRF2Module(SpectrumModule):
@@ -73,7 +75,7 @@ class NeRF2Module(SpectrumModule):
         chunk_rays: int = 4096,
         lr: float = 8e-4,
         weight_decay: float = 5e-5,
-        t_max: int = 10_000,
+        t_max: int | None = None,
         eta_min: float = 1e-6,
     ):
         super().__init__()
@@ -84,7 +86,7 @@ class NeRF2Module(SpectrumModule):
             "rays_per_step": rays_per_step,
             "chunk_rays": chunk_rays,
             "lr": lr,
-            "t_max": t_max,
+            "t_max": 1 if t_max is None else t_max,
         }
         for key, value in positive.items():
             if not value > 0:
@@ -98,7 +100,7 @@ class NeRF2Module(SpectrumModule):
         self.near, self.max_samples, self.sample_spacing = float(near), int(max_samples), float(sample_spacing)
         self.path_loss, self.rays_per_step, self.chunk_rays = float(path_loss), int(rays_per_step), int(chunk_rays)
         self.lr, self.weight_decay = float(lr), float(weight_decay)
-        self.t_max, self.eta_min = int(t_max), float(eta_min)
+        self.t_max, self.eta_min = (None if t_max is None else int(t_max)), float(eta_min)
         self.network = NeRF2Network(depth, width, skips, pe_freqs)
         self.register_buffer("ray_dirs", local_directions(dtype=torch.float32), persistent=False)
 
@@ -153,5 +155,7 @@ class NeRF2Module(SpectrumModule):
 
     def configure_optimizers(self):
         opt = torch.optim.Adam(self.parameters(), lr=self.lr, weight_decay=self.weight_decay)
-        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=self.t_max, eta_min=self.eta_min)
+        length = schedule_length(self, self.t_max, "t_max")
+        self.schedule_record = cosine_record(self.lr, self.eta_min, length, run_steps(self))
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=length, eta_min=self.eta_min)
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step", "frequency": 1}}

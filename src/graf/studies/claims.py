@@ -1,0 +1,228 @@
+"""graf-claims: the ledger of the paper's quantitative claims against the platform's records.
+
+Each claim of ``conf/claims.yaml`` names what the paper's supplement says, the platform record that answers it and
+how (``kind``):
+
+- ``paired``: rows of a study's ``intervals.json`` (:mod:`graf.studies.report_intervals`) selected by their cell
+  settings; the paper says ``method`` is ahead of ``reference`` on ``metric``.  Holds when every selected cell's
+  interval says ahead, refuted when one says behind, not reproduced when an interval includes 0.
+- ``value``: one figure of a JSON record (``key``: a dotted path, ``/`` kept inside names) against the paper's
+  ``paper_value``; holds when it reaches it in the better direction (``higher_is_better``), else not reproduced.
+- ``difference``: two figures of a record (``key`` minus ``minus``) against the paper's difference, the same rule.
+- ``change``: a change with L of the neighbor-count study (``intervals.json`` ``L_changes``: ``method``,
+  ``L_from``, ``L_to``, ``metric``).  With ``tolerance``: holds when the whole interval lies within it (a plateau);
+  else holds when the interval excludes 0 on the paper's side (the sign of ``paper_value``), refuted when it
+  excludes 0 on the other, not reproduced when it includes 0.
+- ``note``: a claim the platform cannot check on its own terms (another GPU, another unit): not comparable, with
+  the platform's figure where it has one.
+
+Every claim may require the paper's density (``paper_density: true``): a record made on scenes cut below it (its
+``sim_num_tx``, or ``config.sim_num_tx``, set) makes the verdict "not comparable" with the count.  A claim whose
+record is missing is "not reproduced (no record)".  The ledger is ``claims.csv``, ``claims.md`` (the docs page
+includes it) and ``results.json`` in ``out``; its inputs are the records alone, so it is rebuilt from them.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from graf.errors import ConfigError
+from graf.io import atomic_write_bytes, atomic_write_json
+from graf.run.config import task_wrapper
+
+log = logging.getLogger("graf")
+
+VERDICTS = ("holds", "refuted", "not reproduced", "not comparable")
+COLUMNS = ("id", "source", "claim", "paper", "platform", "interval", "verdict", "reason", "record", "command")
+
+
+def lookup(record: dict, key: str):
+    """``record`` at the dotted ``key`` (a part may hold ``/``: ``metrics.test/psnr``); KeyError naming the part."""
+    node = record
+    for part in key.split("."):
+        if isinstance(node, list):
+            node = node[int(part)]
+        elif isinstance(node, dict) and part in node:
+            node = node[part]
+        else:
+            raise KeyError(part)
+    return node
+
+
+def _density_reason(record: dict) -> str | None:
+    """Why a record is not at the paper's density (its scenes cut to ``sim_num_tx`` positions), or None."""
+    n = record["sim_num_tx"] if "sim_num_tx" in record else (record.get("config") or {}).get("sim_num_tx")
+    counts = [c for c in (n if isinstance(n, list) else [n]) if c is not None]
+    if not counts:
+        return None
+    return f"made on {', '.join(map(str, counts))} positions per simulated layout (the paper: about 5,400)"
+
+
+def _load(root: Path, rel: str) -> dict | None:
+    path = root / rel
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"{path}: not readable JSON ({exc})") from None
+
+
+def _match(row: dict, cell: dict) -> bool:
+    for k, want in cell.items():
+        have = row.get(k)
+        if isinstance(want, list):
+            if str(have) not in {str(w) for w in want}:
+                return False
+        elif str(have) != str(want):
+            return False
+    return True
+
+
+def judge_paired(claim: dict, data: dict) -> dict:
+    rows = [
+        r for r in data.get("rows", []) if r.get("method") == claim["method"] and r.get("metric") == claim["metric"]
+    ]
+    rows = [r for r in rows if _match(r, claim.get("cell") or {})]
+    comps = [(r, r.get(f"vs_{claim['reference']}")) for r in rows]
+    comps = [(r, c) for r, c in comps if c]
+    if not comps:
+        return {"verdict": "not reproduced", "reason": "no such comparison in the record"}
+    parts = [f"{r['eval_scene']}: {c['diff']:+.2f}" for r, c in comps]
+    intervals = [f"{r['eval_scene']}: [{c['low']:+.2f}, {c['high']:+.2f}]" for r, c in comps]
+    verdicts = [c["verdict"] for _, c in comps]
+    if all(v == "ahead" for v in verdicts):
+        verdict, reason = "holds", f"ahead in all {len(verdicts)} cells (interval excludes 0)"
+    elif any(v == "behind" for v in verdicts):
+        verdict, reason = "refuted", f"behind in {sum(v == 'behind' for v in verdicts)} of {len(verdicts)} cells"
+    else:
+        n_level = sum(v.startswith("level") for v in verdicts)
+        verdict, reason = "not reproduced", f"interval includes 0 in {n_level} of {len(verdicts)} cells"
+    return {"platform": "; ".join(parts), "interval": "; ".join(intervals), "verdict": verdict, "reason": reason}
+
+
+def judge_change(claim: dict, data: dict) -> dict:
+    want = {k: claim[k] for k in ("method", "L_from", "L_to", "metric")}
+    found = [c for c in data.get("L_changes", []) if all(str(c.get(k)) == str(v) for k, v in want.items())]
+    if not found:
+        return {"verdict": "not reproduced", "reason": f"no L change {want} in the record"}
+    c = found[0]
+    out = {"platform": f"{c['diff']:+.2f}", "interval": f"[{c['low']:+.2f}, {c['high']:+.2f}]"}
+    if claim.get("tolerance") is not None:
+        tol = float(claim["tolerance"])
+        inside = -tol <= c["low"] and c["high"] <= tol
+        out.update(
+            verdict="holds" if inside else "not reproduced",
+            reason=f"the interval {'lies' if inside else 'does not lie'} within +-{tol:g}",
+        )
+        return out
+    sign = 1.0 if float(claim["paper_value"]) >= 0 else -1.0
+    if sign * c["low"] > 0 or sign * c["high"] < 0:
+        same = sign * c["diff"] > 0
+        out.update(
+            verdict="holds" if same else "refuted",
+            reason=f"the interval excludes 0 ({'the paper' if same else 'against the paper'}'s direction)",
+        )
+    else:
+        out.update(verdict="not reproduced", reason="the interval includes 0")
+    return out
+
+
+def _reaches(value: float, paper: float, higher: bool) -> bool:
+    return value >= paper if higher else value <= paper
+
+
+def judge_value(claim: dict, data: dict) -> dict:
+    try:
+        value = float(lookup(data, claim["key"]))
+        if claim.get("minus"):
+            value -= float(lookup(data, claim["minus"]))
+    except (KeyError, IndexError, TypeError, ValueError) as exc:
+        return {"verdict": "not reproduced", "reason": f"the record has no {claim['key']} ({exc})"}
+    paper, higher = float(claim["paper_value"]), bool(claim.get("higher_is_better", True))
+    fmt = claim.get("format", ".2f")
+    out = {"platform": format(value, fmt)}
+    if _reaches(value, paper, higher):
+        out.update(verdict="holds", reason=f"{format(value, fmt)} reaches the paper's {format(paper, fmt)}")
+    else:
+        out.update(verdict="not reproduced", reason=f"{format(value, fmt)} against the paper's {format(paper, fmt)}")
+    return out
+
+
+def judge(claim: dict, root: Path) -> dict:
+    """One ledger row of ``claim`` from the records under ``root``."""
+    row = {c: "" for c in COLUMNS}
+    row.update({k: str(claim.get(k, "")) for k in ("id", "source", "claim", "paper", "record", "command")})
+    kind = claim.get("kind")
+    if kind == "note":
+        row.update(platform=str(claim.get("platform", "")), verdict="not comparable", reason=str(claim["reason"]))
+        return row
+    judges = {"paired": judge_paired, "value": judge_value, "difference": judge_value, "change": judge_change}
+    if kind not in judges:
+        raise ConfigError(f"claim {claim.get('id')!r}: kind must be one of {[*judges, 'note']}, got {kind!r}")
+    data = _load(root, claim["record"])
+    if data is None:
+        row.update(verdict="not reproduced", reason=f"no record yet: {claim['record']}")
+        return row
+    if claim.get("paper_density"):
+        why = _density_reason(data)
+        if why:
+            judged = judges[kind](claim, data)
+            row.update(platform=judged.get("platform", ""), interval=judged.get("interval", ""))
+            row.update(verdict="not comparable", reason=why)
+            return row
+    judged = judges[kind](claim, data)
+    row.update({k: v for k, v in judged.items() if k in COLUMNS})
+    if claim.get("reason"):
+        row["reason"] = f"{row['reason']}; {claim['reason']}" if row["reason"] else str(claim["reason"])
+    return row
+
+
+def ledger(claims: list[dict], root: Path) -> list[dict]:
+    ids = [c.get("id") for c in claims]
+    dup = sorted({i for i in ids if ids.count(i) > 1})
+    if dup:
+        raise ConfigError(f"claims: ids used twice: {dup}")
+    return [judge(c, root) for c in claims]
+
+
+def to_markdown(rows: list[dict]) -> str:
+    cols = ("source", "claim", "paper", "platform", "interval", "verdict", "reason", "command")
+    esc = lambda s: str(s).replace("|", "\\|").replace("\n", " ")  # noqa: E731
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for r in rows:
+        cells = [esc(r[c]) if c != "command" or not r[c] else f"`{esc(r[c])}`" for c in cols]
+        cells[cols.index("verdict")] = f"**{cells[cols.index('verdict')]}**"
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_ledger(rows: list[dict], out: Path) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    text = io.StringIO()
+    w = csv.DictWriter(text, fieldnames=COLUMNS, lineterminator="\n")
+    w.writeheader()
+    w.writerows(rows)
+    atomic_write_bytes(out / "claims.csv", text.getvalue().encode())
+    atomic_write_bytes(out / "claims.md", to_markdown(rows).encode())
+    counts = {v: sum(r["verdict"] == v for r in rows) for v in VERDICTS}
+    atomic_write_json(out / "results.json", {"task": "claims", "counts": counts, "rows": rows})
+
+
+@task_wrapper
+def claims(cfg: DictConfig) -> dict:
+    """graf-claims: the ledger of ``cfg.claims`` from the records under ``cfg.records``, written into ``cfg.out``."""
+    root = Path(str(cfg.records))
+    rows = ledger(OmegaConf.to_container(cfg.claims, resolve=True), root)
+    out = Path(str(cfg.out))
+    write_ledger(rows, out)
+    for r in rows:
+        log.info("%-28s %-15s %s", r["id"], r["verdict"], r["platform"])
+    log.info("ledger: %s", out / "claims.csv")
+    return {"counts": {v: sum(r["verdict"] == v for r in rows) for v in VERDICTS}}

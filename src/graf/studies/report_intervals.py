@@ -1,0 +1,172 @@
+"""graf-report's paired comparisons: every cell of a study whose jobs wrote per-spectrum records
+(``per_spectrum.csv.gz``), each trained method against KNN and against KNN-DL on the same test spectra, with the
+interval and verdict of :mod:`graf.studies.intervals`.  Writes ``intervals.json``, ``intervals.csv`` and
+``intervals.md`` (PSNR; the JSON has every metric).
+
+A *cell* is a test scene under one setting of the study's other axes (trained on, bands, fine-tuning, L).  A
+trained method's seeds are its jobs in the cell (``config.seed``); KNN is the baseline tested beside them (the
+same in every seed's job: nothing is trained, checked); KNN-DL is the ``knn-dl`` jobs of the same cell.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from collections import defaultdict
+from pathlib import Path
+
+from graf.io import atomic_write_bytes, atomic_write_json
+from graf.run.per_spectrum import read_per_spectrum
+from graf.studies.intervals import HIGHER_IS_BETTER, paired_difference, summary
+from graf.studies.report_rows import _job_settings, result_files
+from graf.studies.table import read_run_result
+
+CELL = ("trained_on", "train_band", "finetune", "L", "eval_scene")
+REFERENCES = ("knn", "knn-dl")
+METRICS = tuple(HIGHER_IS_BETTER)
+
+
+def collect_spectra(runs: Path) -> tuple[dict, list]:
+    """``{cell key: {method: {seed: {metric: {id: value}}}}}`` of every job under ``runs`` with per-spectrum
+    records (baselines keyed under the cell of the job that tested them, seed ``None``), and the jobs'
+    ``sim_num_tx`` values (None: the catalog's full datasets)."""
+    out: dict = defaultdict(lambda: defaultdict(dict))
+    densities: set = set()
+    for f in result_files(runs):
+        result = read_run_result(f)
+        if result is None or not result.get("per_spectrum"):
+            continue
+        settings = _job_settings(result, str(f.parent))
+        seed = (result.get("config") or {}).get("seed")
+        densities.add((result.get("config") or {}).get("sim_num_tx"))
+        trained = result.get("method")
+        by_eval: dict = defaultdict(lambda: {m: {} for m in METRICS})
+        for row in read_per_spectrum(f.parent / result["per_spectrum"]):
+            for m in METRICS:
+                by_eval[(row["eval_scene"], row["method"])][m][row["id"]] = row[m]
+        for (eval_scene, method), values in by_eval.items():
+            key = tuple(str(settings.get(c)) if c != "eval_scene" else eval_scene for c in CELL)
+            runs_of = out[key][method]
+            if method != trained:  # a baseline: the same in every job of the cell (nothing trained)
+                if None in runs_of and runs_of[None] != values:
+                    raise ValueError(f"{f}: {method} on {eval_scene} differs from its run in another job of the cell")
+                runs_of[None] = values
+            else:
+                runs_of[seed] = values
+    return out, sorted(densities, key=str)
+
+
+def comparisons(cells: dict, metrics: tuple[str, ...] = METRICS) -> list[dict]:
+    """One row per (cell, trained method, metric): its summary and its paired differences to the references."""
+    rows = []
+    for key, methods in sorted(cells.items()):
+        cell = dict(zip(CELL, key))
+        for method, seeds in sorted(methods.items()):
+            if method == "knn":
+                continue
+            for m in metrics:
+                runs = [seeds[s][m] for s in sorted(seeds, key=str)]
+                row = {**cell, "method": method, "metric": m, **summary(runs)}
+                for ref in REFERENCES:
+                    if ref == method or ref not in methods:
+                        continue
+                    ref_runs = [methods[ref][s][m] for s in sorted(methods[ref], key=str)]
+                    row[f"vs_{ref}"] = paired_difference(runs, ref_runs, m)
+                rows.append(row)
+    return rows
+
+
+def l_changes(cells: dict, base_l: int = 2, metrics: tuple[str, ...] = METRICS) -> list[dict]:
+    """The neighbor-count study's question: each trained method's change from ``L = base_l`` to every other L,
+    pooled over the cells' (trained on, test scene) pairs (the paper averages its four same-family pairs),
+    paired by (pair, spectrum id), with the interval of :func:`paired_difference`."""
+    pools: dict = defaultdict(lambda: defaultdict(lambda: defaultdict(dict)))  # (method, band, ft) -> L -> seed
+    for key, methods in cells.items():
+        cell = dict(zip(CELL, key))
+        for method, seeds in methods.items():
+            if method == "knn" or cell["L"] in ("None", ""):
+                continue
+            group = pools[(method, cell["train_band"], cell["finetune"])]
+            for seed, values in seeds.items():
+                run = group[int(cell["L"])].setdefault(seed, {m: {} for m in metrics})
+                for m in metrics:
+                    run[m].update({(cell["trained_on"], cell["eval_scene"], i): v for i, v in values[m].items()})
+    rows = []
+    for (method, band, ft), by_l in sorted(pools.items()):
+        if base_l not in by_l:
+            continue
+        for L in sorted(by_l):
+            if L == base_l:
+                continue
+            for m in metrics:
+                runs = [by_l[L][s][m] for s in sorted(by_l[L], key=str)]
+                base = [by_l[base_l][s][m] for s in sorted(by_l[base_l], key=str)]
+                c = paired_difference(runs, base, m)
+                rows.append(
+                    {
+                        "method": method,
+                        "train_band": band,
+                        "finetune": ft,
+                        "L_from": base_l,
+                        "L_to": L,
+                        "metric": m,
+                        **c,
+                    }
+                )
+    return rows
+
+
+def _interval(c: dict | None) -> str:
+    if not c:
+        return "-"
+    return f"{c['diff']:+.2f} [{c['low']:+.2f}, {c['high']:+.2f}] {c['verdict'].split(' ')[0]}"
+
+
+def write_intervals(runs: Path, out: Path) -> list[dict] | None:
+    """intervals.json / .csv / .md of the study under ``runs`` into ``out``; None when no job wrote per-spectrum
+    records."""
+    cells, densities = collect_spectra(runs)
+    if not cells:
+        return None
+    rows = comparisons(cells)
+    record = {"rows": rows, "confidence": 0.95, "rule": "graf.studies.intervals", "sim_num_tx": densities}
+    record["L_changes"] = l_changes(cells, 2) + l_changes(cells, 4)  # from L = 2 (Table 5's drop), from 4 (plateau)
+    atomic_write_json(out / "intervals.json", record)
+    head = [*CELL, "method", "seeds", "spectra", "mean", "median", "seed spread", "- KNN", "- KNN-DL"]
+    body = [
+        [
+            *(r[c] for c in CELL),
+            r["method"],
+            r["n_seeds"],
+            r["n_spectra"],
+            f"{r['mean']:.2f}",
+            f"{r['median']:.2f}",
+            f"{r['seed_spread']:.2f}",
+            _interval(r.get("vs_knn")),
+            _interval(r.get("vs_knn-dl")),
+        ]
+        for r in rows
+        if r["metric"] == "psnr"
+    ]
+    text = io.StringIO()
+    csv.writer(text, lineterminator="\n").writerows([head, *body])
+    atomic_write_bytes(out / "intervals.csv", text.getvalue().encode())
+    md = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)] + [
+        "| " + " | ".join(map(str, b)) + " |" for b in body
+    ]
+    note = (
+        "PSNR (dB) per cell: mean and median over the test spectra (seed-averaged), the range of the seeds' means, "
+        "and each difference to KNN and to KNN-DL with its 95% interval (paired bootstrap over spectra, widened to "
+        "include every seed's difference) and verdict (graf.studies.intervals)."
+    )
+    changes = [c for c in record["L_changes"] if c["metric"] == "psnr" and c["L_from"] == 2]
+    if changes:
+        md += ["", "PSNR change from L = 2, pooled over the trained-on / test-scene pairs (paired by spectrum):", ""]
+        md += ["| method | L | change (dB) | 95% interval | verdict |", "|---|---|---|---|---|"]
+        md += [
+            f"| {c['method']} | 2 -> {c['L_to']} | {c['diff']:+.2f} | [{c['low']:+.2f}, {c['high']:+.2f}] | "
+            f"{c['verdict']} |"
+            for c in changes
+        ]
+    atomic_write_bytes(out / "intervals.md", (note + "\n\n" + "\n".join(md) + "\n").encode())
+    return rows
