@@ -18,7 +18,7 @@ from pathlib import Path
 from graf.io import atomic_write_bytes, atomic_write_json
 from graf.run.per_spectrum import read_per_spectrum
 from graf.studies.intervals import HIGHER_IS_BETTER, paired_difference, summary
-from graf.studies.report_rows import _job_settings, result_files
+from graf.studies.report_rows import job_settings, result_files
 from graf.studies.table import read_run_result
 
 CELL = ("trained_on", "train_band", "finetune", "L", "eval_scene")
@@ -36,7 +36,7 @@ def collect_spectra(runs: Path) -> tuple[dict, list]:
         result = read_run_result(f)
         if result is None or not result.get("per_spectrum"):
             continue
-        settings = _job_settings(result, str(f.parent))
+        settings = job_settings(result, str(f.parent))
         seed = (result.get("config") or {}).get("seed")
         densities.add((result.get("config") or {}).get("sim_num_tx"))
         trained = result.get("method")

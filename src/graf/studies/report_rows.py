@@ -84,7 +84,7 @@ def _trained_on(result: dict) -> tuple[list[str], list[float]]:
     )
 
 
-def _job_settings(result: dict, job: str) -> dict:
+def job_settings(result: dict, job: str) -> dict:
     """The settings of a job that every row of it shares."""
     cfg = result.get("config") or {}
     ft = result.get("finetune")
@@ -125,7 +125,7 @@ def rows_of(result: dict, job: str) -> list[dict]:
     ft = result.get("finetune")
     steps = int(result.get("global_step") or 0)
     budget = f"{steps}" if not ft else f"{ft.get('base_steps', '?')}+{ft.get('steps', 0)}"
-    common = _job_settings(result, job)
+    common = job_settings(result, job)
     out = []
     for ev in _evaluations(result):
         base = {

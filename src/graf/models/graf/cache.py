@@ -45,16 +45,16 @@ class EvalCache:
             items[key] = compute()
         return items[key]
 
-    def encoded(self, encoder: nn.Module, spectra: torch.Tensor) -> torch.Tensor:
+    def encoded(self, encoder: nn.Module, spectra: torch.Tensor, run: Callable | None = None) -> torch.Tensor:
         """``encoder`` features ``[N, C]`` of spectra ``[N, 90, 360]``, each distinct spectrum (keyed by its
-        bytes) encoded once: a test set's targets share most of their neighbors."""
+        bytes) encoded once: a test set's targets share most of their neighbors.  ``run(encoder, batch)`` encodes
+        the new ones (default ``encoder(batch)``; GRaF passes :func:`graf.models.graf.inference.split_batch`)."""
         items = self.store("features", weights_stamp(encoder))
         keys = [hashlib.blake2b(x.contiguous().cpu().numpy().tobytes(), digest_size=16).digest() for x in spectra]
         missing = [i for i, k in enumerate(keys) if k not in items]
         if missing:
-            from graf.models.graf.inference import split_batch  # here: inference imports this module
-
-            feats = split_batch(encoder, spectra[missing].unsqueeze(1).float())  # pieces on the worker threads
+            batch = spectra[missing].unsqueeze(1).float()
+            feats = run(encoder, batch) if run is not None else encoder(batch)
             for i, f in zip(missing, feats):
                 if len(items) >= EVAL_CACHE_FEATURES:
                     items.pop(next(iter(items)))

@@ -58,7 +58,7 @@ from graf.models.graf.cache import EvalCache, weights_stamp
 from graf.models.graf.encoder import ResNetEncoder
 from graf.models.graf.features import Dims, build_features
 from graf.models.graf.features.base import mlp
-from graf.models.graf.inference import SerialThreads, fast_path, ray_pass, rays_in_chunks
+from graf.models.graf.inference import SerialThreads, fast_path, ray_pass, rays_in_chunks, split_batch
 from graf.models.graf.legacy import upgrade_arguments, upgrade_hparams, upgrade_optimizer_states, upgrade_state_dict
 from graf.models.graf.residual import KNNBase, NoBase
 from graf.models.graf.settings import check_settings
@@ -267,7 +267,7 @@ class GRaFModule(SpectrumModule):
         spectrum is encoded once (keyed by its bytes): a test set's targets share most of their neighbors."""
         if self.training or torch.is_grad_enabled():
             return self.encoder(spectra.unsqueeze(1).float())
-        return self.eval_cache.encoded(self.encoder, spectra)
+        return self.eval_cache.encoded(self.encoder, spectra, split_batch)
 
     # ------------------------------------------------------------------ a batch
     def prepare(self, batch: dict) -> dict:
