@@ -16,7 +16,9 @@ A page asks for a generated block with a directive on a line of its own:
 - ``<!-- gen: choose PATH -->``: GRaF's modes ranked on validation from a ``curves.csv``
   (:func:`graf.studies.published.choose`, as ``scripts/choose_graf.py``);
 - ``<!-- gen: page PATH -->``: a markdown file of the repository (``CONTRIBUTING.md``) as the page's text;
-- ``<!-- gen: layout src -->``: the map of the package (floors, rooms, modules, commands, scripts).
+- ``<!-- gen: layout src -->``: the map of the package (floors, rooms, modules, commands, scripts);
+- ``<!-- gen: headline PATH -->``: the main job's table from its record (``sweeps/main_job/results.json``), the
+  same table ``scripts/headline.py`` writes into the README.
 
 A directive whose record is missing fails the build (``mkdocs build --strict`` in CI), so a page never shows a
 table its records do not hold.  Figures: every ``*.png`` of ``sweeps/`` (three folders deep) is published at
@@ -44,7 +46,7 @@ from graf.studies import published
 ROOT = Path(__file__).resolve().parents[1]
 SWEEPS = ROOT / "sweeps"
 API_NAV = "API reference"
-DIRECTIVE = re.compile(r"^<!-- gen: (study|search|include|page|choose|layout) (\S+) -->$", re.M)
+DIRECTIVE = re.compile(r"^<!-- gen: (study|search|include|page|choose|layout|headline) (\S+) -->$", re.M)
 
 
 def _record(path: Path) -> Path:
@@ -172,6 +174,11 @@ def choose(path: str) -> str:
     return "\n\n".join(out) + f"\n\n*Generated from `{path}` by `scripts/choose_graf.py`.*"
 
 
+def headline(path: str) -> str:
+    """The main job's headline table (:func:`graf.studies.published.headline`), the README's too."""
+    return published.headline(json.loads(_record(ROOT / path).read_text()))
+
+
 def page_file(path: str) -> str:
     """A markdown file of the repository (``CONTRIBUTING.md``) as a page, its ``docs/`` links made page-relative."""
     return _record(ROOT / path).read_text().replace("](docs/", "](")
@@ -207,10 +214,19 @@ def on_page_markdown(markdown: str, page, config, files) -> str:
     def expand(m: re.Match) -> str:
         kind, arg = m.group(1), m.group(2)
         makers = {"study": study, "search": search, "include": include, "page": page_file, "choose": choose,
-                  "layout": layout}  # fmt: skip
+                  "layout": layout, "headline": headline}  # fmt: skip
         return makers[kind](arg)
 
     return DIRECTIVE.sub(expand, markdown)
+
+
+SPHINX_ROLE = re.compile(r":(?:mod|func|class|meth|data|attr|exc|obj):(?=<code>)")
+
+
+def on_page_content(html: str, page, config, files) -> str:
+    """Docstrings written with Sphinx roles (``:func:`name```) render as the code span alone: mkdocstrings does
+    not read the roles, which would otherwise print literally on the API pages."""
+    return SPHINX_ROLE.sub("", html)
 
 
 def on_files(files, config):

@@ -14,7 +14,9 @@ import re
 import shutil
 import subprocess
 import sys
+from html.parser import HTMLParser
 from pathlib import Path
+from urllib.parse import unquote, urlsplit
 
 import pytest
 import yaml
@@ -174,3 +176,101 @@ def test_the_site_builds_strictly_without_the_hooks_in_it(tmp_path):
     assert not list(site.rglob("*.py"))
     assert (site / "api" / "run" / "index.html").is_file() and (site / "api" / "modules" / "index.html").is_file()
     assert 'id="graf.run.evaluation"' in (site / "api" / "run" / "index.html").read_text()
+    problems = site_problems(site)
+    assert not problems, "\n".join(problems[:20])
+
+
+class _Page(HTMLParser):
+    """A built page's links and images, its paragraphs' text and all its text."""
+
+    def __init__(self):
+        super().__init__()
+        self.refs, self.images, self.paragraphs, self.text, self._p = [], [], [], [], None
+
+    def handle_starttag(self, tag, attrs):
+        a = dict(attrs)
+        if tag == "a" and a.get("href"):
+            self.refs.append(a["href"])
+        if tag == "img" and a.get("src"):
+            self.refs.append(a["src"])
+            self.images.append(a["src"])
+        if tag == "p":
+            self._p = []
+
+    def handle_endtag(self, tag):
+        if tag == "p" and self._p is not None:
+            self.paragraphs.append("".join(self._p))
+            self._p = None
+
+    def handle_data(self, data):
+        self.text.append(data)
+        if self._p is not None:
+            self._p.append(data)
+
+
+def site_problems(site: Path) -> list[str]:
+    """What a reader would trip over in the built site: a local link or image that does not resolve, a list that
+    renders as a run-on paragraph (" - " items without the blank line Markdown needs), a Sphinx role printed
+    literally (``:func:``), a published figure (``sweeps/.../x.png``) a page names but does not show."""
+    out = []
+    for f in sorted(site.rglob("*.html")):
+        page = _Page()
+        page.feed(f.read_text())
+        name = f.relative_to(site).as_posix()
+        for ref in page.refs:
+            u = urlsplit(ref)
+            if u.scheme or u.netloc or not u.path:
+                continue
+            path = unquote(u.path)
+            target = (site / path.lstrip("/")) if path.startswith("/") else (f.parent / path)
+            target = target / "index.html" if target.is_dir() else target
+            if not target.exists():
+                out.append(f"{name}: broken link {ref}")
+        out += [f"{name}: a list rendered as text: {p[:60]!r}" for p in page.paragraphs if RUN_ON.search(p)]
+        text = "".join(page.text)
+        out += [f"{name}: literal Sphinx role {m}" for m in ROLE.findall(text)]
+        shown = {Path(unquote(urlsplit(i).path)).name for i in page.images}
+        out += [
+            f"{name}: names {n} without showing it"
+            for n in sorted(set(FIGURE.findall(text)))
+            if Path(n).name not in shown
+        ]
+    return out
+
+
+RUN_ON = re.compile(r"\n\s*[-*] \S")
+ROLE = re.compile(r":(?:mod|func|class|meth|data|attr|exc|obj):")
+FIGURE = re.compile(r"sweeps/[\w./=,-]+?\.png")
+
+
+def test_the_site_checks_find_what_a_reader_trips_over(tmp_path):
+    site = tmp_path / "site"
+    (site / "img").mkdir(parents=True)
+    (site / "img" / "a.png").write_bytes(b"png")
+    (site / "index.html").write_text(
+        '<p>Intro:\n- one\n- two</p><a href="missing/">x</a><a href="img/a.png">ok</a>'
+        "<p>uses :func:<code>f</code></p><p>see sweeps/s/fig.png</p>"
+    )
+    problems = site_problems(site)
+    assert len(problems) == 4
+    assert any("broken link missing/" in p for p in problems) and any("rendered as text" in p for p in problems)
+    assert any("Sphinx role" in p for p in problems) and any("sweeps/s/fig.png" in p for p in problems)
+    (site / "index.html").write_text('<p>Fine.</p><img src="img/a.png"><p>sweeps/x/a.png</p>')
+    assert site_problems(site) == []
+
+
+def test_the_readme_headline_is_the_published_main_job_record():
+    """The README's results table is generated from sweeps/main_job/results.json (scripts/headline.py), the same
+    table Home and Getting started include: the three cannot disagree."""
+    import json
+
+    from graf.studies.published import HEADLINE, HEADLINE_MARKERS, headline, with_headline
+
+    record = json.loads((ROOT / HEADLINE).read_text())
+    readme = (ROOT / "README.md").read_text()
+    assert with_headline(readme, record) == readme, "README's headline is stale: run python scripts/headline.py"
+    table = headline(record)
+    assert f"`{record['method']}`" in table and "`knn`" in table and "PSNR (dB) ↑" in table and "LPIPS ↓" in table
+    for page in ("docs/index.md", "docs/getting-started.md"):
+        assert f"<!-- gen: headline {HEADLINE} -->" in (ROOT / page).read_text(), page
+    assert readme.count(HEADLINE_MARKERS[0]) == 1

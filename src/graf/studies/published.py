@@ -242,3 +242,31 @@ def choose(rows: list[dict], modes: list[str]) -> tuple[str, list[dict]]:
     for t in table:
         t["mean_rank"] = score[t["mode"]]
     return chosen, table
+
+
+HEADLINE = "sweeps/main_job/results.json"  # the main job's published record: the one headline table
+HEADLINE_MARKERS = ("<!-- headline: generated from sweeps/main_job/results.json; do not edit -->", "<!-- /headline -->")
+
+
+def headline(record: dict) -> str:
+    """The main job's table (the README's, Home's and Getting started's, so the three cannot disagree): GRaF and
+    each baseline tested beside it, test PSNR, SSIM, LPIPS (arrows: which way is better), reliance and validation
+    PSNR, from its ``results.json``."""
+    rows = [(record["method"], record["metrics"])]
+    rows += [(name, b["metrics"]) for name, b in (record.get("baselines") or {}).items()]
+    head = ["method", "PSNR (dB) ↑", "SSIM ↑", "LPIPS ↓", "reliance (dB)", "val PSNR (dB) ↑"]
+    keys = (("test/psnr", "{:.2f}"), ("test/ssim", "{:.3f}"), ("test/lpips", "{:.3f}"),
+            ("test/reliance_db", "{:.2f}"), ("val/psnr", "{:.2f}"))  # fmt: skip
+    body = [[f"`{name}`", *(fmt(m.get(k), f) for k, f in keys)] for name, m in rows]
+    where = f"{record['scene']}, {record['n_test']} test spectra, {record['global_step']} training steps"
+    return md(head, body) + f"\n\n*{where}; generated from `{HEADLINE}`.*"
+
+
+def with_headline(text: str, record: dict) -> str:
+    """``text`` (the README) with the block between :data:`HEADLINE_MARKERS` replaced by :func:`headline`."""
+    start, end = HEADLINE_MARKERS
+    if start not in text or end not in text:
+        raise UserError(f"no headline block ({start} ... {end}) to fill")
+    before, rest = text.split(start, 1)
+    _, after = rest.split(end, 1)
+    return f"{before}{start}\n{headline(record)}\n{end}{after}"

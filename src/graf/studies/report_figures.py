@@ -14,6 +14,8 @@ from graf.io import atomic_write_json
 from graf.plotting import SPECTRUM_CMAP, SPECTRUM_LABEL, shared_limits
 from graf.studies.report_rows import METRICS
 
+EXTENT = (0, 360, 0, 90)  # a spectrum's axes in degrees: azimuth 0-360, elevation 0-90
+
 
 def matrix_figures(rows: list[dict], out: Path) -> dict:
     """Trained-on x test-scene heatmap per method, one figure per metric; returns the matrices."""
@@ -51,7 +53,10 @@ def matrix_figures(rows: list[dict], out: Path) -> dict:
             ax.set_xticks(range(len(ev)), ev, rotation=45, ha="right", fontsize=7)
             ax.set_yticks(range(len(ylabels)), ylabels, fontsize=7)
             ax.set_title(m, fontsize=9)
-        fig.colorbar(im, ax=axes[0].tolist(), shrink=0.8, label=f"test {name} (one scale for every method)")
+        unit = {"PSNR": "test PSNR (dB), higher is better", "SSIM": "test SSIM, higher is better"}.get(
+            name, f"test {name}, lower is better (colour map reversed: better is yellow)"
+        )
+        fig.colorbar(im, ax=axes[0].tolist(), shrink=0.8, label=f"{unit}; one scale for every method")
         fig.suptitle(f"test {name}: trained on (rows) x tested on (columns)")
         path = out / f"matrix_{name.lower()}.png"
         fig.savefig(path, dpi=110)
@@ -61,17 +66,23 @@ def matrix_figures(rows: list[dict], out: Path) -> dict:
     return {"figures": written, "matrices": mats}
 
 
+CURVE_UNITS = {"PSNR": "PSNR (dB), higher is better", "SSIM": "SSIM, higher is better",
+               "MSE": "MSE, lower is better", "LPIPS": "LPIPS, lower is better"}  # fmt: skip
+
+
 def curve_figure(data: dict, xlabel: str, path: Path, title: str) -> None:
-    """Each metric against ``xlabel``, one line per method of ``data`` (``{method: {x: {metric: value}}}``)."""
-    fig, axes = plt.subplots(1, len(METRICS), figsize=(16, 3.4), constrained_layout=True)
-    for ax, (_, name, _) in zip(axes, METRICS):
+    """Each metric against ``xlabel``, one line per method of ``data`` (``{method: {x: {metric: value}}}``), in a
+    2 x 2 grid (legible at page width), each y axis with its unit and which way is better."""
+    fig, axes = plt.subplots(2, 2, figsize=(10, 7), constrained_layout=True)
+    for ax, (_, name, _) in zip(axes.flat, METRICS):
         for m, pts in sorted(data.items()):
             xs = list(pts)
             ax.plot(xs, [p[name] for p in pts.values()], "o-", label=m)
         ax.set_xlabel(xlabel)
+        ax.set_ylabel(CURVE_UNITS.get(name, name))
         ax.set_title(name)
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
+    axes.flat[0].legend(fontsize=8)
     fig.suptitle(title)
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -145,20 +156,23 @@ def spectra_grids(rows: list[dict], runs: Path, out: Path, axes: list[str], refe
         fig, axs = plt.subplots(
             len(data) + 1, n, figsize=(3.6 * n, 1.25 * (len(data) + 1) + 0.6), squeeze=False, constrained_layout=True
         )
+        shown = {"origin": "lower", "aspect": "auto", "cmap": SPECTRUM_CMAP, "vmin": 0, "vmax": 1, "extent": EXTENT}
         for j in range(n):
-            axs[0, j].imshow(
-                first["target"][j] / 255.0, origin="lower", aspect="auto", cmap=SPECTRUM_CMAP, vmin=0, vmax=1
-            )
+            axs[0, j].imshow(first["target"][j] / 255.0, **shown)
             axs[0, j].set_title(f"id {int(first['ids'][j])}: true", fontsize=8)
             for i, (m, d) in enumerate(data.items(), start=1):
                 p, t = d["pred"][j].astype(float) / 255, d["target"][j].astype(float) / 255
                 psnr = 10 * np.log10(1.0 / max(float(np.mean((p - t) ** 2)), 1e-10))
-                axs[i, j].imshow(
-                    d["pred"][j] / 255.0, origin="lower", aspect="auto", cmap=SPECTRUM_CMAP, vmin=0, vmax=1
-                )
+                axs[i, j].imshow(d["pred"][j] / 255.0, **shown)
                 axs[i, j].set_title(f"{m}: {psnr:.1f} dB", fontsize=7)
-        for a in axs.flat:
-            a.set_xticks([]), a.set_yticks([])
+        for (i, j), a in np.ndenumerate(axs):  # degrees on the outer axes only
+            a.set_xticks([0, 180, 360] if i == len(data) else [])
+            a.set_yticks([0, 45, 90] if j == 0 else [])
+            a.tick_params(labelsize=6)
+        for a in axs[-1]:
+            a.set_xlabel("azimuth (°)", fontsize=7)
+        for a in axs[:, 0]:
+            a.set_ylabel("elevation (°)", fontsize=7)
         fig.colorbar(axs[0, 0].images[0], ax=axs.ravel().tolist(), shrink=0.9, label=SPECTRUM_LABEL)
         fig.suptitle(f"{scene} ({band}): true (top) and predicted spectra, the same test positions")
         path = out / f"spectra_{scene}{'_' + band.replace(' ', '') if 'eval_band' in axes else ''}.png"

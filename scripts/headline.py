@@ -1,0 +1,28 @@
+"""Write the main job's headline table into the README (between its headline markers) from the published record
+``sweeps/main_job/results.json``: ``python scripts/headline.py`` (``--check``: exit 1 if the README differs).
+The site's pages include the same table through ``<!-- gen: headline -->``; tests/test_docs_layout.py checks
+that the README's is up to date."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from graf.studies.published import HEADLINE, with_headline
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def main(argv: list[str]) -> int:
+    readme = ROOT / "README.md"
+    text = readme.read_text()
+    new = with_headline(text, json.loads((ROOT / HEADLINE).read_text()))
+    if "--check" in argv:
+        return 0 if new == text else 1
+    readme.write_text(new)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
