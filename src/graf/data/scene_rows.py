@@ -113,8 +113,9 @@ class SceneRows:
         train = np.asarray(d.train_idx, np.int64) + offset
         measured = measured_part(train, self.measured_fraction, self.measured_seed, d.source)
         fit, val = carve_validation(measured, self.val_fraction, self.val_seed, d.source)
+        test = seeded_subset(np.asarray(d.test_idx, np.int64), self.test_subset, self.test_subset_seed, d.name) + offset
         log.info(
-            "scene %s (index %d): %d train (%s%d fit + %d validation) / %d test spectra (%s), band %s (%.4f m)",
+            "scene %s (index %d): %d train (%s%d fit + %d validation) / %d test spectra%s (%s), band %s (%.4f m)",
             d.name,
             int(self.scene_index[k]),
             d.n_train,
@@ -122,11 +123,11 @@ class SceneRows:
             len(fit),
             len(val),
             d.n_test,
+            "" if len(test) == d.n_test else f", {len(test)} of them tested (data.test_subset)",
             d.split_source,
             band.name,
             band.wavelength,
         )
-        test = seeded_subset(np.asarray(d.test_idx, np.int64), self.test_subset, self.test_subset_seed, d.name) + offset
         return {"train": train, "measured": measured, "fit": fit, "val": val, "test": test}
 
     # ------------------------------------------------------------------ neighbors

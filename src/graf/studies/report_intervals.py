@@ -163,9 +163,10 @@ def write_intervals(runs: Path, out: Path) -> list[dict] | None:
     if changes:
         md += ["", "PSNR change from L = 2, pooled over the trained-on / test-scene pairs (paired by spectrum):", ""]
         md += ["| method | L | change (dB) | 95% interval | verdict |", "|---|---|---|---|---|"]
+        word = {"ahead": "rises", "behind": "falls"}  # an L change: the verdict as a direction
         md += [
             f"| {c['method']} | 2 -> {c['L_to']} | {c['diff']:+.2f} | [{c['low']:+.2f}, {c['high']:+.2f}] | "
-            f"{c['verdict']} |"
+            f"{word.get(c['verdict'], c['verdict'])} |"
             for c in changes
         ]
     atomic_write_bytes(out / "intervals.md", (note + "\n\n" + "\n".join(md) + "\n").encode())
