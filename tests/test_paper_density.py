@@ -45,22 +45,14 @@ def test_the_test_subset_depends_on_its_own_seed_only(make_scene):
     )
 
 
+def _knn_dl_run(compose_cfg, folder, *extra):
+    """graf-train's config of KNN-DL on a tiny NeRF2-format scene at 915 MHz, plus ``extra`` overrides."""
+    base = ("scene=nerf2", f"scene.nerf2.path={folder}", "band=915mhz", "model=knn_dl", "data.batch_size=2")
+    return compose_cfg("train", (*base, "plot_count=0", *extra))
+
+
 def test_a_run_writes_per_spectrum_records_of_its_test_subset_and_its_schedule(compose_cfg, make_scene, tmp_path):
-    folder = make_scene(n=32)
-    cfg = compose_cfg(
-        "train",
-        (
-            "scene=nerf2",
-            f"scene.nerf2.path={folder}",
-            "band=915mhz",
-            "model=knn_dl",
-            "data.batch_size=2",
-            "data.test_subset=5",
-            "trainer.max_steps=3",
-            "plot_count=0",
-        ),
-    )
-    train(cfg)
+    train(_knn_dl_run(compose_cfg, make_scene(n=32), "data.test_subset=5", "trainer.max_steps=3"))
     out = tmp_path / "out"
     result = json.loads((out / "results.json").read_text())
     rows = read_per_spectrum(out / result["per_spectrum"])
@@ -80,21 +72,7 @@ def test_a_run_writes_per_spectrum_records_of_its_test_subset_and_its_schedule(c
 
 
 def test_a_schedule_much_longer_than_the_run_is_kept_and_warned_about(compose_cfg, make_scene, caplog):
-    folder = make_scene(n=24)
-    cfg = compose_cfg(
-        "train",
-        (
-            "scene=nerf2",
-            f"scene.nerf2.path={folder}",
-            "band=915mhz",
-            "model=knn_dl",
-            "data.batch_size=2",
-            "trainer.max_steps=2",
-            "model.decay_steps=1000",
-            "plot_count=0",
-            "baselines=null",
-        ),
-    )
+    cfg = _knn_dl_run(compose_cfg, make_scene(n=24), "trainer.max_steps=2", "model.decay_steps=1000", "baselines=null")
     with caplog.at_level(logging.WARNING, logger="graf"):
         _, run = train(cfg)
     assert run.record.schedule["length_steps"] == 1000

@@ -57,6 +57,15 @@ def verdict(low: float, high: float, metric: str) -> str:
     return "level (interval includes 0)"
 
 
+def _bootstrap(d: np.ndarray, method: str, seed: int) -> tuple[float, float]:
+    """The 95% bootstrap interval of the mean of ``d`` (scipy.stats.bootstrap, seeded)."""
+    res = stats.bootstrap(
+        (d,), np.mean, confidence_level=CONFIDENCE, n_resamples=RESAMPLES, method=method,
+        random_state=np.random.default_rng(seed),
+    )  # fmt: skip
+    return float(res.confidence_interval.low), float(res.confidence_interval.high)
+
+
 def paired_difference(
     method: list[dict[int, float]], reference: list[dict[int, float]], metric: str, seed: int = 0
 ) -> dict:
@@ -77,25 +86,9 @@ def paired_difference(
     if len(d) < 2 or float(np.ptp(d)) == 0.0:  # no spread to resample: the interval is the figure itself
         lo = hi = diff
     else:
-        res = stats.bootstrap(
-            (d,),
-            np.mean,
-            confidence_level=CONFIDENCE,
-            n_resamples=RESAMPLES,
-            method="BCa",
-            random_state=np.random.default_rng(seed),
-        )
-        lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
+        lo, hi = _bootstrap(d, "BCa", seed)
         if not (math.isfinite(lo) and math.isfinite(hi)):  # BCa degenerate (e.g. a single outlier): percentile
-            res = stats.bootstrap(
-                (d,),
-                np.mean,
-                confidence_level=CONFIDENCE,
-                n_resamples=RESAMPLES,
-                method="percentile",
-                random_state=np.random.default_rng(seed),
-            )
-            lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
+            lo, hi = _bootstrap(d, "percentile", seed)
     low, high = min(lo, float(seed_diffs.min())), max(hi, float(seed_diffs.max()))
     return {
         "diff": diff,
