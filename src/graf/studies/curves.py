@@ -288,7 +288,7 @@ def curves(cfg: DictConfig) -> dict:
     failed_file = out / "failed.json"
     failed = json.loads(failed_file.read_text()) if failed_file.exists() else []
     for rname, regime in _subset(cfg.regimes, cfg.get("only_regimes"), "only_regimes").items():
-        base = [*regime.overrides, *common, *QUIET]
+        base = [*regime.overrides, *common, *QUIET, *(cfg.get("extra_overrides") or [])]
         knn_dir = out / rname / "knn"
         if not (knn_dir / "results.json").exists():
             cmd = [*TRAIN, *base, "model=knn", f"hydra.run.dir={knn_dir}"]

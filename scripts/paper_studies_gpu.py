@@ -1,0 +1,282 @@
+"""The paper-density studies on one lent GPU, in one call with a deadline: learning curves, a choice made on them,
+then the cross-scene matrix and the neighbor-count study at the chosen variant and budget.
+
+    python scripts/paper_studies_gpu.py --pack .paper_gpu --out "$OUT" --deadline 560      (on the GPU machine)
+    python scripts/paper_studies_gpu.py --pack .paper_gpu --out /tmp/o --tiny             (a smoke run on a CPU)
+
+The pack folder comes from ``scripts/prepare_paper_gpu.sh`` (wheels of what such a machine lacks, the LPIPS weights,
+and the six conference/office layouts' catalog files without their spectra: ``graf.sim.slim``).  Stages, each
+started only if the deadline leaves it time, each stopped (SIGTERM: state saved) when the deadline comes:
+
+1. **data**: the spectra rebuilt from the channels (their sha256 checked against the traced originals).
+2. **curves** (validation only): ``graf-curves`` regime ``cross_family_paper`` (trained on conference_v1 +
+   office_v1 at full density, validated zero-shot on their v2 layouts), the GRaF modes pooled, ray, ray_knn,
+   ray_weights and KNN-DL, one process each, at once, until ``--curves-until`` or ``--curves-deadline``.
+3. **choice**, fixed before any curve was seen: the mode by :func:`graf.studies.published.choose` (the best
+   mean rank of validation PSNR, SSIM and LPIPS at the largest step every mode reached); each trained method's
+   budget is the point of its own curve with the highest validation PSNR (the smaller on a tie), lowered to the
+   largest point whose predicted training time (the curve's measured seconds per step) fits the time left.
+   Written to ``choice.json``.
+4. **studies**: a queue of jobs run ``--workers`` at a time, in this order: the cross-scene matrix at seed 0
+   (GRaF, KNN-DL, NeRF2 on conference_v1 and on office_v1), its seeds 1 and 2 (GRaF, KNN-DL), then the
+   neighbor-count groups (one process per method, training scene and seed: its base model, then L = 2, 4, 10 on
+   the two other layouts of its family, then L = 1, 6, 8, 16).  A job not finished by the deadline is
+   stopped; graf-report then writes each study's tables and intervals from the jobs that finished.
+5. **out**: ``curves.tar.gz``, ``cross_scene_matrix_paper.tar.gz``, ``neighbor_count_paper.tar.gz`` (no
+   checkpoints), ``summary.json`` (each stage's seconds, the choice, the jobs' outcomes) and ``log.txt``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import tarfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PY = sys.executable
+T0 = time.time()
+MODES = ["pooled", "ray", "ray_knn", "ray_weights"]
+LOG: list[str] = []
+
+
+def log(msg: str) -> None:
+    line = f"[{time.time() - T0:6.1f} s] {msg}"
+    LOG.append(line)
+    print(line, flush=True)
+
+
+def left(deadline: float) -> float:
+    return deadline - (time.time() - T0)
+
+
+def stop(procs: list[subprocess.Popen], grace: float = 20.0) -> None:
+    """SIGTERM (graf-train saves its state), then SIGKILL after ``grace`` seconds."""
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(signal.SIGTERM)
+    end = time.time() + grace
+    for p in procs:
+        try:
+            p.wait(timeout=max(0.1, end - time.time()))
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+def restore(pack: Path, data: Path) -> list[dict]:
+    from graf.sim.slim import restore as restore_one
+
+    out = []
+    for f in sorted((pack / "catalog").glob("*.slim.h5")):
+        scene, band = f.name.split(".slim.h5")[0].split("__")
+        dst = data / "sim" / scene / f"{band}.h5"
+        r = restore_one(f, dst) if not dst.exists() else {"n": None, "match": None, "existing": True}
+        out.append({"scene": scene, "band": band, **r})
+        log(f"data: {dst} ({'kept' if r.get('existing') else ('sha256 matches' if r['match'] else 'sha256 DIFFERS')})")
+    return out
+
+
+def curves(args, data: Path, work: Path, extra: list[str]) -> dict:
+    base = [PY, "-m", "graf.cli.curves", f"out={work / 'curves'}", f"data_root={data}",
+            "only_regimes=[cross_family_paper]", f"extra_overrides=[{','.join(repr(e) for e in extra)}]", f"threads={args.threads}",
+            f"until={args.curves_until}", f"run_timeout_s={int(args.deadline)}"]
+    if args.tiny:
+        base = [b.replace("extra_overrides=[", "extra_overrides=['data.val_fraction=0.001',") for b in base]
+        base += ["regimes.cross_family_paper.max_steps=4", "steps=[2,4]", "checkpoint_every=2"]
+    (work / "logs").mkdir(parents=True, exist_ok=True)
+    t = time.time()
+    subprocess.run([*base, "only_methods=[]"], stdout=open(work / "logs" / "curves_knn.log", "w"),
+                   stderr=subprocess.STDOUT, timeout=max(10, left(args.curves_deadline)))
+    procs = [subprocess.Popen([*base, f"only_methods=[{m}]"], stdout=open(work / "logs" / f"curves_{m}.log", "w"),
+                              stderr=subprocess.STDOUT) for m in [*MODES, "knn_dl"]]
+    while any(p.poll() is None for p in procs) and left(args.curves_deadline) > 0:
+        time.sleep(2)
+    stopped = any(p.poll() is None for p in procs)
+    stop(procs)
+    subprocess.run([*base, "only_methods=[]", "until=0"], stdout=open(work / "logs" / "curves_tables.log", "w"),
+                   stderr=subprocess.STDOUT)
+    log(f"curves: {time.time() - t:.0f} s{' (stopped at the deadline)' if stopped else ''}")
+    f = work / "curves" / "curves.csv"
+    rows = [r for r in csv.DictReader(f.open())] if f.exists() else []
+    return {"rows": [r for r in rows if r["regime"] == "cross_family_paper"], "stopped": stopped}
+
+
+def budget(rows: list[dict], method: str, seconds: float, fallback: int) -> dict:
+    """A method's budget: its curve's best validation-PSNR point (the smaller on a tie), lowered to the largest
+    point whose predicted seconds (steps x the curve's measured s/step) fit ``seconds``."""
+    pts = sorted((int(r["step"]), float(r["val_psnr"]), float(r["s_per_step"] or 0)) for r in rows
+                 if r["method"] == method and r["val_psnr"] not in ("", None))
+    if not pts:
+        return {"steps": fallback, "why": "no curve point: the fallback"}
+    best = max(pts, key=lambda p: (p[1], -p[0]))[0]
+    s_step = max(p[2] for p in pts)  # the slowest point's (contention with the other curves included)
+    fits = [p[0] for p in pts if p[0] <= best and p[0] * s_step <= seconds]
+    steps = max(fits) if fits else min(p[0] for p in pts)
+    why = f"best validation PSNR at step {best}" + ("" if steps == best else f"; lowered to {steps} to fit "
+                                                   f"{seconds:.0f} s at {s_step:.3f} s/step")
+    return {"steps": steps, "best_step": best, "s_per_step": s_step, "why": why}
+
+
+def choose_all(args, rows: list[dict]) -> dict:
+    from graf.studies.published import choose
+
+    modes = [m for m in MODES if any(r["method"] == m for r in rows)]
+    if modes:
+        mode, table = choose(rows, modes)
+    else:
+        mode, table = "ray_weights", []
+    # the studies' trainings run --workers at a time; a third of what is left goes to each round of them
+    per_round = max(30.0, (left(args.deadline) - 40) / 3)
+    return {
+        "mode": mode,
+        "modes_compared": modes,
+        "table": table,
+        "graf": budget(rows, mode, per_round, args.fallback_steps),
+        "knn_dl": budget(rows, "knn_dl", per_round, args.fallback_steps),
+        "seconds_per_round": round(per_round),
+    }
+
+
+def study_jobs(args, choice: dict, data: Path, work: Path, extra: list[str]) -> list[tuple[str, list[str]]]:
+    graf_model = ["model=graf_cpu_scenes_ray"] + ([] if choice["mode"] == "ray_weights" else
+                                                  [f"model/features={choice['mode']}"])
+    steps = {"graf": choice["graf"]["steps"], "knn_dl": choice["knn_dl"]["steps"], "nerf2": choice["graf"]["steps"]}
+    models = {"graf": graf_model, "knn_dl": ["model=knn_dl"], "nerf2": ["model=nerf2_study"]}
+    common = [f"data_root={data}", f"torch_threads={args.threads}", "reliance=false", *extra]
+    if args.tiny:
+        common += ["data.test_subset=4"]
+    jobs = []
+
+    def matrix(method, scene, seed):
+        return (f"matrix {method} {scene} seed {seed}",
+                [PY, "-m", "graf.cli.train", "experiment=cross_scene_matrix", *models[method], f"scene={scene}",
+                 f"seed={seed}", f"study_steps={steps[method]}", *common,
+                 f"hydra.sweep.dir={work / 'cross_scene_matrix_paper'}"])
+
+    def nc(method, scene, seed, L):
+        same = {"conference_v1": "conference_v2,conference_v3", "office_v1": "office_v2,office_v3"}[scene]
+        return (f"neighbor_count {method} {scene} seed {seed} L {L}",
+                [PY, "-m", "graf.cli.train", "experiment=neighbor_count", *models[method], f"scene={scene}",
+                 f"seed={seed}", f"study_steps={steps[method]}", f"eval_scene={same}", f"neighbors.L={L}", *common,
+                 f"hydra.sweep.dir={work / 'neighbor_count_paper'}"])
+
+    scenes = ["conference_v1", "office_v1"]
+    for m in ("graf", "knn_dl", "nerf2"):
+        jobs += [matrix(m, s, 0) for s in scenes]
+    for seed in (1, 2):
+        jobs += [matrix(m, s, seed) for m in ("graf", "knn_dl") for s in scenes]
+    for Ls in ("2,4,10", "1,6,8,16"):
+        jobs += [nc(m, s, seed, Ls) for seed in (0, 1, 2) for m in ("graf", "knn_dl") for s in scenes]
+    if args.tiny:  # one job of each kind
+        keep = ("matrix graf conference_v1 seed 0", "matrix knn_dl conference_v1 seed 0",
+                "matrix nerf2 conference_v1 seed 0", "neighbor_count graf conference_v1 seed 0 L 2,4,10")
+        jobs = [j for j in jobs if j[0] in keep]
+    return jobs
+
+
+def run_queue(args, jobs, work: Path) -> list[dict]:
+    """Run ``jobs`` ``--workers`` at a time, in order; a neighbor-count group waits for the one before it with the
+    same base model (its L = 2, 4, 10 part trains the base); stop everything at the deadline."""
+    running: dict[str, tuple[subprocess.Popen, float]] = {}
+    outcomes, queue = [], list(jobs)
+    (work / "logs").mkdir(parents=True, exist_ok=True)
+    while (queue or running) and left(args.deadline) > 0:
+        for name, (p, t) in list(running.items()):
+            if p.poll() is not None:
+                outcomes.append({"job": name, "exit": p.returncode, "seconds": round(time.time() - t)})
+                log(f"done ({p.returncode}): {name} in {time.time() - t:.0f} s")
+                del running[name]
+        busy_bases = {n.rsplit(" L ", 1)[0] for n in running}
+        while len(running) < args.workers and left(args.deadline) > args.min_job_s:
+            ready = [j for j in queue if j[0].rsplit(" L ", 1)[0] not in busy_bases]
+            if not ready:
+                break
+            name, cmd = ready[0]
+            queue.remove((name, cmd))
+            slug = name.replace(" ", "_").replace(",", "-")
+            running[name] = (subprocess.Popen(cmd, stdout=open(work / "logs" / f"{slug}.log", "w"),
+                                              stderr=subprocess.STDOUT, cwd=ROOT), time.time())
+            busy_bases.add(name.rsplit(" L ", 1)[0])
+            log(f"start: {name}")
+        time.sleep(2)
+    if running:
+        log(f"deadline: stopping {sorted(running)}")
+        stop([p for p, _ in running.values()])
+        outcomes += [{"job": n, "exit": "stopped at the deadline"} for n in running]
+    outcomes += [{"job": n, "exit": "not started (deadline)"} for n, _ in queue]
+    return outcomes
+
+
+def pack_out(work: Path, out: Path, summary: dict) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    for name in ("curves", "cross_scene_matrix_paper", "neighbor_count_paper", "logs"):
+        src = work / name
+        if not src.exists():
+            continue
+        with tarfile.open(out / f"{name}.tar.gz", "w:gz") as tar:
+            tar.add(src, arcname=name, filter=lambda ti: None if ti.name.endswith(".ckpt") else ti)
+    (out / "summary.json").write_text(json.dumps(summary, indent=1, default=str))
+    (out / "log.txt").write_text("\n".join(LOG) + "\n")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--pack", type=Path, default=ROOT / ".paper_gpu")
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--work", type=Path, default=Path("/tmp/paper_gpu"))
+    ap.add_argument("--deadline", type=float, default=560.0, help="seconds from the start: everything stops")
+    ap.add_argument("--curves-deadline", type=float, default=250.0)
+    ap.add_argument("--curves-until", type=int, default=3000)
+    ap.add_argument("--workers", type=int, default=10)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--min-job-s", type=float, default=45.0, help="no job starts with less time left")
+    ap.add_argument("--fallback-steps", type=int, default=1000)
+    ap.add_argument("--tiny", action="store_true", help="toy sizes on whatever device there is (a smoke run)")
+    args = ap.parse_args()
+    sys.path.insert(0, str(ROOT / "src"))
+    import torch
+
+    device = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu"
+    extra = ["trainer=gpu"] if device != "cpu" else ["trainer=cpu"]
+    data = args.work / "data"
+    summary: dict = {"device": device, "args": vars(args), "stages": {}}
+    try:
+        t = time.time()
+        summary["catalog"] = restore(args.pack, data)
+        summary["stages"]["data_s"] = round(time.time() - t, 1)
+        t = time.time()
+        cur = curves(args, data, args.work, extra)
+        summary["stages"]["curves_s"] = round(time.time() - t, 1)
+        summary["curves_stopped"] = cur["stopped"]
+        choice = choose_all(args, cur["rows"])
+        summary["choice"] = choice
+        (args.work / "choice.json").write_text(json.dumps(choice, indent=1))
+        log(f"choice: {choice['mode']}, GRaF {choice['graf']['steps']} steps ({choice['graf']['why']}), "
+            f"KNN-DL {choice['knn_dl']['steps']} ({choice['knn_dl']['why']})")
+        t = time.time()
+        summary["jobs"] = run_queue(args, study_jobs(args, choice, data, args.work, extra), args.work)
+        summary["stages"]["studies_s"] = round(time.time() - t, 1)
+        for study in ("cross_scene_matrix_paper", "neighbor_count_paper"):
+            if (args.work / study).exists():
+                r = subprocess.run([PY, "-m", "graf.cli.report", f"runs={args.work / study}"], capture_output=True,
+                                   text=True, timeout=120)
+                log(f"report {study}: exit {r.returncode}")
+                (args.work / "logs" / f"report_{study}.log").write_text(r.stdout + r.stderr)
+    except Exception as e:  # noqa: BLE001  (whatever finished still goes back)
+        log(f"error: {type(e).__name__}: {e}")
+        summary["error"] = f"{type(e).__name__}: {e}"
+    summary["total_s"] = round(time.time() - T0, 1)
+    pack_out(args.work, args.out, summary)
+    log(f"total {summary['total_s']} s")
+    return 1 if "error" in summary else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
