@@ -1,7 +1,7 @@
 """The paper-density studies on one lent GPU, in one call with a deadline: learning curves, a choice made on them,
 then the cross-scene matrix and the neighbor-count study at the chosen variant and budget.
 
-    python scripts/paper_studies_gpu.py --pack .paper_gpu --out "$OUT" --deadline 560      (on the GPU machine)
+    python scripts/paper_studies_gpu.py --pack .paper_gpu --out "$OUT" --deadline 520      (on the GPU machine)
     python scripts/paper_studies_gpu.py --pack .paper_gpu --out /tmp/o --tiny             (a smoke run on a CPU)
 
 The pack folder comes from ``scripts/prepare_paper_gpu.sh`` (wheels of what such a machine lacks, the LPIPS weights,
@@ -43,6 +43,12 @@ ROOT = Path(__file__).resolve().parents[1]
 PY = sys.executable
 T0 = time.time()
 MODES = ["pooled", "ray", "ray_knn", "ray_weights"]
+GRAF_MODELS = {  # the studies' model of each mode (graf_cpu_ray + 4-D positions: the curves' configuration)
+    "pooled": "graf_cpu_scenes_pooled",
+    "ray": "graf_cpu_scenes_ray_plain",
+    "ray_knn": "graf_cpu_scenes_ray_knn",
+    "ray_weights": "graf_cpu_scenes_ray",
+}
 LOG: list[str] = []
 
 
@@ -70,38 +76,71 @@ def stop(procs: list[subprocess.Popen], grace: float = 20.0) -> None:
             p.wait()
 
 
-def restore(pack: Path, data: Path) -> list[dict]:
+def _restore_one(f: Path, data: Path) -> dict:
     from graf.sim.slim import restore as restore_one
 
-    out = []
-    for f in sorted((pack / "catalog").glob("*.slim.h5")):
-        scene, band = f.name.split(".slim.h5")[0].split("__")
-        dst = data / "sim" / scene / f"{band}.h5"
-        r = restore_one(f, dst) if not dst.exists() else {"n": None, "match": None, "existing": True}
-        out.append({"scene": scene, "band": band, **r})
-        log(f"data: {dst} ({'kept' if r.get('existing') else ('sha256 matches' if r['match'] else 'sha256 DIFFERS')})")
+    scene, band = f.name.split(".slim.h5")[0].split("__")
+    dst = data / "sim" / scene / f"{band}.h5"
+    r = restore_one(f, dst) if not dst.exists() else {"n": None, "match": None, "existing": True}
+    return {"scene": scene, "band": band, "file": str(dst), **r}
+
+
+def restore(pack: Path, data: Path) -> list[dict]:
+    """Every catalog file of ``pack`` rebuilt under ``data`` (one process per file)."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    files = sorted((pack / "catalog").glob("*.slim.h5"))
+    with ProcessPoolExecutor(max(1, min(len(files), os.cpu_count() or 1))) as ex:
+        out = list(ex.map(_restore_one, files, [data] * len(files)))
+    for r in out:
+        state = "kept" if r.get("existing") else ("sha256 matches" if r["match"] else "sha256 DIFFERS")
+        log(f"data: {r['file']} ({state})")
     return out
 
 
 def curves(args, data: Path, work: Path, extra: list[str]) -> dict:
-    base = [PY, "-m", "graf.cli.curves", f"out={work / 'curves'}", f"data_root={data}",
-            "only_regimes=[cross_family_paper]", f"extra_overrides=[{','.join(repr(e) for e in extra)}]", f"threads={args.threads}",
-            f"until={args.curves_until}", f"run_timeout_s={int(args.deadline)}"]
-    if args.tiny:
+    base = [
+        PY,
+        "-m",
+        "graf.cli.curves",
+        f"out={work / 'curves'}",
+        f"data_root={data}",
+        "only_regimes=[cross_family_paper]",
+        f"extra_overrides=[{','.join(repr(e) for e in extra)}]",
+        f"threads={args.threads}",
+        f"until={args.curves_until}",
+        f"run_timeout_s={int(args.deadline)}",
+    ]
+    if not args.tiny:
+        base += [f"steps={args.curves_steps}"]
+    else:
         base = [b.replace("extra_overrides=[", "extra_overrides=['data.val_fraction=0.001',") for b in base]
         base += ["regimes.cross_family_paper.max_steps=4", "steps=[2,4]", "checkpoint_every=2"]
     (work / "logs").mkdir(parents=True, exist_ok=True)
     t = time.time()
-    subprocess.run([*base, "only_methods=[]"], stdout=open(work / "logs" / "curves_knn.log", "w"),
-                   stderr=subprocess.STDOUT, timeout=max(10, left(args.curves_deadline)))
-    procs = [subprocess.Popen([*base, f"only_methods=[{m}]"], stdout=open(work / "logs" / f"curves_{m}.log", "w"),
-                              stderr=subprocess.STDOUT) for m in [*MODES, "knn_dl"]]
+    subprocess.run(
+        [*base, "only_methods=[]"],
+        stdout=open(work / "logs" / "curves_knn.log", "w"),
+        stderr=subprocess.STDOUT,
+        timeout=max(10, left(args.curves_deadline)),
+    )
+    procs = [
+        subprocess.Popen(
+            [*base, f"only_methods=[{m}]"],
+            stdout=open(work / "logs" / f"curves_{m}.log", "w"),
+            stderr=subprocess.STDOUT,
+        )
+        for m in [*MODES, "knn_dl"]
+    ]
     while any(p.poll() is None for p in procs) and left(args.curves_deadline) > 0:
         time.sleep(2)
     stopped = any(p.poll() is None for p in procs)
     stop(procs)
-    subprocess.run([*base, "only_methods=[]", "until=0"], stdout=open(work / "logs" / "curves_tables.log", "w"),
-                   stderr=subprocess.STDOUT)
+    subprocess.run(
+        [*base, "only_methods=[]", "until=0"],
+        stdout=open(work / "logs" / "curves_tables.log", "w"),
+        stderr=subprocess.STDOUT,
+    )
     log(f"curves: {time.time() - t:.0f} s{' (stopped at the deadline)' if stopped else ''}")
     f = work / "curves" / "curves.csv"
     rows = [r for r in csv.DictReader(f.open())] if f.exists() else []
@@ -111,16 +150,20 @@ def curves(args, data: Path, work: Path, extra: list[str]) -> dict:
 def budget(rows: list[dict], method: str, seconds: float, fallback: int) -> dict:
     """A method's budget: its curve's best validation-PSNR point (the smaller on a tie), lowered to the largest
     point whose predicted seconds (steps x the curve's measured s/step) fit ``seconds``."""
-    pts = sorted((int(r["step"]), float(r["val_psnr"]), float(r["s_per_step"] or 0)) for r in rows
-                 if r["method"] == method and r["val_psnr"] not in ("", None))
+    pts = sorted(
+        (int(r["step"]), float(r["val_psnr"]), float(r["s_per_step"] or 0))
+        for r in rows
+        if r["method"] == method and r["val_psnr"] not in ("", None)
+    )
     if not pts:
         return {"steps": fallback, "why": "no curve point: the fallback"}
     best = max(pts, key=lambda p: (p[1], -p[0]))[0]
     s_step = max(p[2] for p in pts)  # the slowest point's (contention with the other curves included)
     fits = [p[0] for p in pts if p[0] <= best and p[0] * s_step <= seconds]
     steps = max(fits) if fits else min(p[0] for p in pts)
-    why = f"best validation PSNR at step {best}" + ("" if steps == best else f"; lowered to {steps} to fit "
-                                                   f"{seconds:.0f} s at {s_step:.3f} s/step")
+    why = f"best validation PSNR at step {best}" + (
+        "" if steps == best else f"; lowered to {steps} to fit {seconds:.0f} s at {s_step:.3f} s/step"
+    )
     return {"steps": steps, "best_step": best, "s_per_step": s_step, "why": why}
 
 
@@ -145,8 +188,7 @@ def choose_all(args, rows: list[dict]) -> dict:
 
 
 def study_jobs(args, choice: dict, data: Path, work: Path, extra: list[str]) -> list[tuple[str, list[str]]]:
-    graf_model = ["model=graf_cpu_scenes_ray"] + ([] if choice["mode"] == "ray_weights" else
-                                                  [f"model/features={choice['mode']}"])
+    graf_model = [f"model={GRAF_MODELS[choice['mode']]}"]
     steps = {"graf": choice["graf"]["steps"], "knn_dl": choice["knn_dl"]["steps"], "nerf2": choice["graf"]["steps"]}
     models = {"graf": graf_model, "knn_dl": ["model=knn_dl"], "nerf2": ["model=nerf2_study"]}
     common = [f"data_root={data}", f"torch_threads={args.threads}", "reliance=false", *extra]
@@ -155,17 +197,41 @@ def study_jobs(args, choice: dict, data: Path, work: Path, extra: list[str]) -> 
     jobs = []
 
     def matrix(method, scene, seed):
-        return (f"matrix {method} {scene} seed {seed}",
-                [PY, "-m", "graf.cli.train", "experiment=cross_scene_matrix", *models[method], f"scene={scene}",
-                 f"seed={seed}", f"study_steps={steps[method]}", *common,
-                 f"hydra.sweep.dir={work / 'cross_scene_matrix_paper'}"])
+        return (
+            f"matrix {method} {scene} seed {seed}",
+            [
+                PY,
+                "-m",
+                "graf.cli.train",
+                "experiment=cross_scene_matrix",
+                *models[method],
+                f"scene={scene}",
+                f"seed={seed}",
+                f"study_steps={steps[method]}",
+                *common,
+                f"hydra.sweep.dir={work / 'cross_scene_matrix_paper'}",
+            ],
+        )
 
     def nc(method, scene, seed, L):
         same = {"conference_v1": "conference_v2,conference_v3", "office_v1": "office_v2,office_v3"}[scene]
-        return (f"neighbor_count {method} {scene} seed {seed} L {L}",
-                [PY, "-m", "graf.cli.train", "experiment=neighbor_count", *models[method], f"scene={scene}",
-                 f"seed={seed}", f"study_steps={steps[method]}", f"eval_scene={same}", f"neighbors.L={L}", *common,
-                 f"hydra.sweep.dir={work / 'neighbor_count_paper'}"])
+        return (
+            f"neighbor_count {method} {scene} seed {seed} L {L}",
+            [
+                PY,
+                "-m",
+                "graf.cli.train",
+                "experiment=neighbor_count",
+                *models[method],
+                f"scene={scene}",
+                f"seed={seed}",
+                f"study_steps={steps[method]}",
+                f"eval_scene={same}",
+                f"neighbors.L={L}",
+                *common,
+                f"hydra.sweep.dir={work / 'neighbor_count_paper'}",
+            ],
+        )
 
     scenes = ["conference_v1", "office_v1"]
     for m in ("graf", "knn_dl", "nerf2"):
@@ -175,8 +241,12 @@ def study_jobs(args, choice: dict, data: Path, work: Path, extra: list[str]) -> 
     for Ls in ("2,4,10", "1,6,8,16"):
         jobs += [nc(m, s, seed, Ls) for seed in (0, 1, 2) for m in ("graf", "knn_dl") for s in scenes]
     if args.tiny:  # one job of each kind
-        keep = ("matrix graf conference_v1 seed 0", "matrix knn_dl conference_v1 seed 0",
-                "matrix nerf2 conference_v1 seed 0", "neighbor_count graf conference_v1 seed 0 L 2,4,10")
+        keep = (
+            "matrix graf conference_v1 seed 0",
+            "matrix knn_dl conference_v1 seed 0",
+            "matrix nerf2 conference_v1 seed 0",
+            "neighbor_count graf conference_v1 seed 0 L 2,4,10",
+        )
         jobs = [j for j in jobs if j[0] in keep]
     return jobs
 
@@ -201,8 +271,12 @@ def run_queue(args, jobs, work: Path) -> list[dict]:
             name, cmd = ready[0]
             queue.remove((name, cmd))
             slug = name.replace(" ", "_").replace(",", "-")
-            running[name] = (subprocess.Popen(cmd, stdout=open(work / "logs" / f"{slug}.log", "w"),
-                                              stderr=subprocess.STDOUT, cwd=ROOT), time.time())
+            running[name] = (
+                subprocess.Popen(
+                    cmd, stdout=open(work / "logs" / f"{slug}.log", "w"), stderr=subprocess.STDOUT, cwd=ROOT
+                ),
+                time.time(),
+            )
             busy_bases.add(name.rsplit(" L ", 1)[0])
             log(f"start: {name}")
         time.sleep(2)
@@ -231,9 +305,10 @@ def main() -> int:
     ap.add_argument("--pack", type=Path, default=ROOT / ".paper_gpu")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--work", type=Path, default=Path("/tmp/paper_gpu"))
-    ap.add_argument("--deadline", type=float, default=560.0, help="seconds from the start: everything stops")
-    ap.add_argument("--curves-deadline", type=float, default=250.0)
+    ap.add_argument("--deadline", type=float, default=520.0, help="seconds from the start: everything stops")
+    ap.add_argument("--curves-deadline", type=float, default=240.0)
     ap.add_argument("--curves-until", type=int, default=3000)
+    ap.add_argument("--curves-steps", default="[300,1000,3000]", help="the curves' evaluation points")
     ap.add_argument("--workers", type=int, default=10)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--min-job-s", type=float, default=45.0, help="no job starts with less time left")
@@ -258,15 +333,21 @@ def main() -> int:
         choice = choose_all(args, cur["rows"])
         summary["choice"] = choice
         (args.work / "choice.json").write_text(json.dumps(choice, indent=1))
-        log(f"choice: {choice['mode']}, GRaF {choice['graf']['steps']} steps ({choice['graf']['why']}), "
-            f"KNN-DL {choice['knn_dl']['steps']} ({choice['knn_dl']['why']})")
+        log(
+            f"choice: {choice['mode']}, GRaF {choice['graf']['steps']} steps ({choice['graf']['why']}), "
+            f"KNN-DL {choice['knn_dl']['steps']} ({choice['knn_dl']['why']})"
+        )
         t = time.time()
         summary["jobs"] = run_queue(args, study_jobs(args, choice, data, args.work, extra), args.work)
         summary["stages"]["studies_s"] = round(time.time() - t, 1)
         for study in ("cross_scene_matrix_paper", "neighbor_count_paper"):
             if (args.work / study).exists():
-                r = subprocess.run([PY, "-m", "graf.cli.report", f"runs={args.work / study}"], capture_output=True,
-                                   text=True, timeout=120)
+                r = subprocess.run(
+                    [PY, "-m", "graf.cli.report", f"runs={args.work / study}"],
+                    capture_output=True,
+                    text=True,
+                    timeout=120,
+                )
                 log(f"report {study}: exit {r.returncode}")
                 (args.work / "logs" / f"report_{study}.log").write_text(r.stdout + r.stderr)
     except Exception as e:  # noqa: BLE001  (whatever finished still goes back)

@@ -42,7 +42,9 @@ def spectra_sha256(spectra: np.ndarray) -> str:
     return hashlib.sha256(np.ascontiguousarray(spectra, dtype=np.uint8).tobytes()).hexdigest()
 
 
-def rebuild_spectra(channels: np.ndarray, antenna_positions: np.ndarray, wavelength: float) -> tuple[np.ndarray, np.ndarray]:
+def rebuild_spectra(
+    channels: np.ndarray, antenna_positions: np.ndarray, wavelength: float
+) -> tuple[np.ndarray, np.ndarray]:
     """uint8 spectra ``[N, 90, 360]`` from channels ``[N, K]`` (on the CPU, as the simulator computes them), and the
     flat indices of their pixels within ``TIE`` of a rounding tie."""
     bartlett = Bartlett(np.asarray(antenna_positions, np.float64), float(wavelength))
@@ -134,8 +136,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{args[2]}: spectra sha256 {slim(args[1], args[2])}")
         return 0
     r = restore(args[1], args[2])
-    print(f"{args[2]}: {r['n']} spectra rebuilt, sha256 {r['sha256']} ({'matches' if r['match'] else 'DIFFERS from'} "
-          f"the original {r['expected']})")
+    print(
+        f"{args[2]}: {r['n']} spectra rebuilt, sha256 {r['sha256']} ({'matches' if r['match'] else 'DIFFERS from'} "
+        f"the original {r['expected']})"
+    )
     return 0 if r["match"] else 1
 
 
