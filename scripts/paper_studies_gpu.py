@@ -240,6 +240,7 @@ def study_jobs(args, choice: dict, data: Path, work: Path, extra: list[str]) -> 
         jobs += [matrix(m, s, seed) for m in ("graf", "knn_dl") for s in scenes]
     for Ls in ("2,4,10", "1,6,8,16"):
         jobs += [nc(m, s, seed, Ls) for seed in (0, 1, 2) for m in ("graf", "knn_dl") for s in scenes]
+    jobs = [j for j in jobs if j[0].split()[0] in args.studies and j[0].split()[1] in args.methods]
     if args.tiny:  # one job of each kind
         keep = (
             "matrix graf conference_v1 seed 0",
@@ -300,7 +301,21 @@ def pack_out(work: Path, out: Path, summary: dict) -> None:
     (out / "log.txt").write_text("\n".join(LOG) + "\n")
 
 
-def main() -> int:
+def report(args) -> None:
+    """graf-report over each study's folder (the tables and intervals of the jobs that finished)."""
+    for study in ("cross_scene_matrix_paper", "neighbor_count_paper"):
+        if (args.work / study).exists():
+            r = subprocess.run(
+                [PY, "-m", "graf.cli.report", f"runs={args.work / study}"],
+                capture_output=True,
+                text=True,
+                timeout=args.report_timeout,
+            )
+            log(f"report {study}: exit {r.returncode}")
+            (args.work / "logs" / f"report_{study}.log").write_text(r.stdout + r.stderr)
+
+
+def parse_args() -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pack", type=Path, default=ROOT / ".paper_gpu")
     ap.add_argument("--out", type=Path, required=True)
@@ -313,8 +328,17 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--min-job-s", type=float, default=45.0, help="no job starts with less time left")
     ap.add_argument("--fallback-steps", type=int, default=1000)
+    ap.add_argument("--no-curves", action="store_true", help="no curves: --mode and --fallback-steps decide")
+    ap.add_argument("--mode", default="ray_weights", choices=MODES, help="GRaF's mode with --no-curves")
+    ap.add_argument("--studies", nargs="+", default=["matrix", "neighbor_count"], choices=["matrix", "neighbor_count"])
+    ap.add_argument("--methods", nargs="+", default=["graf", "knn_dl", "nerf2"], choices=["graf", "knn_dl", "nerf2"])
+    ap.add_argument("--report-timeout", type=float, default=120.0)
     ap.add_argument("--tiny", action="store_true", help="toy sizes on whatever device there is (a smoke run)")
-    args = ap.parse_args()
+    return ap.parse_args()
+
+
+def main() -> int:
+    args = parse_args()
     sys.path.insert(0, str(ROOT / "src"))
     import torch
 
@@ -327,10 +351,14 @@ def main() -> int:
         summary["catalog"] = restore(args.pack, data)
         summary["stages"]["data_s"] = round(time.time() - t, 1)
         t = time.time()
-        cur = curves(args, data, args.work, extra)
-        summary["stages"]["curves_s"] = round(time.time() - t, 1)
-        summary["curves_stopped"] = cur["stopped"]
-        choice = choose_all(args, cur["rows"])
+        if args.no_curves:  # the mode and budget fixed before the run (--mode, --fallback-steps)
+            fixed = {"steps": args.fallback_steps, "why": "fixed before the run (--no-curves)"}
+            choice = {"mode": args.mode, "modes_compared": [], "table": [], "graf": fixed, "knn_dl": fixed}
+        else:
+            cur = curves(args, data, args.work, extra)
+            summary["stages"]["curves_s"] = round(time.time() - t, 1)
+            summary["curves_stopped"] = cur["stopped"]
+            choice = choose_all(args, cur["rows"])
         summary["choice"] = choice
         (args.work / "choice.json").write_text(json.dumps(choice, indent=1))
         log(
@@ -340,16 +368,7 @@ def main() -> int:
         t = time.time()
         summary["jobs"] = run_queue(args, study_jobs(args, choice, data, args.work, extra), args.work)
         summary["stages"]["studies_s"] = round(time.time() - t, 1)
-        for study in ("cross_scene_matrix_paper", "neighbor_count_paper"):
-            if (args.work / study).exists():
-                r = subprocess.run(
-                    [PY, "-m", "graf.cli.report", f"runs={args.work / study}"],
-                    capture_output=True,
-                    text=True,
-                    timeout=120,
-                )
-                log(f"report {study}: exit {r.returncode}")
-                (args.work / "logs" / f"report_{study}.log").write_text(r.stdout + r.stderr)
+        report(args)
     except Exception as e:  # noqa: BLE001  (whatever finished still goes back)
         log(f"error: {type(e).__name__}: {e}")
         summary["error"] = f"{type(e).__name__}: {e}"

@@ -21,11 +21,12 @@ from __future__ import annotations
 
 import logging
 import math
+from typing import TYPE_CHECKING
 
-import optuna
 from lightning.pytorch.callbacks import Callback
 
-from graf.search.pruners import make_pruner
+if TYPE_CHECKING:
+    import optuna
 
 log = logging.getLogger("graf")
 
@@ -48,6 +49,8 @@ class OptunaPruning(Callback):
                 self._warned = True
             return
         value, step = float(value), int(trainer.global_step)
+        import optuna  # lazy: a run that is no trial (the callback is None) never needs Optuna installed
+
         if not math.isfinite(value):  # the synced metric: every rank of a data-parallel run stops together
             raise optuna.TrialPruned(f"{self.monitor} is {value} at step {step}")
         # rank 0 reports and asks the pruner; the other ranks of a data-parallel run take its decision, so that
@@ -75,6 +78,10 @@ def pruning_callback(conf) -> OptunaPruning | None:
     (``monitor: null``).  The ``callbacks`` group composes it (``callbacks.optuna_pruning``)."""
     if not conf or not conf.get("monitor"):
         return None
+    import optuna  # lazy: only a trial's run needs Optuna (a GPU machine without it runs everything else)
+
+    from graf.search.pruners import make_pruner
+
     pruner = make_pruner(dict(conf.get("pruner") or {"name": "median"}))  # the sweeper's: the job decides with it
     study = optuna.load_study(study_name=str(conf.study_name), storage=str(conf.storage), pruner=pruner)
     if len(study.directions) > 1:
