@@ -48,7 +48,7 @@ def _study(root, shift_graf, shift_dl, sim_num_tx=None, L_values=(None,)):
         for L in L_values:
             lift = 0.0 if L in (None, 4, 10) else -1.5  # L = 2 worse by 1.5 dB
             for seed in (0, 1, 2):
-                for method, shift in (("graf", shift_graf), ("knn-dl", shift_dl)):
+                for method, shift in ((GRAF, shift_graf), ("knn-dl", shift_dl)):
                     values = {}
                     for s in tests:
                         noise = rng.normal(0.0, 0.3, len(ids))
@@ -64,6 +64,9 @@ def _claims():
     return OmegaConf.to_container(cfg.claims, resolve=True)
 
 
+GRAF = _claims()[0]["method"]  # the studies' GRaF method name the ledger reads (conf/claims.yaml method)
+
+
 def test_the_ledger_is_rebuilt_from_records_with_the_verdicts_their_intervals_give(tmp_path):
     runs = tmp_path / "multirun" / "cross_scene_matrix"
     _study(runs, shift_graf=0.6, shift_dl=0.1)
@@ -71,11 +74,12 @@ def test_the_ledger_is_rebuilt_from_records_with_the_verdicts_their_intervals_gi
     out.mkdir(parents=True)
     rows = write_intervals(runs, out)
     cells = {(r["eval_scene"], r["method"]) for r in rows if r["metric"] == "psnr"}
-    assert ("conference_v2", "graf") in cells and all(r["n_seeds"] == 3 for r in rows)
+    assert ("conference_v2", GRAF) in cells and all(r["n_seeds"] == 3 for r in rows)
     nc_runs = tmp_path / "multirun" / "neighbor_count"
     _study(nc_runs, shift_graf=0.0, shift_dl=0.0, L_values=(2, 4, 10))
-    (tmp_path / "sweeps" / "neighbor_count_paper").mkdir(parents=True)
-    write_intervals(nc_runs, tmp_path / "sweeps" / "neighbor_count_paper")
+    nc_record = tmp_path / {c["id"]: c for c in _claims()}["table5_L2_to_L4"]["record"]
+    nc_record.parent.mkdir(parents=True)
+    write_intervals(nc_runs, nc_record.parent)
 
     table = ledger(_claims(), tmp_path)
     by_id = {r["id"]: r for r in table}
