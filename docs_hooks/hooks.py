@@ -210,7 +210,24 @@ def on_config(config):
     raise PluginError(f"docs: mkdocs.yml's nav has no {API_NAV!r} entry for the generated API pages")
 
 
+# The search ranks the pages a reader wants above the API reference, whose many short entries (one per function)
+# otherwise come first for "neighbor" or "KNN": Material's per-page search boost (page.meta search.boost).
+SEARCH_BOOST = {"neighbors.md": 4.0, "methods/": 3.0, "scaling-out.md": 2.0, "data.md": 2.0, "api/": 0.25}
+
+
+def search_boost(src_uri: str) -> float | None:
+    """The search boost of the page at ``src_uri`` (None: Material's default, 1)."""
+    for prefix, boost in SEARCH_BOOST.items():
+        if src_uri == prefix or (prefix.endswith("/") and src_uri.startswith(prefix)):
+            return boost
+    return None
+
+
 def on_page_markdown(markdown: str, page, config, files) -> str:
+    boost = search_boost(page.file.src_uri)
+    if boost is not None:
+        page.meta.setdefault("search", {}).setdefault("boost", boost)
+
     def expand(m: re.Match) -> str:
         kind, arg = m.group(1), m.group(2)
         makers = {"study": study, "search": search, "include": include, "page": page_file, "choose": choose,

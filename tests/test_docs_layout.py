@@ -9,6 +9,7 @@ independently (``rglob``, ``tomllib``), and check the generator's rules on a sma
 from __future__ import annotations
 
 import ast
+import json
 import os
 import re
 import shutil
@@ -178,6 +179,12 @@ def test_the_site_builds_strictly_without_the_hooks_in_it(tmp_path):
     assert 'id="graf.run.evaluation"' in (site / "api" / "run" / "index.html").read_text()
     problems = site_problems(site)
     assert not problems, "\n".join(problems[:20])
+    # the search ranks the pages a reader wants above the API reference's many short entries
+    boosts = {
+        d["location"]: d.get("boost", 1)
+        for d in json.loads((site / "search" / "search_index.json").read_text())["docs"]
+    }
+    assert boosts["neighbors/"] > 1 and boosts["methods/knn/"] > 1 and boosts["api/models/"] < 1
 
 
 class _Page(HTMLParser):
