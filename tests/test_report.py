@@ -167,3 +167,24 @@ def test_a_folder_without_results_is_a_clear_error(tmp_path):
         make_report(tmp_path, tmp_path, REFERENCE)
     with pytest.raises(ConfigError, match="does not exist"):
         make_report(tmp_path / "nope", tmp_path, REFERENCE)
+
+
+def test_a_published_study_s_figures_are_redrawn_from_its_own_records(tmp_path):
+    """scripts/redraw_study_figures.py: the figures again from rows.json and report.json alone (no job folders),
+    the records untouched."""
+    import subprocess
+    import sys
+
+    for L, psnr in ((2, 10.0), (4, 12.0), (10, 20.0)):
+        _result(tmp_path / "runs" / f"L{L}", "graf", ["conference_v1"], [("conference_v2", psnr, GHZ24)], L=L)
+    out = tmp_path / "published"
+    make_report(tmp_path / "runs", out, REFERENCE)
+    records = {f: (out / f).read_bytes() for f in ("rows.json", "report.json", "report.md")}
+    (out / "vs_L.png").unlink()
+    root = Path(__file__).resolve().parents[1]
+    p = subprocess.run([sys.executable, str(root / "scripts" / "redraw_study_figures.py"), str(out), str(tmp_path)],
+                       capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert (out / "vs_L.png").stat().st_size > 5000 and f"{out}: vs_L.png" in p.stdout
+    assert "not a graf-report folder" in p.stdout  # tmp_path itself holds no report
+    assert {f: (out / f).read_bytes() for f in records} == records

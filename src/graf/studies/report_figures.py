@@ -49,21 +49,27 @@ def matrix_figures(rows: list[dict], out: Path) -> dict:
             )
             for (i, j), v in np.ndenumerate(M):
                 if not np.isnan(v):
-                    ax.text(j, i, spec.format(v), ha="center", va="center", fontsize=7, color="w")
+                    ax.text(j, i, spec.format(v), ha="center", va="center", fontsize=7, color=_ink(im, v))
             ax.set_xticks(range(len(ev)), ev, rotation=45, ha="right", fontsize=7)
             ax.set_yticks(range(len(ylabels)), ylabels, fontsize=7)
             ax.set_title(m, fontsize=9)
         unit = {"PSNR": "test PSNR (dB), higher is better", "SSIM": "test SSIM, higher is better"}.get(
-            name, f"test {name}, lower is better (colour map reversed: better is yellow)"
+            name, f"test {name}, lower is better\n(map reversed: yellow is better)"
         )
-        fig.colorbar(im, ax=axes[0].tolist(), shrink=0.8, label=f"{unit}; one scale for every method")
-        fig.suptitle(f"test {name}: trained on (rows) x tested on (columns)")
+        fig.colorbar(im, ax=axes[0].tolist(), shrink=0.9, label=unit)
+        fig.suptitle(f"test {name}: trained on (rows) x tested on (columns), one colour scale")
         path = out / f"matrix_{name.lower()}.png"
         fig.savefig(path, dpi=110)
         plt.close(fig)
         written.append(path.name)
     atomic_write_json(out / "matrix.json", mats)
     return {"figures": written, "matrices": mats}
+
+
+def _ink(im, value: float) -> str:
+    """Black on a light cell of the heatmap ``im``, white on a dark one."""
+    r, g, b, _ = im.cmap(im.norm(value))
+    return "k" if 0.299 * r + 0.587 * g + 0.114 * b > 0.5 else "w"
 
 
 CURVE_UNITS = {"PSNR": "PSNR (dB), higher is better", "SSIM": "SSIM, higher is better",
