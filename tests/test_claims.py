@@ -40,10 +40,10 @@ def _job(folder, method, seed, trained_on, values, L=None, sim_num_tx=None):
     (folder / "results.json").write_text(json.dumps(result))
 
 
-def _study(root, shift_graf, shift_dl, sim_num_tx=None, L_values=(None,)):
+def _study(root, shift_graf, shift_dl, sim_num_tx=None, L_values=(None,), scenes=SCENES):
     rng = np.random.default_rng(0)
     ids = list(range(100, 220))
-    for trained, tests in SCENES.items():
+    for trained, tests in scenes.items():
         base = {s: rng.normal(15.0, 3.0, len(ids)) for s in tests}
         for L in L_values:
             lift = 0.0 if L in (None, 4, 10) else -1.5  # L = 2 worse by 1.5 dB
@@ -116,3 +116,30 @@ def test_a_level_or_cut_down_study_is_not_called_a_win(tmp_path):
     by_id = {r["id"]: r for r in ledger(_claims(), cut)}
     assert by_id["cross_scene_vs_knn"]["verdict"] == "not comparable"
     assert "150 positions" in by_id["cross_scene_vs_knn"]["reason"]
+
+
+def test_a_same_family_claim_reads_its_pairs_alone(tmp_path):
+    """conference_v1 -> office_v2 is zero-shot but across families: GRaF behind KNN-DL there must not refute the
+    same-family claim, and the platform column names each pair."""
+    runs = tmp_path / "multirun" / "cross_scene_matrix"
+    _study(runs, shift_graf=0.6, shift_dl=0.1)
+    _study(runs / "cross", shift_graf=-0.6, shift_dl=0.1, scenes={"conference_v1": ["office_v2"]})
+    out = tmp_path / "sweeps" / "cross_scene_matrix_paper"
+    out.mkdir(parents=True)
+    write_intervals(runs, out)
+    by_id = {r["id"]: r for r in ledger(_claims(), tmp_path)}
+    assert by_id["cross_scene_vs_knn_dl"]["verdict"] == "holds"
+    assert "office_v1 -> office_v3: +0.5" in by_id["cross_scene_vs_knn_dl"]["platform"]
+    assert "-> office_v2: -" not in by_id["cross_scene_vs_knn_dl"]["platform"].replace("office_v1 -> office_v2", "")
+    assert by_id["cross_scene_vs_knn"]["verdict"] == "refuted"  # every zero-shot cell: conference_v1 -> office_v2
+
+
+def test_the_published_ledger_is_what_the_published_records_give():
+    """sweeps/claims/claims.csv (the docs page includes its .md) is graf-claims over the repository's records: a
+    record changed without re-running graf-claims fails here."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    with open(root / "sweeps" / "claims" / "claims.csv", newline="") as f:
+        published = list(csv.DictReader(f))
+    assert published == ledger(_claims(), root)

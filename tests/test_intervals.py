@@ -101,3 +101,14 @@ def test_per_spectrum_records_round_trip_and_predictions_hash_by_content(tmp_pat
     (tmp_path / "bad.csv.gz").write_bytes(gzip.compress(b"eval_scene,method,id\nx,y,1\n"))
     with pytest.raises(ValueError, match="bad.csv.gz: not a per-spectrum record"):
         read_per_spectrum(tmp_path / "bad.csv.gz")
+
+
+def test_a_baseline_tested_in_two_jobs_may_differ_by_float_rounding_only():
+    from graf.studies.report_intervals import same_baseline
+
+    ids = ["1", "2", "3"]
+    a = {"psnr": dict(zip(ids, (22.5, 23.1, 21.0))), "ssim": dict(zip(ids, (0.8, 0.81, 0.79)))}
+    gpu = {"psnr": {i: v + 3.8e-6 for i, v in a["psnr"].items()}, "ssim": dict(a["ssim"])}  # measured: GPU vs CPU
+    assert same_baseline(a, gpu)
+    assert not same_baseline(a, {"psnr": {**a["psnr"], "2": 23.11}, "ssim": a["ssim"]})  # 0.01 dB: another run
+    assert not same_baseline(a, {"psnr": {"1": 22.5, "2": 23.1}, "ssim": {"1": 0.8, "2": 0.81}})  # another subset

@@ -74,7 +74,11 @@ def _load(root: Path, rel: str) -> dict | None:
         raise ConfigError(f"{path}: not readable JSON ({exc})") from None
 
 
-def _match(row: dict, cell: dict) -> bool:
+def _match(row: dict, cell: dict | list) -> bool:
+    """A row of the record is in the claim's ``cell``: every key's value (one, or any of a list); a list of such
+    dicts is any of them (pairs: ``[{trained_on: a, eval_scene: [b, c]}, ...]``)."""
+    if isinstance(cell, list):
+        return any(_match(row, c) for c in cell)
     for k, want in cell.items():
         have = row.get(k)
         if isinstance(want, list):
@@ -94,8 +98,9 @@ def judge_paired(claim: dict, data: dict) -> dict:
     comps = [(r, c) for r, c in comps if c]
     if not comps:
         return {"verdict": "not reproduced", "reason": "no such comparison in the record"}
-    parts = [f"{r['eval_scene']}: {c['diff']:+.2f}" for r, c in comps]
-    intervals = [f"{r['eval_scene']}: [{c['low']:+.2f}, {c['high']:+.2f}]" for r, c in comps]
+    name = lambda r: f"{r['trained_on']} -> {r['eval_scene']}" if r.get("trained_on") else r["eval_scene"]  # noqa: E731
+    parts = [f"{name(r)}: {c['diff']:+.2f}" for r, c in comps]
+    intervals = [f"{name(r)}: [{c['low']:+.2f}, {c['high']:+.2f}]" for r, c in comps]
     verdicts = [c["verdict"] for _, c in comps]
     if all(v == "ahead" for v in verdicts):
         verdict, reason = "holds", f"ahead in all {len(verdicts)} cells (interval excludes 0)"
