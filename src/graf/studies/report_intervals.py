@@ -162,14 +162,19 @@ def write_intervals(runs: Path, out: Path) -> list[dict] | None:
     text = io.StringIO()
     csv.writer(text, lineterminator="\n").writerows([head, *body])
     atomic_write_bytes(out / "intervals.csv", text.getvalue().encode())
-    md = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)] + [
-        "| " + " | ".join(map(str, b)) + " |" for b in body
+    # the markdown (a docs page includes it) leaves out the columns with one value in every row and says them once
+    same = [i for i, h in enumerate(head) if i < len(CELL) + 3 and len({str(b[i]) for b in body}) == 1 and body]
+    keep = [i for i in range(len(head)) if i not in same]
+    md = ["| " + " | ".join(head[i] for i in keep) + " |", "|" + "---|" * len(keep)] + [
+        "| " + " | ".join(str(b[i]) for i in keep) + " |" for b in body
     ]
     note = (
         "PSNR (dB) per cell: mean and median over the test spectra (seed-averaged), the range of the seeds' means, "
         "and each difference to KNN and to KNN-DL with its 95% interval (paired bootstrap over spectra, widened to "
         "include every seed's difference) and verdict (graf.studies.intervals)."
     )
+    if same:
+        note += " Every row: " + ", ".join(f"{head[i]} {body[0][i]}" for i in same) + "."
     changes = [c for c in record["L_changes"] if c["metric"] == "psnr" and c["L_from"] == 2]
     if changes:
         md += ["", "PSNR change from L = 2, pooled over the trained-on / test-scene pairs (paired by spectrum):", ""]
