@@ -156,7 +156,8 @@ def test_a_studys_matrices_share_one_scale_across_methods(tmp_path, monkeypatch)
     psnr = next(f for f in figs if "PSNR" in f._suptitle.get_text())
     clims = {ax.images[0].get_clim() for ax in psnr.axes if ax.images}
     assert clims == {(16.0, 20.0)}  # graf's and knn's cells on the same scale
-    assert any("one scale for every method" in ax.get_ylabel() for ax in psnr.axes)
+    assert "one colour scale" in psnr._suptitle.get_text()  # said once, in the title
+    assert any("higher is better" in ax.get_ylabel() for ax in psnr.axes)  # the colour bar's unit and direction
     assert json.loads((tmp_path / "matrix.json").read_text())["knn"]["PSNR"]["values"][0][0] == 16.0
 
 
