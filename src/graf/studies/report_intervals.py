@@ -70,7 +70,9 @@ def collect_spectra(runs: Path) -> tuple[dict, list]:
 def comparisons(cells: dict, metrics: tuple[str, ...] = METRICS) -> list[dict]:
     """One row per (cell, trained method, metric): its summary and its paired differences to the references."""
     rows = []
-    for key, methods in sorted(cells.items()):
+    # L in numeric order (2, 4, 10, not "10", "2", "4"); the bootstrap is seeded per comparison, so order is all
+    natural = lambda item: tuple((0, int(x), "") if x.isdigit() else (1, 0, x) for x in item[0])  # noqa: E731
+    for key, methods in sorted(cells.items(), key=natural):
         cell = dict(zip(CELL, key))
         for method, seeds in sorted(methods.items()):
             if method == "knn":
