@@ -100,20 +100,23 @@ def test_the_ledger_is_rebuilt_from_records_with_the_verdicts_their_intervals_gi
     assert "**holds**" in (tmp_path / "sweeps" / "claims" / "claims.md").read_text()
 
 
+def _matrix_ledger(runs, root) -> dict:
+    """The ledger's rows by id, with ``runs``' intervals published as the paper-density matrix under ``root``."""
+    out = root / "sweeps" / "cross_scene_matrix_paper"
+    out.mkdir(parents=True)
+    write_intervals(runs, out)
+    return {r["id"]: r for r in ledger(_claims(), root)}
+
+
 def test_a_level_or_cut_down_study_is_not_called_a_win(tmp_path):
     runs = tmp_path / "multirun" / "cross_scene_matrix"
     _study(runs, shift_graf=0.02, shift_dl=0.0)
-    out = tmp_path / "sweeps" / "cross_scene_matrix_paper"
-    out.mkdir(parents=True)
-    write_intervals(runs, out)
-    by_id = {r["id"]: r for r in ledger(_claims(), tmp_path)}
+    by_id = _matrix_ledger(runs, tmp_path)
     assert by_id["cross_scene_vs_knn_dl"]["verdict"] == "not reproduced"
     assert "interval includes 0" in by_id["cross_scene_vs_knn_dl"]["reason"]
     cut = tmp_path / "cut"
     _study(cut / "multirun", shift_graf=0.6, shift_dl=0.1, sim_num_tx=150)
-    (cut / "sweeps" / "cross_scene_matrix_paper").mkdir(parents=True)
-    write_intervals(cut / "multirun", cut / "sweeps" / "cross_scene_matrix_paper")
-    by_id = {r["id"]: r for r in ledger(_claims(), cut)}
+    by_id = _matrix_ledger(cut / "multirun", cut)
     assert by_id["cross_scene_vs_knn"]["verdict"] == "not comparable"
     assert "150 positions" in by_id["cross_scene_vs_knn"]["reason"]
 
@@ -124,10 +127,7 @@ def test_a_same_family_claim_reads_its_pairs_alone(tmp_path):
     runs = tmp_path / "multirun" / "cross_scene_matrix"
     _study(runs, shift_graf=0.6, shift_dl=0.1)
     _study(runs / "cross", shift_graf=-0.6, shift_dl=0.1, scenes={"conference_v1": ["office_v2"]})
-    out = tmp_path / "sweeps" / "cross_scene_matrix_paper"
-    out.mkdir(parents=True)
-    write_intervals(runs, out)
-    by_id = {r["id"]: r for r in ledger(_claims(), tmp_path)}
+    by_id = _matrix_ledger(runs, tmp_path)
     assert by_id["cross_scene_vs_knn_dl"]["verdict"] == "holds"
     assert "office_v1 -> office_v3: +0.5" in by_id["cross_scene_vs_knn_dl"]["platform"]
     assert "-> office_v2: -" not in by_id["cross_scene_vs_knn_dl"]["platform"].replace("office_v1 -> office_v2", "")
