@@ -159,9 +159,10 @@ def choose(path: str) -> str:
         rows = list(csv.DictReader(fh))
     modes = ["pooled", "ray", "ray_knn", "ray_weights"]
     out = []
-    for regime in sorted({r["regime"] for r in rows if r["method"] in modes}) + [None]:
+    ready, waiting = published.regimes_ready(rows, modes)
+    for regime in ready + [None]:
         try:
-            chosen, table = published.choose([r for r in rows if regime is None or r["regime"] == regime], modes)
+            chosen, table = published.choose([r for r in rows if r["regime"] in ready and regime in (None, r["regime"])], modes)
         except UserError as e:
             raise PluginError(f"docs: {path}: {e}") from e
         body = [
@@ -171,6 +172,8 @@ def choose(path: str) -> str:
         ]  # fmt: skip
         head = ["regime", "step", "mode", "val PSNR", "val SSIM", "val LPIPS", "val reliance dB", "mean rank"]
         out.append(f"**{regime or 'all regimes together'}**: chosen `{chosen}`\n\n" + published.md(head, body))
+    for regime, missing in waiting.items():
+        out.append(f"**{regime}**: in progress, no choice yet (no point of {', '.join(f'`{m}`' for m in missing)})")
     return "\n\n".join(out) + f"\n\n*Generated from `{path}` by `scripts/choose_graf.py`.*"
 
 

@@ -4,7 +4,7 @@ test).
 The rule: among the GRaF modes, at the largest step that every mode has reached in a regime, rank the modes on
 each validation figure (PSNR, SSIM, LPIPS; higher PSNR and SSIM, lower LPIPS is better); the chosen mode has
 the best mean rank over the figures of the regimes considered, ties broken by the higher mean PSNR.  It prints
-the choice per regime and over all regimes together: the studies (cross-scene, on simulated layouts) take
+the choice per regime and over all regimes together (a regime where some mode has no point yet is named and left out): the studies (cross-scene, on simulated layouts) take
 regime (b)'s choice, ``cross_family``, the regime they run in; the main job takes regime (a)'s, ``rfid_sparse``.
 The rule is :func:`graf.studies.published.choose` (the site's table of the choice uses it too).
 
@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 
 from graf.errors import UserError
-from graf.studies.published import choose
+from graf.studies.published import choose, regimes_ready
 
 
 def main() -> None:
@@ -32,10 +32,12 @@ def main() -> None:
         sys.exit(f"error: {path}: no such curves file (run graf-curves first)")
     with path.open() as f:
         rows = list(csv.DictReader(f))
-    regimes = sorted({r["regime"] for r in rows if r["method"] in args.modes})
+    regimes, waiting = regimes_ready(rows, args.modes)
+    for regime, missing in waiting.items():
+        print(f"{regime}: in progress, no choice yet (no point of {', '.join(missing)})")
     for regime in regimes + [None]:
         try:
-            chosen, table = choose([r for r in rows if regime is None or r["regime"] == regime], args.modes)
+            chosen, table = choose([r for r in rows if r["regime"] in regimes and regime in (None, r["regime"])], args.modes)
         except UserError as e:
             print(f"error: {path}: {e}", file=sys.stderr)
             sys.exit(2)

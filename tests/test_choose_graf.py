@@ -52,3 +52,17 @@ def test_a_mode_missing_from_a_regime_is_an_error():
             [_row("a", "x", 100, 20, 0.7, 0.3), _row("b", "y", 100, 20, 0.7, 0.3), _row("a", "y", 100, 20, 0.7, 0.3)],
             ["x", "y"],
         )
+
+
+def test_a_regime_in_progress_is_named_with_its_missing_modes_and_kept_out_of_the_choice():
+    rows = [
+        _row("done", "x", 100, 20, 0.7, 0.3),
+        _row("done", "y", 100, 21, 0.8, 0.2),
+        _row("running", "x", 100, 30, 0.9, 0.1),  # y has no point here yet
+    ]
+    ready, waiting = choose_graf.regimes_ready(rows, ["x", "y"])
+    assert ready == ["done"]
+    assert waiting == {"running": ["y"]}
+    chosen, table = choose_graf.choose([r for r in rows if r["regime"] in ready], ["x", "y"])
+    assert chosen == "y"  # the running regime's better x point does not count
+    assert {t["regime"] for t in table} == {"done"}

@@ -198,6 +198,18 @@ def study_tables(report: dict, rows: list[dict]) -> list[str]:
     return parts
 
 
+def regimes_ready(rows: list[dict], modes: list[str]) -> tuple[list[str], dict[str, list[str]]]:
+    """``rows`` of curves.csv -> (the regimes where every one of ``modes`` has a point, so :func:`choose` can rank
+    them; {regime: the modes still without a point} for the others, curves still in progress)."""
+    have = defaultdict(set)
+    for r in rows:
+        if r["method"] in modes:
+            have[r["regime"]].add(r["method"])
+    ready = sorted(reg for reg, ms in have.items() if len(ms) == len(set(modes)))
+    waiting = {reg: [m for m in modes if m not in ms] for reg, ms in sorted(have.items()) if reg not in ready}
+    return ready, waiting
+
+
 def choose(rows: list[dict], modes: list[str]) -> tuple[str, list[dict]]:
     """``rows`` of curves.csv -> (chosen mode, one record per (mode, regime) it compared).
 
