@@ -162,7 +162,8 @@ def choose(path: str) -> str:
     ready, waiting = published.regimes_ready(rows, modes)
     for regime in ready + [None]:
         try:
-            chosen, table = published.choose([r for r in rows if r["regime"] in ready and regime in (None, r["regime"])], modes)
+            mine = [r for r in rows if r["regime"] in ready and regime in (None, r["regime"])]
+            chosen, table = published.choose(mine, modes)
         except UserError as e:
             raise PluginError(f"docs: {path}: {e}") from e
         body = [

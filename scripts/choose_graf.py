@@ -4,8 +4,9 @@ test).
 The rule: among the GRaF modes, at the largest step that every mode has reached in a regime, rank the modes on
 each validation figure (PSNR, SSIM, LPIPS; higher PSNR and SSIM, lower LPIPS is better); the chosen mode has
 the best mean rank over the figures of the regimes considered, ties broken by the higher mean PSNR.  It prints
-the choice per regime and over all regimes together (a regime where some mode has no point yet is named and left out): the studies (cross-scene, on simulated layouts) take
-regime (b)'s choice, ``cross_family``, the regime they run in; the main job takes regime (a)'s, ``rfid_sparse``.
+the choice per regime and over all regimes together (a regime where some mode has no point yet is named and
+left out).  The 150-position studies took regime (b)'s choice, ``cross_family``; the paper-density studies take
+regime (c)'s, ``cross_family_paper``; the main job takes regime (a)'s, ``rfid_sparse``.
 The rule is :func:`graf.studies.published.choose` (the site's table of the choice uses it too).
 
     python scripts/choose_graf.py [sweeps/learning_curves/curves.csv] [--modes pooled ray ray_knn ray_weights]
@@ -37,7 +38,8 @@ def main() -> None:
         print(f"{regime}: in progress, no choice yet (no point of {', '.join(missing)})")
     for regime in regimes + [None]:
         try:
-            chosen, table = choose([r for r in rows if r["regime"] in regimes and regime in (None, r["regime"])], args.modes)
+            mine = [r for r in rows if r["regime"] in regimes and regime in (None, r["regime"])]
+            chosen, table = choose(mine, args.modes)
         except UserError as e:
             print(f"error: {path}: {e}", file=sys.stderr)
             sys.exit(2)

@@ -174,3 +174,22 @@ def test_a_points_device_is_short_in_the_table():
 
     assert short_device("cuda:0 (NVIDIA H200)") == "NVIDIA H200"
     assert short_device("cpu") == "cpu" and short_device(None) is None
+
+
+def test_nerf2_has_a_curve_only_in_the_single_scene_regime():
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from graf.run.config import CONF_DIR
+    from graf.studies.curves import regime_methods
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose("curves")
+    GlobalHydra.instance().clear()
+    assert "nerf2" in regime_methods(cfg, "rfid_sparse")
+    for zero_shot in ("cross_family", "cross_family_paper"):  # validated on layouts it never saw: no curve
+        assert "nerf2" not in regime_methods(cfg, zero_shot)
+        assert {"pooled", "ray", "ray_knn", "ray_weights", "knn_dl"} <= set(regime_methods(cfg, zero_shot))
+    cfg.only_methods = ["nerf2", "ray"]
+    assert regime_methods(cfg, "cross_family_paper") == ["ray"]

@@ -295,13 +295,26 @@ def curves(cfg: DictConfig) -> dict:
             ok, tail = run_command(cmd, knn_dir, env, float(cfg.run_timeout_s))
             if not ok:
                 failed.append({"regime": rname, "method": "knn", "step": 0, "log": tail})
-        for mname in _subset(cfg.methods, cfg.get("only_methods"), "only_methods"):
+        for mname in regime_methods(cfg, rname):
             failed = _run_curve(cfg, out, env, rname, mname, base, failed)
     atomic_write_json(failed_file, failed)
     rows, knn = collect(out, cfg)
     write_outputs(out, rows, knn, failed)
     print((out / "curves.md").read_text())
     return {"rows": rows, "knn": knn, "failed": failed}
+
+
+def regime_methods(cfg: DictConfig, rname: str) -> list[str]:
+    """The methods (of ``only_methods``) whose curve regime ``rname`` has: all but those whose ``only_in`` lists
+    other regimes (NeRF2, one scene's field, has no zero-shot curve), each skipped one named in the log."""
+    keep = []
+    for mname, method in _subset(cfg.methods, cfg.get("only_methods"), "only_methods").items():
+        only_in = method.get("only_in")
+        if only_in is not None and rname not in only_in:
+            log.info("%s: no %s curve (its only_in: %s)", rname, mname, ", ".join(only_in))
+            continue
+        keep.append(mname)
+    return keep
 
 
 def _run_curve(cfg: DictConfig, out: Path, env: dict, rname: str, mname: str, base: list, failed: list) -> list:
