@@ -159,13 +159,11 @@ def choose(path: str) -> str:
         rows = list(csv.DictReader(fh))
     modes = ["pooled", "ray", "ray_knn", "ray_weights"]
     out = []
-    ready, waiting = published.regimes_ready(rows, modes)
-    for regime in ready + [None]:
-        try:
-            mine = [r for r in rows if r["regime"] in ready and regime in (None, r["regime"])]
-            chosen, table = published.choose(mine, modes)
-        except UserError as e:
-            raise PluginError(f"docs: {path}: {e}") from e
+    try:
+        choices, waiting = published.choose_per_regime(rows, modes)
+    except UserError as e:
+        raise PluginError(f"docs: {path}: {e}") from e
+    for regime, chosen, table in choices:
         body = [
             [t["regime"], t["step"], f"**{t['mode']}**" if t["mode"] == chosen else t["mode"], _f(t["val_psnr"], ".2f"),
              _f(t["val_ssim"]), _f(t["val_lpips"]), _f(t["reliance"], ".2f"), _f(t["mean_rank"], ".2f")]

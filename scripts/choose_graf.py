@@ -7,7 +7,8 @@ the best mean rank over the figures of the regimes considered, ties broken by th
 the choice per regime and over all regimes together (a regime where some mode has no point yet is named and
 left out).  The 150-position studies took regime (b)'s choice, ``cross_family``; the paper-density studies take
 regime (c)'s, ``cross_family_paper``; the main job takes regime (a)'s, ``rfid_sparse``.
-The rule is :func:`graf.studies.published.choose` (the site's table of the choice uses it too).
+The rule is :func:`graf.studies.published.choose`, applied per regime by ``choose_per_regime`` (the site's
+table of the choice uses it too).
 
     python scripts/choose_graf.py [sweeps/learning_curves/curves.csv] [--modes pooled ray ray_knn ray_weights]
 """
@@ -20,7 +21,7 @@ import sys
 from pathlib import Path
 
 from graf.errors import UserError
-from graf.studies.published import choose, regimes_ready
+from graf.studies.published import choose_per_regime
 
 
 def main() -> None:
@@ -33,16 +34,14 @@ def main() -> None:
         sys.exit(f"error: {path}: no such curves file (run graf-curves first)")
     with path.open() as f:
         rows = list(csv.DictReader(f))
-    regimes, waiting = regimes_ready(rows, args.modes)
+    try:
+        choices, waiting = choose_per_regime(rows, args.modes)
+    except UserError as e:
+        print(f"error: {path}: {e}", file=sys.stderr)
+        sys.exit(2)
     for regime, missing in waiting.items():
         print(f"{regime}: in progress, no choice yet (no point of {', '.join(missing)})")
-    for regime in regimes + [None]:
-        try:
-            mine = [r for r in rows if r["regime"] in regimes and regime in (None, r["regime"])]
-            chosen, table = choose(mine, args.modes)
-        except UserError as e:
-            print(f"error: {path}: {e}", file=sys.stderr)
-            sys.exit(2)
+    for regime, chosen, table in choices:
         print(f"\n### {regime or 'all regimes together'}\n")
         print("| regime | step | mode | val PSNR | val SSIM | val LPIPS | val reliance dB | mean rank |")
         print("|---|---|---|---|---|---|---|---|")

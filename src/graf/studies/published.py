@@ -210,6 +210,18 @@ def regimes_ready(rows: list[dict], modes: list[str]) -> tuple[list[str], dict[s
     return ready, waiting
 
 
+def choose_per_regime(rows: list[dict], modes: list[str]) -> tuple[list[tuple[str | None, str, list[dict]]], dict]:
+    """:func:`choose` in each regime every mode has reached and over those regimes together (regime None):
+    ([(regime, chosen, table)], {regime in progress: its modes without a point}), what the site and
+    ``scripts/choose_graf.py`` print."""
+    ready, waiting = regimes_ready(rows, modes)
+    out = []
+    for regime in ready + [None]:
+        chosen, table = choose([r for r in rows if r["regime"] in ready and regime in (None, r["regime"])], modes)
+        out.append((regime, chosen, table))
+    return out, waiting
+
+
 def choose(rows: list[dict], modes: list[str]) -> tuple[str, list[dict]]:
     """``rows`` of curves.csv -> (chosen mode, one record per (mode, regime) it compared).
 
