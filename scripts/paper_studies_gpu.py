@@ -150,6 +150,8 @@ def curves(args, data: Path, work: Path, extra: list[str]) -> dict:
 def budget(rows: list[dict], method: str, seconds: float, fallback: int) -> dict:
     """A method's budget: its curve's best validation-PSNR point (the smaller on a tie), lowered to the largest
     point whose predicted seconds (steps x the curve's measured s/step) fit ``seconds``."""
+    from graf.studies.published import best_step
+
     pts = sorted(
         (int(r["step"]), float(r["val_psnr"]), float(r["s_per_step"] or 0))
         for r in rows
@@ -157,7 +159,7 @@ def budget(rows: list[dict], method: str, seconds: float, fallback: int) -> dict
     )
     if not pts:
         return {"steps": fallback, "why": "no curve point: the fallback"}
-    best = max(pts, key=lambda p: (p[1], -p[0]))[0]
+    best = best_step(rows, method)
     s_step = max(p[2] for p in pts)  # the slowest point's (contention with the other curves included)
     fits = [p[0] for p in pts if p[0] <= best and p[0] * s_step <= seconds]
     steps = max(fits) if fits else min(p[0] for p in pts)

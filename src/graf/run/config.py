@@ -91,6 +91,40 @@ def with_baselines_switch(cfg: DictConfig) -> DictConfig:
     return cfg
 
 
+def study_budget(budgets, model: str | None, explicit: bool) -> int | None:
+    """The training steps a study gives ``model`` (a ``model=`` preset name): its entry in ``budgets`` (the
+    study size's ``study_budgets``: each method's budget chosen on its learning curve), or None (the study's
+    ``study_steps`` stands) when ``study_steps`` was set on the command line (``explicit``), there are no
+    budgets, or the model has none of its own."""
+    if explicit or not budgets or model is None or model not in budgets:
+        return None
+    steps = budgets[model]
+    if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
+        raise ConfigError(f"study_budgets.{model}={steps!r}: a budget is a positive whole number of training steps")
+    return steps
+
+
+def with_study_budget(cfg: DictConfig) -> DictConfig:
+    """A study job's config with its model's budget from ``study_budgets`` (:func:`study_budget`) as
+    ``study_steps`` (and so ``trainer.max_steps``), and one log line saying which budget the model trains."""
+    budgets = cfg.get("study_budgets")
+    if not budgets or not HydraConfig.initialized():
+        return cfg
+    hc = HydraConfig.get()
+    model = hc.runtime.choices.get("model")
+    explicit = any(override_key(o) == "study_steps" for o in hc.overrides.task)
+    steps = study_budget(budgets, model, explicit)
+    if steps is None:
+        why = "set on the command line" if explicit else f"no budget of its own in study_budgets ({dict(budgets)})"
+        log.info("model=%s trains study_steps=%s: %s", model, cfg.get("study_steps"), why)
+        return cfg
+    log.info("model=%s trains its study budget, %d steps (study_budgets; study_steps=N sets another)", model, steps)
+    cfg = cfg.copy()
+    with open_dict(cfg):
+        cfg.study_steps = steps
+    return cfg
+
+
 def override_key(override: str) -> str:
     """The key a command-line override sets: ``model`` for ``model=knn``, ``+trainer.x`` and ``~trainer.x`` ->
     ``trainer.x``."""

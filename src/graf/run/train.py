@@ -27,7 +27,15 @@ from graf.errors import ConfigError
 from graf.io import atomic_write_json
 from graf.models.base import CheckpointError, read_checkpoint
 from graf.run.build import BuiltRun, build
-from graf.run.config import expand_heldout, family, output_dir, scene_configs, task_wrapper, with_baselines_switch
+from graf.run.config import (
+    expand_heldout,
+    family,
+    output_dir,
+    scene_configs,
+    task_wrapper,
+    with_baselines_switch,
+    with_study_budget,
+)
 from graf.run.finetune import (
     check_finetune,
     finetune_config,
@@ -52,7 +60,7 @@ def train(cfg: DictConfig) -> Results:
     not_run = job_not_run(cfg, out)
     if not_run is not None:
         return not_run
-    cfg = expand_heldout(resolve_base(with_baselines_switch(cfg)))
+    cfg = expand_heldout(resolve_base(with_study_budget(with_baselines_switch(cfg))))
     check_finetune(cfg)
     ft = cfg.get("finetune") or {}
     if ft.get("init_from"):

@@ -268,6 +268,17 @@ def choose(rows: list[dict], modes: list[str]) -> tuple[str, list[dict]]:
     return chosen, table
 
 
+def best_step(rows: list[dict], method: str, regime: str | None = None) -> int | None:
+    """The budget rule of the studies: the step of ``method``'s best validation PSNR on its curve (in ``regime``
+    when given; the smaller step on a tie), or None when it has no point."""
+    pts = [
+        (float(r["val_psnr"]), -int(r["step"]))
+        for r in rows
+        if r["method"] == method and (regime is None or r["regime"] == regime) and r.get("val_psnr") not in ("", None)
+    ]
+    return -max(pts)[1] if pts else None
+
+
 HEADLINE = "sweeps/main_job/results.json"  # the main job's published record: the one headline table
 HEADLINE_MARKERS = ("<!-- headline: generated from sweeps/main_job/results.json; do not edit -->", "<!-- /headline -->")
 

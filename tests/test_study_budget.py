@@ -1,0 +1,83 @@
+"""Each trained model's study budget at the paper's density: the step its learning curve chose (``study_budgets``
+in ``study_size=paper``), applied to a study job unless ``study_steps`` is set on the command line."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from hydra.core.hydra_config import HydraConfig
+
+from graf.errors import ConfigError
+from graf.run.config import CONF_DIR, study_budget, with_study_budget
+from graf.studies.published import best_step, choose
+
+ROOT = Path(__file__).resolve().parents[1]
+CURVES = ROOT / "sweeps" / "learning_curves" / "curves.csv"
+MODE_PRESETS = {"ray_weights": "graf_cpu_scenes_ray", "ray_knn": "graf_cpu_scenes_ray_knn"}
+
+
+def _job_config(*overrides: str):
+    """A study job's config as Hydra hands it to the task (HydraConfig set, as in a running multirun job)."""
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose("train", overrides=list(overrides), return_hydra_config=True)
+        HydraConfig.instance().set_config(cfg)
+        out = with_study_budget(cfg)
+        steps = out.trainer.max_steps
+    GlobalHydra.instance().clear()
+    return out, steps
+
+
+def test_a_listed_model_gets_its_budget_unless_the_command_line_sets_study_steps():
+    budgets = {"graf_cpu_scenes_ray": 3000, "knn_dl": 300}
+    assert study_budget(budgets, "graf_cpu_scenes_ray", explicit=False) == 3000
+    assert study_budget(budgets, "knn_dl", explicit=False) == 300
+    assert study_budget(budgets, "graf_cpu_scenes_ray", explicit=True) is None  # study_steps=N wins
+    assert study_budget(budgets, "nerf2_study", explicit=False) is None  # no budget of its own: study_steps
+    assert study_budget({}, "knn_dl", explicit=False) is None
+    for bad in (0, -5, 2.5, "300", True):
+        with pytest.raises(ConfigError, match="study_budgets.knn_dl"):
+            study_budget({"knn_dl": bad}, "knn_dl", explicit=False)
+
+
+def test_a_paper_density_study_job_trains_its_model_s_budget():
+    _, steps = _job_config("experiment=cross_scene_matrix")  # the studies' GRaF, the default model
+    assert steps == 3000
+    _, steps = _job_config("experiment=cross_scene_matrix", "model=knn_dl")
+    assert steps == 300
+    _, steps = _job_config("experiment=cross_scene_matrix", "model=nerf2_study")  # no budget: study_steps
+    assert steps == 300
+    cfg, steps = _job_config("experiment=neighbor_count", "study_steps=7")
+    assert steps == 7 and cfg.study_steps == 7
+    _, steps = _job_config("experiment=cross_scene_matrix", "study_size=quick")  # the smoke size has no budgets
+    assert steps == 300
+
+
+def test_the_budgets_are_the_published_paper_density_curves_choice():
+    """study_budgets holds what the rule gives on the published curves (regime cross_family_paper): the chosen
+    GRaF mode's preset at its best validation-PSNR step, and KNN-DL's."""
+    rows = [r for r in csv.DictReader(CURVES.open()) if r["regime"] == "cross_family_paper"]
+    mode, _ = choose(rows, ["pooled", "ray", "ray_knn", "ray_weights"])
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        budgets = compose("train", overrides=["experiment=cross_scene_matrix"]).study_budgets
+    GlobalHydra.instance().clear()
+    assert dict(budgets) == {MODE_PRESETS[mode]: best_step(rows, mode), "knn_dl": best_step(rows, "knn_dl")}
+    assert (CONF_DIR / "model" / f"{MODE_PRESETS[mode]}.yaml").is_file()
+
+
+def test_best_step_takes_the_smaller_step_on_a_tie_and_none_without_points():
+    rows = [
+        {"regime": "r", "method": "m", "step": "100", "val_psnr": "20.0"},
+        {"regime": "r", "method": "m", "step": "300", "val_psnr": "21.5"},
+        {"regime": "r", "method": "m", "step": "1000", "val_psnr": "21.5"},
+        {"regime": "q", "method": "m", "step": "3000", "val_psnr": "30.0"},
+        {"regime": "r", "method": "m", "step": "3000", "val_psnr": ""},
+    ]
+    assert best_step(rows, "m", "r") == 300
+    assert best_step(rows, "m") == 3000
+    assert best_step(rows, "other") is None
