@@ -1,0 +1,73 @@
+#!/usr/bin/env bash
+# The paper-density studies on a CPU, one job at a time, each into its published record under sweeps/.  Resumable:
+# run it again after an interruption and every finished job is skipped (the studies' skip_finished); a job stopped
+# mid-way starts over.  From the repository's root, with the project installed (bash scripts/setup.sh):
+#
+#   bash scripts/paper_studies_cpu.sh [matrix] [nc] [bands] [unseen]        (no argument: all four, in this order)
+#
+# Each trained model runs its budget from the paper-density learning curves (GRaF graf_cpu_scenes_ray 3,000 steps,
+# KNN-DL 300: study_budgets in conf/study_size/paper.yaml).  Missing catalogs are ray-traced on first use.
+#   matrix  GRaF on conference_v1 and office_v1, seeds 0-2, tested on the six layouts (about 27 min a job on a 2-core
+#           Xeon: 20 min of training, 7 min of testing 720 spectra).  KNN-DL's jobs in the record came from a lent GPU
+#           (scripts/paper_studies_gpu.sh); `model=knn_dl` here runs them on the CPU instead.
+#   nc      the neighbor-count study, L in {1, 2, 4, 6, 8, 10, 16}, the four same-family pairs, seeds 0-2.  GRaF is
+#           tested zero-shot from the matrix's own checkpoints: a matrix job trains the same weights as the study's
+#           base model of that scene, seed and thread count (the test scenes do not enter training: bit for bit at
+#           20 steps), so its six GRaF base trainings (2 h here) are not run twice.  KNN-DL trains its own bases.
+#   bands   GRaF trained on conference_v1 at each of 915 MHz, 1.8, 2.4 and 3 GHz, tested at each; seed 0.
+#   unseen  GRaF and KNN-DL trained on the six layouts, tested on bedroom, outdoor and rfid_s23 zero-shot and
+#           fine-tuned on 5-100% of each; seed 0.  NeRF2 is left out (hours per scene on a CPU).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+TRAIN=${GRAF_TRAIN:-.venv/bin/graf-train}
+COMMON=(reliance=false data_root=data torch_threads=2)
+MATRIX=sweeps/cross_scene_matrix_paper
+STUDIES=("$@")
+[ ${#STUDIES[@]} -gt 0 ] || STUDIES=(matrix nc bands unseen)
+
+say() { echo "=== $(date -u +%FT%TZ) $*"; }
+
+for study in "${STUDIES[@]}"; do
+    case $study in
+    matrix)
+        for seed in 0 1 2; do  # seed-major: any prefix of the queue covers both training scenes
+            for scene in conference_v1 office_v1; do
+                say "matrix: GRaF scene=$scene seed=$seed"
+                "$TRAIN" experiment=cross_scene_matrix model=graf_cpu_scenes_ray "scene=$scene" "seed=$seed" \
+                    study_steps=3000 "${COMMON[@]}" hydra.sweep.dir=$MATRIX
+            done
+        done
+        ;;
+    nc)
+        ckpt="$MATRIX/model=graf_cpu_scenes_ray,reliance=False,scene=\${hydra:runtime.choices.scene},seed=\${seed},study_steps=3000,torch_threads=2/checkpoints/last.ckpt"
+        for scene in conference_v1 office_v1; do
+            for seed in 0 1 2; do
+                f="$MATRIX/model=graf_cpu_scenes_ray,reliance=False,scene=$scene,seed=$seed,study_steps=3000,torch_threads=2/checkpoints/last.ckpt"
+                [ -f "$f" ] || { echo "nc: $f is missing: run the matrix first (bash $0 matrix)" >&2; exit 2; }
+            done
+        done
+        say "nc: GRaF, zero-shot from the matrix's checkpoints"
+        "$TRAIN" experiment=neighbor_count model=graf_cpu_scenes_ray 'scene=conference_v1,office_v1' \
+            finetune.base=null "finetune.init_from=\"$ckpt\"" \
+            'hydra.job.config.override_dirname.exclude_keys=[experiment,data_root,study_size,finetune.base,finetune.init_from]' \
+            "${COMMON[@]}" hydra.sweep.dir=sweeps/neighbor_count_paper
+        say "nc: KNN-DL"
+        "$TRAIN" experiment=neighbor_count model=knn_dl 'scene=conference_v1,office_v1' "${COMMON[@]}" \
+            hydra.sweep.dir=sweeps/neighbor_count_paper
+        ;;
+    bands)
+        say "bands: GRaF, seed 0"
+        "$TRAIN" experiment=bands seed=0 "${COMMON[@]}" hydra.sweep.dir=sweeps/bands_paper
+        ;;
+    unseen)
+        say "unseen layouts: GRaF and KNN-DL, seed 0"
+        "$TRAIN" experiment=unseen_layouts 'model=graf_cpu_scenes_ray,knn_dl' seed=0 "${COMMON[@]}" \
+            hydra.sweep.dir=sweeps/unseen_layouts_paper
+        ;;
+    *)
+        echo "unknown study '$study': one of matrix, nc, bands, unseen" >&2
+        exit 2
+        ;;
+    esac
+done
+say "done: ${STUDIES[*]}"
