@@ -7,8 +7,8 @@
 #
 # Each trained model runs its budget from the paper-density learning curves (GRaF graf_cpu_scenes_ray 3,000 steps,
 # KNN-DL 300: study_budgets in conf/study_size/paper.yaml).  Missing catalogs are ray-traced on first use.
-#   matrix  GRaF on conference_v1 and office_v1, seeds 0-2, tested on the six layouts (about 27 min a job on a 2-core
-#           Xeon: 20 min of training, 7 min of testing 720 spectra).  KNN-DL's jobs in the record came from a lent GPU
+#   matrix  GRaF on conference_v1 and office_v1, seeds 0-2, tested on the six layouts (about 35 min a job on a 2-core
+#           Xeon: 26 min of training at 0.5 s/step, 7.5 min of testing 720 spectra).  KNN-DL's jobs in the record came from a lent GPU
 #           (scripts/paper_studies_gpu.sh); `model=knn_dl` here runs them on the CPU instead.
 #   nc      the neighbor-count study, L in {1, 2, 4, 6, 8, 10, 16}, the four same-family pairs, seeds 0-2.  GRaF is
 #           tested zero-shot from the matrix's own checkpoints: a matrix job trains the same weights as the study's
