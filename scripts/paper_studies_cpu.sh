@@ -21,7 +21,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 TRAIN=${GRAF_TRAIN:-.venv/bin/graf-train}
 COMMON=(reliance=false data_root=data torch_threads=2)
-MATRIX=sweeps/cross_scene_matrix_paper
+MATRIX=${GRAF_MATRIX:-sweeps/cross_scene_matrix_paper}  # the matrix record (and the checkpoints nc reads)
 STUDIES=("$@")
 [ ${#STUDIES[@]} -gt 0 ] || STUDIES=(matrix nc bands unseen)
 
