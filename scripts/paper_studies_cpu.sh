@@ -13,7 +13,7 @@
 #   nc      the neighbor-count study, L in {1, 2, 4, 6, 8, 10, 16}, the four same-family pairs, seeds 0-2.  GRaF is
 #           tested zero-shot from the matrix's own checkpoints: a matrix job trains the same weights as the study's
 #           base model of that scene, seed and thread count (the test scenes do not enter training: bit for bit at
-#           20 steps), so its six GRaF base trainings (2 h here) are not run twice.  KNN-DL trains its own bases.
+#           20 steps), so its six GRaF base trainings (2.6 h here) are not run twice.  KNN-DL trains its own bases.
 #   bands   GRaF trained on conference_v1 at each of 915 MHz, 1.8, 2.4 and 3 GHz, tested at each; seed 0.
 #   unseen  GRaF and KNN-DL trained on the six layouts, tested on bedroom, outdoor and rfid_s23 zero-shot and
 #           fine-tuned on 5-100% of each; seed 0.  NeRF2 is left out (hours per scene on a CPU).
