@@ -91,34 +91,31 @@ def with_baselines_switch(cfg: DictConfig) -> DictConfig:
     return cfg
 
 
-def study_budget(budgets, model: str | None, explicit: bool) -> int | None:
-    """The training steps a study gives ``model`` (a ``model=`` preset name): its entry in ``budgets`` (the
-    study size's ``study_budgets``: each method's budget chosen on its learning curve), or None (the study's
-    ``study_steps`` stands) when ``study_steps`` was set on the command line (``explicit``), there are no
-    budgets, or the model has none of its own."""
-    if explicit or not budgets or model is None or model not in budgets:
-        return None
-    steps = budgets[model]
+def study_budget(budgets, model: str | None, default) -> int:
+    """The training steps a study gives ``model`` (a ``model=`` preset name) when its ``study_steps`` is left
+    null: its entry in ``budgets`` (the study size's ``study_budgets``: each method's budget chosen on its learning
+    curve), else ``default`` (``study_budget_default``)."""
+    key = f"study_budgets.{model}" if budgets and model in budgets else "study_budget_default"
+    steps = budgets[model] if key != "study_budget_default" else default
     if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
-        raise ConfigError(f"study_budgets.{model}={steps!r}: a budget is a positive whole number of training steps")
+        raise ConfigError(f"{key}={steps!r}: a budget is a positive whole number of training steps")
     return steps
 
 
 def with_study_budget(cfg: DictConfig) -> DictConfig:
-    """A study job's config with its model's budget from ``study_budgets`` (:func:`study_budget`) as
-    ``study_steps`` (and so ``trainer.max_steps``), and one log line saying which budget the model trains."""
-    budgets = cfg.get("study_budgets")
-    if not budgets or not HydraConfig.initialized():
+    """A study job's config with ``study_steps`` (and so ``trainer.max_steps``) filled in when it is null: the
+    model's budget (:func:`study_budget`), with one log line saying which.  A ``study_steps`` set anywhere (command
+    line or config file) is every model's budget."""
+    if "study_steps" not in cfg:
         return cfg
-    hc = HydraConfig.get()
-    model = hc.runtime.choices.get("model")
-    explicit = any(override_key(o) == "study_steps" for o in hc.overrides.task)
-    steps = study_budget(budgets, model, explicit)
-    if steps is None:
-        why = "set on the command line" if explicit else f"no budget of its own in study_budgets ({dict(budgets)})"
-        log.info("model=%s trains study_steps=%s: %s", model, cfg.get("study_steps"), why)
+    model = HydraConfig.get().runtime.choices.get("model") if HydraConfig.initialized() else None
+    if cfg.study_steps is not None:
+        log.info("model=%s trains study_steps=%s (set in the config or on the command line)", model, cfg.study_steps)
         return cfg
-    log.info("model=%s trains its study budget, %d steps (study_budgets; study_steps=N sets another)", model, steps)
+    budgets = cfg.get("study_budgets") or {}
+    steps = study_budget(budgets, model, cfg.get("study_budget_default"))
+    why = "its study budget (study_budgets)" if model in budgets else "study_budget_default: no budget of its own"
+    log.info("model=%s trains %d steps, %s; study_steps=N sets another", model, steps, why)
     cfg = cfg.copy()
     with open_dict(cfg):
         cfg.study_steps = steps

@@ -57,10 +57,11 @@ def train(cfg: DictConfig) -> Results:
     test it beside its baselines and write ``results.json``."""
     started = time.perf_counter()
     out = output_dir(cfg)
+    cfg = with_study_budget(cfg)
     not_run = job_not_run(cfg, out)
     if not_run is not None:
         return not_run
-    cfg = expand_heldout(resolve_base(with_study_budget(with_baselines_switch(cfg))))
+    cfg = expand_heldout(resolve_base(with_baselines_switch(cfg)))
     check_finetune(cfg)
     ft = cfg.get("finetune") or {}
     if ft.get("init_from"):
@@ -91,6 +92,7 @@ def job_not_run(cfg: DictConfig, out: Path) -> Results | None:
         done = finished_result(out)
         if done is not None:
             log.info("%s: finished before (%s); not run again", out, done.get("skipped") or "results.json")
+            warn_other_length(cfg, out, done)
             run = RunResult(out, finished_before=True, scene_metrics=finished_scene_metrics(done))
             return Results(done.get("metrics", {}), run)
     reason = skip_reason(cfg)
@@ -100,6 +102,23 @@ def job_not_run(cfg: DictConfig, out: Path) -> Results | None:
         log.info("%s: skipped: %s", out, reason)
         return Results({}, RunResult(out, skipped=reason))
     return None
+
+
+def warn_other_length(cfg: DictConfig, out: Path, done: dict) -> None:
+    """One warning line when a finished job kept by ``skip_finished`` trained another number of steps than the job
+    would train now (a study budget changed since; a job folder's name need not say its steps)."""
+    trained = (done.get("training") or {}).get("max_steps")
+    if trained is None or (cfg.get("finetune") or {}).get("init_from"):  # fine-tuning sets its own steps later
+        return
+    now = cfg.get("trainer", {}).get("max_steps")
+    if now is not None and int(now) != int(trained):
+        log.warning(
+            "%s trained %s steps, and this job would train %s now: kept as it is; move the folder away to train %s",
+            out,
+            trained,
+            now,
+            now,
+        )
 
 
 def is_inside(path, folder: Path) -> bool:
