@@ -14,7 +14,8 @@
 #           pairs, seeds 0-2.  GRaF is tested zero-shot from the matrix's own checkpoints: a matrix job trains the
 #           same weights as the study's base model of that scene, seed and thread count (the test scenes do not
 #           enter training: bit for bit at 20 steps), so its six GRaF base trainings (2.6 h here) are not run twice.
-#           About 1.5 min a GRaF job here (84 in all).  KNN-DL trains its own bases (half a minute each).
+#           About 75 s a GRaF job here (84 in all; sweeps/neighbor_count_paper_partial's zero-shot jobs took 68-78 s).
+#           KNN-DL trains its own bases (25 s each).
 #   bands   GRaF trained on conference_v1 at each of 915 MHz, 1.8, 2.4 and 3 GHz, tested at each; seed 0.
 #   unseen  GRaF and KNN-DL trained on the six layouts, tested on bedroom, outdoor and rfid_s23 zero-shot and
 #           fine-tuned on 5-100% of each; seed 0.  NeRF2 is left out (hours per scene on a CPU).
