@@ -70,7 +70,7 @@ GRAF = _claims()[0]["method"]  # the studies' GRaF method name the ledger reads 
 def test_the_ledger_is_rebuilt_from_records_with_the_verdicts_their_intervals_give(tmp_path):
     runs = tmp_path / "multirun" / "cross_scene_matrix"
     _study(runs, shift_graf=0.6, shift_dl=0.1)
-    out = tmp_path / "sweeps" / "cross_scene_matrix_paper"
+    out = _matrix_record(tmp_path)
     out.mkdir(parents=True)
     rows = write_intervals(runs, out)
     cells = {(r["eval_scene"], r["method"]) for r in rows if r["metric"] == "psnr"}
@@ -102,10 +102,15 @@ def test_the_ledger_is_rebuilt_from_records_with_the_verdicts_their_intervals_gi
 
 def _matrix_ledger(runs, root) -> dict:
     """The ledger's rows by id, with ``runs``' intervals published as the paper-density matrix under ``root``."""
-    out = root / "sweeps" / "cross_scene_matrix_paper"
+    out = _matrix_record(root)
     out.mkdir(parents=True)
     write_intervals(runs, out)
     return {r["id"]: r for r in ledger(_claims(), root)}
+
+
+def _matrix_record(root):
+    """The folder the ledger reads the paper-density matrix from (claims.yaml), under ``root``."""
+    return root / {c["id"]: c for c in _claims()}["cross_scene_vs_knn_dl"]["record"].rsplit("/", 1)[0]
 
 
 def test_a_level_or_cut_down_study_is_not_called_a_win(tmp_path):
