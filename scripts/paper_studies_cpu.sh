@@ -14,17 +14,22 @@
 #           pairs, seeds 0-2.  GRaF is tested zero-shot from the matrix's own checkpoints: a matrix job trains the
 #           same weights as the study's base model of that scene, seed and thread count (the test scenes do not
 #           enter training: bit for bit at 20 steps), so its six GRaF base trainings (2.6 h here) are not run twice.
-#           About 75 s a GRaF job here (84 in all; sweeps/neighbor_count_paper_partial's zero-shot jobs took 68-78 s).
+#           75 s a GRaF job here (84 in all; GRAF_NC_L=2,4,10, 36 jobs: 45 min, sweeps/neighbor_count_paper/README.md).
 #           KNN-DL trains its own bases (25 s each).
 #   bands   GRaF trained on conference_v1 at each of 915 MHz, 1.8, 2.4 and 3 GHz, tested at each; seed 0.
 #   unseen  GRaF and KNN-DL trained on the six layouts, tested on bedroom, outdoor and rfid_s23 zero-shot and
 #           fine-tuned on 5-100% of each; seed 0.  NeRF2 is left out (hours per scene on a CPU).
+#           GRAF_UNSEEN_FINETUNE=none,f20 picks the fractions (the ledger's Tables 1-4 need these two) and
+#           GRAF_UNSEEN_BASE_BAND=2.4ghz the base models (2.4ghz: the paper's protocol; scene: also 915 MHz bases for
+#           rfid_s23, one more GRaF training).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 TRAIN=${GRAF_TRAIN:-.venv/bin/graf-train}
 COMMON=(reliance=false data_root=data torch_threads=2)
 MATRIX=${GRAF_MATRIX:-sweeps/cross_scene_matrix_paper_3000}  # the matrix record (and the checkpoints nc reads)
 NC_L=${GRAF_NC_L:-1,2,4,6,8,10,16}  # the neighbor counts nc tests (GRAF_NC_L=2,4: the Table 5 rise alone)
+UNSEEN_FT=${GRAF_UNSEEN_FINETUNE:-none,f05,f10,f20,f50,f100}  # the fine-tuning fractions unseen tests
+UNSEEN_BAND=${GRAF_UNSEEN_BASE_BAND:-2.4ghz,scene}  # the base models unseen starts from
 STUDIES=("$@")
 [ ${#STUDIES[@]} -gt 0 ] || STUDIES=(matrix nc bands unseen)
 
@@ -64,7 +69,8 @@ for study in "${STUDIES[@]}"; do
         ;;
     unseen)
         say "unseen layouts: GRaF and KNN-DL, seed 0"
-        "$TRAIN" experiment=unseen_layouts 'model=graf_cpu_scenes_ray,knn_dl' seed=0 "${COMMON[@]}" \
+        "$TRAIN" experiment=unseen_layouts 'model=graf_cpu_scenes_ray,knn_dl' seed=0 "finetune=$UNSEEN_FT" \
+            "finetune.base.band=$UNSEEN_BAND" "${COMMON[@]}" \
             hydra.sweep.dir=sweeps/unseen_layouts_paper
         ;;
     *)
