@@ -15,6 +15,7 @@ from graf.errors import ConfigError
 from graf.io import atomic_write_json
 from graf.run.config import CONF_DIR
 from graf.studies.report import make_report, report
+from graf.studies.report_figures import short_scenes
 
 GHZ24, MHZ915 = 2.412e9, 915e6
 REFERENCE = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "report.yaml").reference)  # the spectra grids' jobs
@@ -188,3 +189,10 @@ def test_a_published_study_s_figures_are_redrawn_from_its_own_records(tmp_path):
     assert (out / "vs_L.png").stat().st_size > 5000 and f"{out}: vs_L.png" in p.stdout
     assert "not a graf-report folder" in p.stdout  # tmp_path itself holds no report
     assert {f: (out / f).read_bytes() for f in records} == records
+
+
+def test_a_spectra_panel_names_a_many_scene_training_set_by_count():
+    """Six scene names in one panel title overlap the next panel's: more than two are given as a count."""
+    assert short_scenes("conference_v1") == "conference_v1"
+    assert short_scenes("conference_v1+office_v1") == "conference_v1+office_v1"
+    assert short_scenes("+".join(f"s{i}" for i in range(6))) == "6 scenes"

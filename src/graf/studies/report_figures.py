@@ -134,6 +134,12 @@ def _band_hz(label: str) -> float:
         return 0.0
 
 
+def short_scenes(trained_on: str) -> str:
+    """A panel title's training set: one or two scenes by name, more by count ("6 scenes": six names overlap)."""
+    names = trained_on.split("+")
+    return trained_on if len(names) <= 2 else f"{len(names)} scenes"
+
+
 def spectra_sources(rows: list[dict], runs: Path, axes: list[str], reference: dict) -> dict:
     """``{(test scene, test band): {label: samples file}}``: per method, the saved samples of one job at the
     reference setting of each varied axis (``reference``, conf/report.yaml: ``{L: 10, finetune: f20}``) with
@@ -145,7 +151,7 @@ def spectra_sources(rows: list[dict], runs: Path, axes: list[str], reference: di
             ok = False
         f = runs / r["job"] / "samples" / f"{r['eval_scene']}__{r['method']}.npz"
         key = (r["eval_scene"], r["eval_band"])
-        label = r["method"] if r["steps"] == "0" else f"{r['method']} ({r['trained_on']})"
+        label = r["method"] if r["steps"] == "0" else f"{r['method']} ({short_scenes(r['trained_on'])})"
         if ok and f.is_file() and label not in by_scene[key]:
             by_scene[key][label] = f
     return by_scene
