@@ -3,9 +3,12 @@
 interval and verdict of :mod:`graf.studies.intervals`.  Writes ``intervals.json``, ``intervals.csv`` and
 ``intervals.md`` (PSNR; the JSON has every metric).
 
-A *cell* is a test scene under one setting of the study's other axes (trained on, bands, fine-tuning, L).  A
+A *cell* is a test scene at one test band under one setting of the study's other axes (trained on, training band,
+fine-tuning, L).  A
 trained method's seeds are its jobs in the cell (``config.seed``); KNN is the baseline tested beside them (the
-same in every seed's job: nothing is trained, checked); KNN-DL is the ``knn-dl`` jobs of the same cell.
+same in every seed's job: nothing is trained, checked); KNN-DL is the ``knn-dl`` jobs of the same cell.  Where
+the training band varies (the bands study), each model trained at another band is also compared with the model
+trained at the test band, on the same spectra (:func:`band_transfers`).
 """
 
 from __future__ import annotations
@@ -18,10 +21,10 @@ from pathlib import Path
 from graf.io import atomic_write_bytes, atomic_write_json
 from graf.run.per_spectrum import read_per_spectrum
 from graf.studies.intervals import HIGHER_IS_BETTER, paired_difference, summary
-from graf.studies.report_rows import job_settings, result_files
+from graf.studies.report_rows import evaluation_bands, job_settings, result_files
 from graf.studies.table import read_run_result
 
-CELL = ("trained_on", "train_band", "finetune", "L", "eval_scene")
+CELL = ("trained_on", "train_band", "finetune", "L", "eval_scene", "eval_band")
 REFERENCES = ("knn", "knn-dl")
 METRICS = tuple(HIGHER_IS_BETTER)
 
@@ -55,8 +58,10 @@ def collect_spectra(runs: Path) -> tuple[dict, list]:
         for row in read_per_spectrum(f.parent / result["per_spectrum"]):
             for m in METRICS:
                 by_eval[(row["eval_scene"], row["method"])][m][row["id"]] = row[m]
+        test_bands = evaluation_bands(result)  # per evaluation: a cross-band job tests at another band
         for (eval_scene, method), values in by_eval.items():
-            key = tuple(str(settings.get(c)) if c != "eval_scene" else eval_scene for c in CELL)
+            at = {"eval_scene": eval_scene, "eval_band": test_bands.get(eval_scene, "")}
+            key = tuple(at[c] if c in at else str(settings.get(c)) for c in CELL)
             runs_of = out[key][method]
             if method != trained:  # a baseline: the same in every job of the cell (nothing trained)
                 if None in runs_of and not same_baseline(runs_of[None], values):
@@ -103,7 +108,8 @@ def l_changes(cells: dict, base_l: int = 2, metrics: tuple[str, ...] = METRICS) 
             for seed, values in seeds.items():
                 run = group[int(cell["L"])].setdefault(seed, {m: {} for m in metrics})
                 for m in metrics:
-                    run[m].update({(cell["trained_on"], cell["eval_scene"], i): v for i, v in values[m].items()})
+                    pair = (cell["trained_on"], cell["eval_scene"], cell["eval_band"])
+                    run[m].update({(*pair, i): v for i, v in values[m].items()})
     rows = []
     for (method, band, ft), by_l in sorted(pools.items()):
         if base_l not in by_l:
@@ -129,10 +135,62 @@ def l_changes(cells: dict, base_l: int = 2, metrics: tuple[str, ...] = METRICS) 
     return rows
 
 
+def band_transfers(cells: dict, metrics: tuple[str, ...] = METRICS) -> list[dict]:
+    """Seed E.5's question: each trained method's model trained at another band than the test band, minus the
+    model trained at the test band (the same method, scenes, fine-tuning and L), on the same test spectra, with the
+    interval of :func:`paired_difference`.  Empty unless the study varies the training band."""
+    rows = []
+    for key, methods in sorted(cells.items()):
+        cell = dict(zip(CELL, key))
+        if cell["train_band"] == cell["eval_band"]:
+            continue
+        home = tuple(cell["eval_band"] if c == "train_band" else cell[c] for c in CELL)
+        for method, seeds in sorted(methods.items()):
+            if method == "knn" or method not in cells.get(home, {}):
+                continue
+            for m in metrics:
+                runs = [seeds[s][m] for s in sorted(seeds, key=str)]
+                ref = [cells[home][method][s][m] for s in sorted(cells[home][method], key=str)]
+                rows.append({**cell, "method": method, "metric": m, **paired_difference(runs, ref, m)})
+    return rows
+
+
 def _interval(c: dict | None) -> str:
     if not c:
         return "-"
     return f"{c['diff']:+.2f} [{c['low']:+.2f}, {c['high']:+.2f}] {c['verdict'].split(' ')[0]}"
+
+
+def _change_tables(record: dict) -> list[str]:
+    """The markdown of a record's L changes from L = 2 and its band transfers (PSNR), where the study has them."""
+    md: list[str] = []
+    changes = [c for c in record["L_changes"] if c["metric"] == "psnr" and c["L_from"] == 2]
+    if changes:
+        md += ["", "PSNR change from L = 2, pooled over the trained-on / test-scene pairs (paired by spectrum):", ""]
+        md += ["| method | L | change (dB) | 95% interval | verdict |", "|---|---|---|---|---|"]
+        word = {"ahead": "rises", "behind": "falls"}  # an L change: the verdict as a direction
+        md += [
+            f"| {c['method']} | 2 -> {c['L_to']} | {c['diff']:+.2f} | [{c['low']:+.2f}, {c['high']:+.2f}] | "
+            f"{word.get(c['verdict'], c['verdict'])} |"
+            for c in changes
+        ]
+    transfers = [c for c in record["band_transfers"] if c["metric"] == "psnr"]
+    if transfers:
+        md += [
+            "",
+            "PSNR of a model trained at another band, minus the model trained at the test band (paired by spectrum):",
+            "",
+        ]
+        md += [
+            "| method | trained at | tested at | difference (dB) | 95% interval | verdict |",
+            "|---|---|---|---|---|---|",
+        ]
+        md += [
+            f"| {c['method']} | {c['train_band']} | {c['eval_band']} | {c['diff']:+.2f} | "
+            f"[{c['low']:+.2f}, {c['high']:+.2f}] | {c['verdict'].split(' ')[0]} |"
+            for c in transfers
+        ]
+    return md
 
 
 def write_intervals(runs: Path, out: Path) -> list[dict] | None:
@@ -144,6 +202,7 @@ def write_intervals(runs: Path, out: Path) -> list[dict] | None:
     rows = comparisons(cells)
     record = {"rows": rows, "confidence": 0.95, "rule": "graf.studies.intervals", "sim_num_tx": densities}
     record["L_changes"] = l_changes(cells, 2) + l_changes(cells, 4)  # from L = 2 (Table 5's drop), from 4 (plateau)
+    record["band_transfers"] = band_transfers(cells)
     atomic_write_json(out / "intervals.json", record)
     head = [*CELL, "method", "seeds", "spectra", "mean", "median", "seed spread", "- KNN", "- KNN-DL"]
     body = [
@@ -177,15 +236,6 @@ def write_intervals(runs: Path, out: Path) -> list[dict] | None:
     )
     if same:
         note += " Every row: " + ", ".join(f"{head[i]} {body[0][i]}" for i in same) + "."
-    changes = [c for c in record["L_changes"] if c["metric"] == "psnr" and c["L_from"] == 2]
-    if changes:
-        md += ["", "PSNR change from L = 2, pooled over the trained-on / test-scene pairs (paired by spectrum):", ""]
-        md += ["| method | L | change (dB) | 95% interval | verdict |", "|---|---|---|---|---|"]
-        word = {"ahead": "rises", "behind": "falls"}  # an L change: the verdict as a direction
-        md += [
-            f"| {c['method']} | 2 -> {c['L_to']} | {c['diff']:+.2f} | [{c['low']:+.2f}, {c['high']:+.2f}] | "
-            f"{word.get(c['verdict'], c['verdict'])} |"
-            for c in changes
-        ]
+    md += _change_tables(record)
     atomic_write_bytes(out / "intervals.md", (note + "\n\n" + "\n".join(md) + "\n").encode())
     return rows

@@ -120,6 +120,11 @@ def _figures(tested: dict) -> dict:
     return {k: (tested.get("metrics") or {}).get(k) for k, _, _ in (*METRICS, RELIANCE)}
 
 
+def evaluation_bands(result: dict) -> dict[str, str]:
+    """``{test scene: its test band's label}`` of a job's evaluations (``2.412 GHz``; "" where not recorded)."""
+    return {ev["eval_scene"]: band_label(ev.get("band_hz")) for ev in _evaluations(result)}
+
+
 def rows_of(result: dict, job: str) -> list[dict]:
     """One row per (test scene, method) of a job's results.json."""
     ft = result.get("finetune")
