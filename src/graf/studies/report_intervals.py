@@ -6,9 +6,8 @@ interval and verdict of :mod:`graf.studies.intervals`.  Writes ``intervals.json`
 A *cell* is a test scene at one test band under one setting of the study's other axes (trained on, training band,
 fine-tuning, L).  A trained method's seeds are its jobs in the cell (``config.seed``); KNN is the baseline tested
 beside them (the same in every seed's job: nothing is trained, checked); KNN-DL is the ``knn-dl`` jobs of the same
-cell.  Where
-the training band varies (the bands study), each model trained at another band is also compared with the model
-trained at the test band, on the same spectra (:func:`band_transfers`).
+cell.  Where the training band varies (the bands study), each model trained at another band is also compared with
+the model trained at the test band, on the same spectra (:func:`band_transfers`).
 """
 
 from __future__ import annotations
