@@ -76,3 +76,26 @@ def test_a_model_trained_at_another_band_is_compared_with_the_in_band_one(tmp_pa
         assert c["n_spectra"] == len(IDS)
         assert c["verdict"].split(" ")[0] == ("behind" if loss else "level")
     assert "trained at another band" in (tmp_path / "intervals.md").read_text()
+
+
+@pytest.mark.parametrize(("loss", "verdict"), [(1.0, "holds"), (0.0, "not reproduced"), (-1.0, "refuted")])
+def test_the_ledger_judges_the_band_claim_from_the_transfers(tmp_path, loss, verdict):
+    """The E.5 row of the real claims config, read from a synthetic bands record: a known loss across bands holds,
+    none is not reproduced, a gain refutes it; the platform column names each transfer."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    from graf.run.config import CONF_DIR
+    from graf.studies.claims import judge
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        claims = OmegaConf.to_container(compose("claims").claims, resolve=True)
+    claim = {c["id"]: c for c in claims}["e5_bands"] | {"method": "graf"}
+    record = tmp_path / claim["record"]
+    record.parent.mkdir(parents=True)
+    _bands_study(tmp_path / "runs", cross_band_loss=loss)
+    write_intervals(tmp_path / "runs", record.parent)
+    row = judge(claim, tmp_path)
+    assert row["verdict"] == verdict
+    assert "1.8 GHz -> 2.412 GHz: " in row["platform"] and "2.412 GHz -> 1.8 GHz: " in row["platform"]
+    assert row["interval"].count("[") == 2

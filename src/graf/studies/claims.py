@@ -13,6 +13,9 @@ how (``kind``):
   ``L_from``, ``L_to``, ``metric``).  With ``tolerance``: holds when the whole interval lies within it (a plateau);
   else holds when the interval excludes 0 on the paper's side (the sign of ``paper_value``), refuted when it
   excludes 0 on the other, not reproduced when it includes 0.
+- ``transfer``: the bands study's ``band_transfers`` (a model trained at another band minus the one trained at the
+  test band, on the same spectra; ``method``, ``metric``); the paper says the transfer is ``expect`` (``behind``).
+  Holds when every pair's interval says so, refuted when one says the other way, not reproduced when one includes 0.
 - ``note``: a claim the platform cannot check on its own terms (another GPU, another unit): not comparable, with
   the platform's figure where it has one.
 
@@ -101,15 +104,35 @@ def judge_paired(claim: dict, data: dict) -> dict:
     name = lambda r: f"{r['trained_on']} -> {r['eval_scene']}" if r.get("trained_on") else r["eval_scene"]  # noqa: E731
     parts = [f"{name(r)}: {c['diff']:+.2f}" for r, c in comps]
     intervals = [f"{name(r)}: [{c['low']:+.2f}, {c['high']:+.2f}]" for r, c in comps]
-    verdicts = [c["verdict"] for _, c in comps]
-    if all(v == "ahead" for v in verdicts):
-        verdict, reason = "holds", f"ahead in all {len(verdicts)} cells (interval excludes 0)"
-    elif any(v == "behind" for v in verdicts):
-        verdict, reason = "refuted", f"behind in {sum(v == 'behind' for v in verdicts)} of {len(verdicts)} cells"
-    else:
-        n_level = sum(v.startswith("level") for v in verdicts)
-        verdict, reason = "not reproduced", f"interval includes 0 in {n_level} of {len(verdicts)} cells"
+    verdict, reason = _direction([c["verdict"] for _, c in comps], "ahead")
     return {"platform": "; ".join(parts), "interval": "; ".join(intervals), "verdict": verdict, "reason": reason}
+
+
+def _direction(verdicts: list[str], want: str) -> tuple[str, str]:
+    """The ledger's verdict and reason from the cells' verdicts, the paper saying each is ``want`` (ahead/behind)."""
+    other = "behind" if want == "ahead" else "ahead"
+    n = len(verdicts)
+    if all(v == want for v in verdicts):
+        return "holds", f"{want} in all {n} cells (interval excludes 0)"
+    if any(v == other for v in verdicts):
+        return "refuted", f"{other} in {sum(v == other for v in verdicts)} of {n} cells"
+    n_level = sum(v.startswith("level") for v in verdicts)
+    return "not reproduced", f"interval includes 0 in {n_level} of {n} cells"
+
+
+def judge_transfer(claim: dict, data: dict) -> dict:
+    want = {"method": claim["method"], "metric": claim["metric"], **(claim.get("cell") or {})}
+    found = [c for c in data.get("band_transfers", []) if _match(c, want)]
+    if not found:
+        return {"verdict": "not reproduced", "reason": "no band transfer in the record"}
+    name = lambda c: f"{c['train_band']} -> {c['eval_band']}"  # noqa: E731
+    verdict, reason = _direction([c["verdict"] for c in found], str(claim.get("expect", "behind")))
+    return {
+        "platform": "; ".join(f"{name(c)}: {c['diff']:+.2f}" for c in found),
+        "interval": "; ".join(f"{name(c)}: [{c['low']:+.2f}, {c['high']:+.2f}]" for c in found),
+        "verdict": verdict,
+        "reason": reason,
+    }
 
 
 def judge_change(claim: dict, data: dict) -> dict:
@@ -169,6 +192,7 @@ def judge(claim: dict, root: Path) -> dict:
         row.update(platform=str(claim.get("platform", "")), verdict="not comparable", reason=str(claim["reason"]))
         return row
     judges = {"paired": judge_paired, "value": judge_value, "difference": judge_value, "change": judge_change}
+    judges["transfer"] = judge_transfer
     if kind not in judges:
         raise ConfigError(f"claim {claim.get('id')!r}: kind must be one of {[*judges, 'note']}, got {kind!r}")
     data = _load(root, claim["record"])
