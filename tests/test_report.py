@@ -15,7 +15,7 @@ from graf.errors import ConfigError
 from graf.io import atomic_write_json
 from graf.run.config import CONF_DIR
 from graf.studies.report import make_report, report
-from graf.studies.report_figures import short_scenes
+from graf.studies.report_rows import short_scenes
 
 GHZ24, MHZ915 = 2.412e9, 915e6
 REFERENCE = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "report.yaml").reference)  # the spectra grids' jobs

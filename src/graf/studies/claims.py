@@ -38,6 +38,7 @@ from omegaconf import DictConfig, OmegaConf
 from graf.errors import ConfigError
 from graf.io import atomic_write_bytes, atomic_write_json
 from graf.run.config import task_wrapper
+from graf.studies.report_rows import short_scenes
 
 log = logging.getLogger("graf")
 
@@ -101,7 +102,7 @@ def judge_paired(claim: dict, data: dict) -> dict:
     comps = [(r, c) for r, c in comps if c]
     if not comps:
         return {"verdict": "not reproduced", "reason": "no such comparison in the record"}
-    name = lambda r: f"{r['trained_on']} -> {r['eval_scene']}" if r.get("trained_on") else r["eval_scene"]  # noqa: E731
+    name = lambda r: f"{short_scenes(r['trained_on'])} -> {r['eval_scene']}" if r.get("trained_on") else r["eval_scene"]  # noqa: E731
     parts = [f"{name(r)}: {c['diff']:+.2f}" for r, c in comps]
     intervals = [f"{name(r)}: [{c['low']:+.2f}, {c['high']:+.2f}]" for r, c in comps]
     verdict, reason = _direction([c["verdict"] for _, c in comps], "ahead")
@@ -113,7 +114,7 @@ def _direction(verdicts: list[str], want: str) -> tuple[str, str]:
     other = "behind" if want == "ahead" else "ahead"
     n = len(verdicts)
     if all(v == want for v in verdicts):
-        return "holds", f"{want} in all {n} cells (interval excludes 0)"
+        return "holds", f"{want} in {'its one cell' if n == 1 else f'all {n} cells'} (interval excludes 0)"
     if any(v == other for v in verdicts):
         return "refuted", f"{other} in {sum(v == other for v in verdicts)} of {n} cells"
     n_level = sum(v.startswith("level") for v in verdicts)

@@ -12,7 +12,7 @@ import numpy as np
 
 from graf.io import atomic_write_json
 from graf.plotting import SPECTRUM_CMAP, SPECTRUM_LABEL, shared_limits
-from graf.studies.report_rows import METRICS
+from graf.studies.report_rows import METRICS, short_scenes
 
 EXTENT = (0, 360, 0, 90)  # a spectrum's axes in degrees: azimuth 0-360, elevation 0-90
 
@@ -132,12 +132,6 @@ def _band_hz(label: str) -> float:
         return float(v) * (1e9 if unit == "GHz" else 1e6)
     except ValueError:
         return 0.0
-
-
-def short_scenes(trained_on: str) -> str:
-    """A panel title's training set: one or two scenes by name, more by count ("6 scenes": six names overlap)."""
-    names = trained_on.split("+")
-    return trained_on if len(names) <= 2 else f"{len(names)} scenes"
 
 
 def spectra_sources(rows: list[dict], runs: Path, axes: list[str], reference: dict) -> dict:

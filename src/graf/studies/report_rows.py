@@ -239,3 +239,10 @@ def spacing_for(points: dict, targets=PSNR_TARGETS) -> dict:
             best = max(ok)
         out[f"{t:g}"] = best
     return out
+
+
+def short_scenes(trained_on: str) -> str:
+    """A training set as a figure title or the ledger names it: one or two scenes by name, more by count ("6
+    scenes": six names overlap)."""
+    names = trained_on.split("+")
+    return trained_on if len(names) <= 2 else f"{len(names)} scenes"
