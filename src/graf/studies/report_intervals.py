@@ -71,12 +71,23 @@ def collect_spectra(runs: Path) -> tuple[dict, list]:
     return out, sorted(densities, key=str)
 
 
+def natural(value: str) -> tuple:
+    """A cell setting's place in a table: L in numeric order (2, 4, 10, not "10", "2", "4"), fine-tuning fractions
+    in theirs (zero-shot, f05, f10, f20, f50, f100), anything else by name.  The bootstrap is seeded per comparison,
+    so the order changes no figure."""
+    if value.isdigit():
+        return (0, int(value), "")
+    if value == "zero-shot":
+        return (1, -1, "")
+    if value[:1] == "f" and value[1:].isdigit():
+        return (1, int(value[1:]), "")
+    return (2, 0, value)
+
+
 def comparisons(cells: dict, metrics: tuple[str, ...] = METRICS) -> list[dict]:
     """One row per (cell, trained method, metric): its summary and its paired differences to the references."""
     rows = []
-    # L in numeric order (2, 4, 10, not "10", "2", "4"); the bootstrap is seeded per comparison, so order is all
-    natural = lambda item: tuple((0, int(x), "") if x.isdigit() else (1, 0, x) for x in item[0])  # noqa: E731
-    for key, methods in sorted(cells.items(), key=natural):
+    for key, methods in sorted(cells.items(), key=lambda item: tuple(map(natural, item[0]))):
         cell = dict(zip(CELL, key))
         for method, seeds in sorted(methods.items()):
             if method == "knn":
