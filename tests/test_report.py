@@ -198,10 +198,12 @@ def test_a_spectra_panel_names_a_many_scene_training_set_by_count():
     assert short_scenes("+".join(f"s{i}" for i in range(6))) == "6 scenes"
 
 
-def test_interval_tables_list_l_and_fractions_in_numeric_order():
+def test_interval_tables_list_l_fractions_and_bands_in_numeric_order():
     from graf.studies.report_intervals import natural
 
     assert sorted(["10", "2", "4"], key=natural) == ["2", "4", "10"]
     fractions = ["f100", "f05", "zero-shot", "f50", "f20", "f10"]
     assert sorted(fractions, key=natural) == ["zero-shot", "f05", "f10", "f20", "f50", "f100"]
     assert sorted(["office_v1", "conference_v2"], key=natural) == ["conference_v2", "office_v1"]
+    bands = ["915 MHz", "1.8 GHz", "2.412 GHz", "3 GHz"]
+    assert sorted(["2.412 GHz", "915 MHz", "3 GHz", "1.8 GHz"], key=natural) == bands

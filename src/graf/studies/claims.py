@@ -117,8 +117,9 @@ def _direction(verdicts: list[str], want: str) -> tuple[str, str]:
         return "holds", f"{want} in {'its one cell' if n == 1 else f'all {n} cells'} (interval excludes 0)"
     if any(v == other for v in verdicts):
         return "refuted", f"{other} in {sum(v == other for v in verdicts)} of {n} cells"
-    n_level = sum(v.startswith("level") for v in verdicts)
-    return "not reproduced", f"interval includes 0 in {n_level} of {n} cells"
+    n_level, n_want = sum(v.startswith("level") for v in verdicts), sum(v == want for v in verdicts)
+    also = f"{want} in {n_want}, " if n_want else ""
+    return "not reproduced", f"{also}interval includes 0 in {n_level} of {n} cells"
 
 
 def judge_transfer(claim: dict, data: dict) -> dict:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import csv
 import io
+import re
 from collections import defaultdict
 from pathlib import Path
 
@@ -72,11 +73,14 @@ def collect_spectra(runs: Path) -> tuple[dict, list]:
 
 
 def natural(value: str) -> tuple:
-    """A cell setting's place in a table: L in numeric order (2, 4, 10, not "10", "2", "4"), fine-tuning fractions
-    in theirs (zero-shot, f05, f10, f20, f50, f100), anything else by name.  The bootstrap is seeded per comparison,
-    so the order changes no figure."""
+    """A cell setting's place in a table: L in numeric order (2, 4, 10, not "10", "2", "4"), fine-tuning
+    fractions in theirs (zero-shot, f05, f10, f20, f50, f100), bands by frequency, anything else by name.  The
+    bootstrap is seeded per comparison, so the order changes no figure."""
     if value.isdigit():
         return (0, int(value), "")
+    hz = re.fullmatch(r"(\d+(?:\.\d+)?) ([MG])Hz", value)  # a band: 915 MHz before 1.8 GHz
+    if hz:
+        return (0, float(hz[1]) * (1e6 if hz[2] == "M" else 1e9), "")
     if value == "zero-shot":
         return (1, -1, "")
     if value[:1] == "f" and value[1:].isdigit():
@@ -150,7 +154,7 @@ def band_transfers(cells: dict, metrics: tuple[str, ...] = METRICS) -> list[dict
     model trained at the test band (the same method, scenes, fine-tuning and L), on the same test spectra, with the
     interval of :func:`paired_difference`.  Empty unless the study varies the training band."""
     rows = []
-    for key, methods in sorted(cells.items()):
+    for key, methods in sorted(cells.items(), key=lambda item: tuple(map(natural, item[0]))):
         cell = dict(zip(CELL, key))
         if cell["train_band"] == cell["eval_band"]:
             continue
