@@ -193,8 +193,13 @@ def judge(claim: dict, root: Path) -> dict:
     if kind == "note":
         row.update(platform=str(claim.get("platform", "")), verdict="not comparable", reason=str(claim["reason"]))
         return row
-    judges = {"paired": judge_paired, "value": judge_value, "difference": judge_value, "change": judge_change}
-    judges["transfer"] = judge_transfer
+    judges = {
+        "paired": judge_paired,
+        "value": judge_value,
+        "difference": judge_value,
+        "change": judge_change,
+        "transfer": judge_transfer,
+    }
     if kind not in judges:
         raise ConfigError(f"claim {claim.get('id')!r}: kind must be one of {[*judges, 'note']}, got {kind!r}")
     data = _load(root, claim["record"])

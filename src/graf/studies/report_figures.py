@@ -12,7 +12,7 @@ import numpy as np
 
 from graf.io import atomic_write_json
 from graf.plotting import SPECTRUM_CMAP, SPECTRUM_LABEL, shared_limits
-from graf.studies.report_rows import METRICS, short_scenes
+from graf.studies.report_rows import METRICS, label_hz, short_scenes
 
 EXTENT = (0, 360, 0, 90)  # a spectrum's axes in degrees: azimuth 0-360, elevation 0-90
 
@@ -97,8 +97,8 @@ def curve_figure(data: dict, xlabel: str, path: Path, title: str) -> None:
 def band_figure(rows: list[dict], path: Path) -> dict:
     """Train band x test band heatmap of test PSNR per method, one colour scale; returns the matrices."""
     methods = sorted({r["method"] for r in rows})
-    tb = sorted({r["train_band"] for r in rows if r["train_band"] not in ("-", "")}, key=_band_hz)
-    eb = sorted({r["eval_band"] for r in rows}, key=_band_hz)
+    tb = sorted({r["train_band"] for r in rows if r["train_band"] not in ("-", "")}, key=label_hz)
+    eb = sorted({r["eval_band"] for r in rows}, key=label_hz)
     fig, axes = plt.subplots(1, len(methods), figsize=(4.2 * len(methods), 3.6), squeeze=False, constrained_layout=True)
     mats, im = {}, None
     lo, hi = shared_limits([r.get("test/psnr") if r.get("test/psnr") is not None else np.nan for r in rows])
@@ -124,14 +124,6 @@ def band_figure(rows: list[dict], path: Path) -> dict:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return mats
-
-
-def _band_hz(label: str) -> float:
-    try:
-        v, unit = label.split()
-        return float(v) * (1e9 if unit == "GHz" else 1e6)
-    except ValueError:
-        return 0.0
 
 
 def spectra_sources(rows: list[dict], runs: Path, axes: list[str], reference: dict) -> dict:

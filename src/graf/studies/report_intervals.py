@@ -14,14 +14,13 @@ from __future__ import annotations
 
 import csv
 import io
-import re
 from collections import defaultdict
 from pathlib import Path
 
 from graf.io import atomic_write_bytes, atomic_write_json
 from graf.run.per_spectrum import read_per_spectrum
 from graf.studies.intervals import HIGHER_IS_BETTER, paired_difference, summary
-from graf.studies.report_rows import evaluation_bands, job_settings, result_files
+from graf.studies.report_rows import evaluation_bands, job_settings, label_hz, result_files
 from graf.studies.table import read_run_result
 
 CELL = ("trained_on", "train_band", "finetune", "L", "eval_scene", "eval_band")
@@ -78,9 +77,9 @@ def natural(value: str) -> tuple:
     bootstrap is seeded per comparison, so the order changes no figure."""
     if value.isdigit():
         return (0, int(value), "")
-    hz = re.fullmatch(r"(\d+(?:\.\d+)?) ([MG])Hz", value)  # a band: 915 MHz before 1.8 GHz
+    hz = label_hz(value)  # a band: 915 MHz before 1.8 GHz
     if hz:
-        return (0, float(hz[1]) * (1e6 if hz[2] == "M" else 1e9), "")
+        return (0, hz, "")
     if value == "zero-shot":
         return (1, -1, "")
     if value[:1] == "f" and value[1:].isdigit():
@@ -88,10 +87,15 @@ def natural(value: str) -> tuple:
     return (2, 0, value)
 
 
+def _cell_order(item: tuple) -> tuple:
+    """A ``cells`` item's place: its key's settings in :func:`natural` order."""
+    return tuple(map(natural, item[0]))
+
+
 def comparisons(cells: dict, metrics: tuple[str, ...] = METRICS) -> list[dict]:
     """One row per (cell, trained method, metric): its summary and its paired differences to the references."""
     rows = []
-    for key, methods in sorted(cells.items(), key=lambda item: tuple(map(natural, item[0]))):
+    for key, methods in sorted(cells.items(), key=_cell_order):
         cell = dict(zip(CELL, key))
         for method, seeds in sorted(methods.items()):
             if method == "knn":
@@ -154,7 +158,7 @@ def band_transfers(cells: dict, metrics: tuple[str, ...] = METRICS) -> list[dict
     model trained at the test band (the same method, scenes, fine-tuning and L), on the same test spectra, with the
     interval of :func:`paired_difference`.  Empty unless the study varies the training band."""
     rows = []
-    for key, methods in sorted(cells.items(), key=lambda item: tuple(map(natural, item[0]))):
+    for key, methods in sorted(cells.items(), key=_cell_order):
         cell = dict(zip(CELL, key))
         if cell["train_band"] == cell["eval_band"]:
             continue

@@ -36,6 +36,17 @@ def band_label(hz) -> str:
     return f"{hz / 1e9:g} GHz" if hz >= 1e9 else f"{hz / 1e6:g} MHz"
 
 
+def label_hz(label: str) -> float:
+    """The frequency of a :func:`band_label` ("915 MHz", "2.412 GHz") in Hz; 0.0 for anything else."""
+    parts = label.split()
+    if len(parts) != 2 or parts[1] not in ("MHz", "GHz"):
+        return 0.0
+    try:
+        return float(parts[0]) * (1e9 if parts[1] == "GHz" else 1e6)
+    except ValueError:
+        return 0.0
+
+
 def _ft_label(ft: dict | None) -> str:
     if not ft:
         return "-"
