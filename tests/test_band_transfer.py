@@ -99,3 +99,15 @@ def test_the_ledger_judges_the_band_claim_from_the_transfers(tmp_path, loss, ver
     assert row["verdict"] == verdict
     assert "1.8 GHz -> 2.412 GHz: " in row["platform"] and "2.412 GHz -> 1.8 GHz: " in row["platform"]
     assert row["interval"].count("[") == 2
+
+
+def test_a_band_claim_with_an_unknown_direction_is_a_clear_error(tmp_path):
+    from graf.errors import ConfigError
+    from graf.studies.claims import judge
+
+    _bands_study(tmp_path / "runs", cross_band_loss=1.0)
+    write_intervals(tmp_path / "runs", tmp_path)
+    claim = {"id": "e5", "kind": "transfer", "record": "intervals.json", "method": "graf", "metric": "psnr"}
+    with pytest.raises(ConfigError, match="'e5': expect must be 'ahead' or 'behind', got 'worse'"):
+        judge(claim | {"expect": "worse"}, tmp_path)
+    assert judge(claim, tmp_path)["verdict"] == "holds"  # behind, the default

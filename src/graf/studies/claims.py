@@ -123,12 +123,15 @@ def _direction(verdicts: list[str], want: str) -> tuple[str, str]:
 
 
 def judge_transfer(claim: dict, data: dict) -> dict:
+    expect = str(claim.get("expect", "behind"))
+    if expect not in ("ahead", "behind"):
+        raise ConfigError(f"claim {claim.get('id')!r}: expect must be 'ahead' or 'behind', got {expect!r}")
     want = {"method": claim["method"], "metric": claim["metric"], **(claim.get("cell") or {})}
     found = [c for c in data.get("band_transfers", []) if _match(c, want)]
     if not found:
         return {"verdict": "not reproduced", "reason": "no band transfer in the record"}
     name = lambda c: f"{c['train_band']} -> {c['eval_band']}"  # noqa: E731
-    verdict, reason = _direction([c["verdict"] for c in found], str(claim.get("expect", "behind")))
+    verdict, reason = _direction([c["verdict"] for c in found], expect)
     return {
         "platform": "; ".join(f"{name(c)}: {c['diff']:+.2f}" for c in found),
         "interval": "; ".join(f"{name(c)}: [{c['low']:+.2f}, {c['high']:+.2f}]" for c in found),
