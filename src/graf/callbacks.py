@@ -13,8 +13,9 @@ import torch.distributed as dist
 from lightning.pytorch.callbacks import Callback
 
 from graf.geometry.grid import SPECTRUM_SHAPE
+from graf.metrics.names import METRIC_NAMES
 
-PER_SPECTRUM = ("mse", "psnr", "ssim", "lpips")  # the test metrics kept per spectrum (arrays ``metric_<name>``)
+PER_SPECTRUM = METRIC_NAMES  # the test metrics kept per spectrum (arrays ``metric_<name>``): every registered one
 
 
 class PredictionCollector(Callback):

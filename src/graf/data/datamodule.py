@@ -17,7 +17,8 @@ A batch (IBRNet/GNT style: source views on one axis with a mask)::
     bounds       float [B, 2, 3]        the item's scene box (min, max)
     scene_index  long  [B]              the item's scene index (a model's 4-D positions): its position in the
                                         list of scenes, or ``scene_indices[k]`` when given (a test scene
-                                        keeps the index it was trained with; an unseen one gets a new one)
+                                        keeps the index it was trained with; an unseen one the first index it
+                                        was not trained with: graf.data.fingerprint.eval_scene_index)
 
 Every per-item geometry value is gathered through the item's scene index from per-scene tables, so scenes
 of different sizes and bands can share a batch (:mod:`graf.data.scene_rows`).  The splits and what each
@@ -126,6 +127,7 @@ class SpectrumDataModule(SceneRows, L.LightningDataModule):
             raise ValueError(f"{len(idx)} scene indices given for {len(self.scenes)} scenes")
         self.scene_index = torch.as_tensor(idx, dtype=torch.long)
         self.swap_seed: int | None = None  # set by the reliance pass (swapped_neighbors)
+        self.scene_index_source = "trained"  # how the scene index was given (graf.data.fingerprint.eval_scene_index)
 
     # ------------------------------------------------------------------ setup
     def setup(self, stage: str | None = None) -> None:

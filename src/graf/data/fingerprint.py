@@ -100,3 +100,33 @@ def register_scene(table: dict, name: str, fingerprint: dict, index: int) -> str
 
 def next_index(table: dict) -> int:
     return max((int(v["index"]) for v in table.values()), default=-1) + 1
+
+
+# how a test scene's index was decided (results.json ``scene_indices``)
+TRAINED, SAME_PLACE, UNSEEN = "trained", "same place, another band", "unseen"
+
+
+def eval_scene_index(table: dict, name: str, fingerprint: dict) -> tuple[int, str]:
+    """The scene index a test scene gets from a model that knows the scenes of ``table``, and why:
+
+    - ``trained``: the model was trained on this content: the index it was trained with;
+    - ``same place, another band``: a trained scene of the same name, gateway pose and transmitter positions,
+      measured at another band (the bands study): that scene's index, so a band transfer is not also an index
+      change;
+    - ``unseen``: any other scene gets one fixed index, the first the model was not trained with
+      (:func:`next_index`), whatever else is tested beside it and in whatever order: a zero-shot prediction
+      depends on the scene, never on its place in a list.
+    """
+    key = find_scene(table, name, fingerprint)
+    if key is not None:
+        return int(table[key]["index"]), TRAINED
+    for key, entry in table.items():
+        fp = entry.get("fingerprint")
+        if (
+            key.split("#")[0] == name
+            and fp is not None
+            and fp.get("positions") == fingerprint.get("positions")
+            and fp.get("gateway") == fingerprint.get("gateway")
+        ):
+            return int(entry["index"]), SAME_PLACE
+    return next_index(table), UNSEEN

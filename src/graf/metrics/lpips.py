@@ -119,7 +119,10 @@ def load_lpips(weights_path: str | os.PathLike[str] | None = None) -> LPIPS:
 
 @functools.lru_cache(maxsize=2)
 def _cpu_model(path: str) -> LPIPS:
-    with torch.inference_mode(False):
+    # fork_rng: building the network draws initial weights (then overwritten by the file's) from the global
+    # generator; without it the first model made in a process got other weights than the next ones of the same
+    # seed (a multirun's first job against its later ones)
+    with torch.inference_mode(False), torch.random.fork_rng(devices=[]):
         return load_lpips(path)
 
 

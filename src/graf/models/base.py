@@ -103,7 +103,7 @@ class SpectrumModule(L.LightningModule):
         """``{scene name: {"index", "band_hz"}}``: the scenes this model was trained on, with the scene index
         and band each had (those of the checkpoint it was fine-tuned from, ``scene_table``, and the training
         datamodule's).  Checkpoints record it, so a later run gives a known scene its index back and an
-        unseen one a new index, and can tell a cross-band transfer."""
+        unseen one the one index it was not trained with, and can tell a cross-band transfer."""
 
         table = dict(getattr(self, "scene_table", None) or {})
         trainer = getattr(self, "_trainer", None)
@@ -149,7 +149,9 @@ class SpectrumModule(L.LightningModule):
         target = batch["tgt_spectrum"].float()
         metrics.update(pred, target)
         self.log_dict(metrics, on_step=False, on_epoch=True, batch_size=pred.shape[0])
-        per_spectrum = {name.split("/")[-1]: m.last_values for name, m in metrics.items()}  # [B] each
+        per_spectrum = {  # [B] each (NaN for an empty target)
+            name.split("/")[-1]: m.last_values for name, m in metrics.items() if hasattr(m, "last_values")
+        }
         return {"pred": pred.detach(), "ids": batch["tgt_id"].detach(), "per_spectrum": per_spectrum}
 
     def validation_step(self, batch: dict, batch_idx: int) -> dict:

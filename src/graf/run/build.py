@@ -18,7 +18,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from graf.console import is_terminal
 from graf.data.datamodule import SpectrumDataModule
-from graf.data.fingerprint import find_scene, next_index, register_scene
+from graf.data.fingerprint import find_scene, next_index, register_scene, eval_scene_index
 from graf.data.neighbors import NeighborSelector
 from graf.errors import ConfigError
 from graf.models.base import read_checkpoint
@@ -161,19 +161,30 @@ def build(cfg: DictConfig, trains: bool = True) -> BuiltRun:
     cfg = run_model_config(cfg, neighbors)
     datamodule.setup("fit" if trains else "test")  # checks the neighbors of the targets the run will select
     check_bands(cfg, known, datamodule, source)  # fine-tuning or testing a checkpoint at another band: a transfer
-    # a scene the checkpoint was trained on (the same content, whatever its name) keeps its index; a new one
-    # gets the next; the table is what the checkpoints this run writes record
+    # a scene the checkpoint was trained on (the same content, whatever its name) keeps its index; a scene this
+    # run trains on gets the next; the table is what the checkpoints this run writes record.  A run that trains
+    # nothing gives its scenes the index of a test scene (eval_scene_index: an unseen one the one fixed index)
     table = dict(known)
-    datamodule.set_scene_indices(
-        [
-            table[register_scene(table, d.name, fp, next_index(table))]["index"]
-            for d, fp in zip(datamodule.sets, datamodule.fingerprints())
-        ]
-    )
+    if trains or not known:
+        datamodule.set_scene_indices(
+            [
+                table[register_scene(table, d.name, fp, next_index(table))]["index"]
+                for d, fp in zip(datamodule.sets, datamodule.fingerprints())
+            ]
+        )
+    else:
+        given = [eval_scene_index(table, d.name, fp) for d, fp in zip(datamodule.sets, datamodule.fingerprints())]
+        datamodule.set_scene_indices([k for k, _ in given])
+        datamodule.scene_index_source = given[0][1]
     evaluations = eval_datamodules(cfg, datamodule, table, seen=table if trains or not known else known)
     for ev in evaluations:
         if ev.datamodule is not datamodule:
             check_bands(cfg, table, ev.datamodule, source or "the model")
+    if cfg.get("seed") is not None:
+        # the initial weights depend on the seed alone, not on how much set-up drew from the global generators
+        # before (each test scene's set-up draws: a job tested on six scenes got other weights than one tested on
+        # one, with the same config, seed and threads)
+        L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     model = hydra.utils.instantiate(cfg.model)
     model.scene_table = dict(table)  # what the checkpoints it writes record: the checkpoint's and this run's scenes
     model.run_settings = run_settings(cfg)
@@ -200,9 +211,10 @@ def eval_datamodules(cfg: DictConfig, train_dm, table: dict | None = None, seen:
     that band), its targets from that scene's splits and their neighbors from that scene's training split
     (all of it: the measured fraction of a fine-tuning run applies to the scenes it trains on).  ``table``:
     the scenes the model knows (name -> {"index"}; default: the training datamodule's), so a test scene the
-    model was trained on keeps its scene index and is reported as within-scene, and an unseen one gets a new
-    index.  ``seen``: the scenes the model was trained on, by content (default: ``table``); a run that trains
-    nothing (graf-eval of a checkpoint) passes the checkpoint's alone."""
+    model was trained on keeps its scene index and is reported as within-scene, and an unseen one gets the one
+    fixed index of unseen scenes (:func:`graf.data.fingerprint.eval_scene_index`).  ``seen``: the scenes the model
+    was trained on, by content (default: ``table``); a run that trains nothing (graf-eval of a checkpoint) passes
+    the checkpoint's alone."""
     configs = scene_configs(cfg.get("eval_scene"))
     eval_band = cfg.get("eval_band")
     if not configs and not eval_band:
@@ -218,7 +230,7 @@ def eval_datamodules(cfg: DictConfig, train_dm, table: dict | None = None, seen:
         for d, fp, k in zip(train_dm.sets, train_dm.fingerprints(), train_dm.scene_index.tolist()):
             register_scene(table, d.name, fp, k)
     names = [str(c.get("name")) for c in configs]
-    out, new = [], next_index(table)
+    out = []
     for c, name in zip(configs, names):
         scene = OmegaConf.create({name: OmegaConf.to_container(c, resolve=True)})  # resolved in the run's config
         sub = OmegaConf.create(
@@ -235,19 +247,19 @@ def eval_datamodules(cfg: DictConfig, train_dm, table: dict | None = None, seen:
         )
         _, _, _, dm = build_datamodule(sub, "eval_scene")
         dm.setup("test")
-        key = find_scene(table, name, dm.fingerprints()[0])  # by content: another folder of the same name is unseen
-        within = key is not None and (seen is None or find_scene(seen, name, dm.fingerprints()[0]) is not None)
-        if key is not None:
-            k = int(table[key]["index"])
-        else:
-            k, new = new, new + 1
+        fp = dm.fingerprints()[0]
+        key = find_scene(table, name, fp)  # by content: another folder of the same name is unseen
+        within = key is not None and (seen is None or find_scene(seen, name, fp) is not None)
+        k, how = eval_scene_index(table, name, fp)  # never by its place in the list
         dm.set_scene_indices([k])
+        dm.scene_index_source = how
         log.info(
-            "test scene %s at %s: %s (scene index %d)",
+            "test scene %s at %s: %s (scene index %d: %s)",
             name,
             dm.bands[0].name,
             "within-scene (the model was trained on it)" if within else "unseen in training (zero-shot)",
             k,
+            how,
         )
         out.append(EvalScene(name, dm, within))
     return out

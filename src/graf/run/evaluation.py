@@ -27,7 +27,7 @@ import torch
 from omegaconf import DictConfig
 
 from graf.callbacks import PredictionCollector
-from graf.metrics.names import EVAL_METRICS
+from graf.metrics.names import record_order
 from graf.run.build import BuiltRun, EvalScene, evaluation_trainer
 from graf.run.record import BaselineFigures, RunResult, Timing
 from graf.search.objectives import objective_values
@@ -63,7 +63,7 @@ def evaluate_model(cfg: DictConfig, model, dm, loggers=()) -> ModelEvaluation:
     if cfg.get("reliance", True) and getattr(model, "uses_neighbors", True):
         metrics.update(reliance_figures(cfg, model, dm, metrics, trainer))
     timing = Timing(val_s=round(t1 - t0, 3), test_s=round(t2 - t1, 3), reliance_s=round(time.perf_counter() - t2, 3))
-    return ModelEvaluation({k: metrics.get(k) for k in EVAL_METRICS}, collector.arrays(), timing)
+    return ModelEvaluation(record_order(metrics), collector.arrays(), timing)
 
 
 def reliance_figures(cfg: DictConfig, model, dm, metrics: dict, trainer) -> dict:

@@ -186,7 +186,9 @@ class SceneEvaluation(Record):
 @dataclass
 class RunRecord(Record):
     """``results.json``: what one graf-train or graf-eval run produced (the first test scene's figures are the
-    headline), with the config that ran, its timing, device and versions."""
+    headline), with the config that ran, its timing, device and versions.  ``scene`` names the scenes the model
+    was trained on (``train_scenes`` joined by ``+``; a zero-shot test's: its checkpoint's), ``eval_scene`` the
+    headline's test scene."""
 
     method: str
     scene: str
@@ -224,6 +226,9 @@ class RunRecord(Record):
     per_spectrum: str | None = optional()  # per_spectrum.csv.gz (graf.run.per_spectrum)
     prediction_sha256: dict | None = optional()  # {test scene: {method: sha256 of its predictions}}
     schedule: dict | None = optional()  # the learning-rate schedule that ran (graf.models.schedule)
+    # {test scene: {"index", "source"}}: the scene index each test scene was given and why (trained, same place at
+    # another band, unseen: graf.data.fingerprint.eval_scene_index)
+    scene_indices: dict | None = optional()
 
     @classmethod
     def read(cls, path: Path) -> RunRecord:

@@ -17,12 +17,14 @@ import sys
 import time
 from pathlib import Path
 
+import lightning
 from hydra import compose
 from lightning.pytorch.callbacks import Timer
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig
 
 from graf.callbacks import Preemption, TargetCount, TrainingInterrupted
+from graf.data.splits import mixed_seed
 from graf.errors import ConfigError
 from graf.io import atomic_write_json
 from graf.models.base import CheckpointError, read_checkpoint
@@ -125,6 +127,9 @@ def is_inside(path, folder: Path) -> bool:
     return bool(path) and folder.resolve() in Path(str(path)).resolve().parents
 
 
+FIT_STREAM = 2  # mixed_seed(seed, FIT_STREAM): the fit's global generators (0 and 1 are the data stream's)
+
+
 def fit(built: BuiltRun, step0: int) -> tuple[Timing, Training | None]:
     """Train the built model (resuming ``ckpt_path`` when given, from step ``step0``) when it has parameters:
     the fit's timing and the training record.  A SIGTERM or Ctrl+C during the fit stops the command with its
@@ -133,6 +138,9 @@ def fit(built: BuiltRun, step0: int) -> tuple[Timing, Training | None]:
     if not getattr(model, "has_trainable_parameters", True):
         log.info("%s has no trainable parameters: nothing to fit, testing directly", type(model).__name__)
         return Timing(), None
+    if cfg.get("seed") is not None:  # the fit's global random stream (dropout, ...) from the seed alone, not from
+        # what ran since the model was made (loading a checkpoint's weights, the loggers' set-up)
+        lightning.seed_everything(mixed_seed(int(cfg.seed), FIT_STREAM) % 2**32, workers=True, verbose=False)
     t0 = time.perf_counter()
     try:
         trainer.fit(model=model, datamodule=built.datamodule, ckpt_path=cfg.get("ckpt_path"))

@@ -63,10 +63,11 @@ def run_record(cfg: DictConfig, built: BuiltRun, scenes: list[SceneTest], facts:
     if n_test:  # the whole test loop (prediction and the four metrics) per spectrum
         timing = dataclasses.replace(timing, test_s_per_spectrum=round(timing.test_s / n_test, 4))
     method = getattr(model, "method", type(model).__name__)
+    train_scenes = trained_scenes(train_dm, facts.finetune)
     return RunRecord(
         method=method,
-        scene=dm.scene_name,
-        train_scenes=trained_scenes(train_dm, facts.finetune),
+        scene="+".join(train_scenes),
+        train_scenes=train_scenes,
         eval_scene=first.scene.eval_scene,
         within_scene=bool(first.scene.within_scene),
         band_hz=float(dm.bands[0].frequency_hz),
@@ -99,6 +100,13 @@ def run_record(cfg: DictConfig, built: BuiltRun, scenes: list[SceneTest], facts:
         regime=str(cfg.regime) if cfg.get("regime") else None,
         per_spectrum=PER_SPECTRUM_FILE if per_spectrum_rows(method, scenes) else None,
         schedule=getattr(model, "schedule_record", None),
+        scene_indices={
+            s.scene.eval_scene: {
+                "index": int(s.scene.datamodule.scene_index[0]),
+                "source": getattr(s.scene.datamodule, "scene_index_source", "trained"),
+            }
+            for s in scenes
+        },
         prediction_sha256={
             s.scene.eval_scene: {
                 method: predictions_sha256(s.model.arrays),
@@ -162,7 +170,7 @@ def write_run(cfg: DictConfig, built: BuiltRun, record: RunRecord, scenes: list[
         write_per_spectrum(out / record.per_spectrum, per_spectrum_rows(record.method, scenes))
     if record.figure:
         a = first.model.arrays
-        title = f"{record.method} on {record.scene}"
+        title = f"{record.method} on {record.eval_scene}"
         fig = plot_spectra_grid(a["pred"], a["target"], a["ids"], out / record.figure, title, int(cfg.plot_count))
         for lg in built.loggers:
             if hasattr(lg, "log_image"):
@@ -193,7 +201,7 @@ def print_summary(cfg: DictConfig, record: RunRecord, scenes: list[SceneTest], o
     trained on, the regime, and where the files are."""
     rows = []
     for i, s in enumerate(scenes):
-        scene = record.scene if i == 0 else s.scene.eval_scene
+        scene = record.eval_scene if i == 0 else s.scene.eval_scene
         rows.append(
             {"method": record.method, "scene": scene, "n_test": len(s.model.arrays["ids"]), "metrics": s.model.metrics}
         )

@@ -23,7 +23,9 @@ import math
 import numpy as np
 from scipy import stats
 
-HIGHER_IS_BETTER = {"psnr": True, "ssim": True, "mse": False, "lpips": False}
+from graf.metrics.names import REGISTRY
+
+HIGHER_IS_BETTER = {m.name: m.higher_is_better for m in REGISTRY.values()}  # every registered metric
 CONFIDENCE = 0.95
 RESAMPLES = 9999
 

@@ -11,9 +11,11 @@ import matplotlib.pyplot as plt  # on the Agg backend: graf.plotting (below) set
 import numpy as np
 
 from graf.io import atomic_write_json
+from graf.metrics.names import REGISTRY
 from graf.plotting import SPECTRUM_CMAP, SPECTRUM_LABEL, shared_limits
 from graf.studies.report_rows import METRICS, label_hz, short_scenes
 
+LABELS = {m.label: m for m in REGISTRY.values()}
 EXTENT = (0, 360, 0, 90)  # a spectrum's axes in degrees: azimuth 0-360, elevation 0-90
 
 
@@ -45,7 +47,7 @@ def matrix_figures(rows: list[dict], out: Path) -> dict:
                 M[i, ev.index(r["eval_scene"])] = r.get(key) if r.get(key) is not None else np.nan
             mats.setdefault(m, {})[name] = {"rows": ylabels, "cols": ev, "values": M.tolist()}
             im = ax.imshow(
-                M, cmap="viridis_r" if name in ("MSE", "LPIPS") else "viridis", aspect="auto", vmin=lo, vmax=hi
+                M, cmap="viridis" if LABELS[name].higher_is_better else "viridis_r", aspect="auto", vmin=lo, vmax=hi
             )
             for (i, j), v in np.ndenumerate(M):
                 if not np.isnan(v):
@@ -53,9 +55,8 @@ def matrix_figures(rows: list[dict], out: Path) -> dict:
             ax.set_xticks(range(len(ev)), ev, rotation=45, ha="right", fontsize=7)
             ax.set_yticks(range(len(ylabels)), ylabels, fontsize=7)
             ax.set_title(m, fontsize=9)
-        unit = {"PSNR": "test PSNR (dB), higher is better", "SSIM": "test SSIM, higher is better"}.get(
-            name, f"test {name}, lower is better\n(map reversed: yellow is better)"
-        )
+        reversed_note = "" if LABELS[name].higher_is_better else "\n(map reversed: yellow is better)"
+        unit = LABELS[name].axis_label() + reversed_note
         fig.colorbar(im, ax=axes[0].tolist(), shrink=0.9, label=unit)
         fig.suptitle(f"test {name}: trained on (rows) x tested on (columns), one colour scale")
         path = out / f"matrix_{name.lower()}.png"
@@ -72,14 +73,17 @@ def _ink(im, value: float) -> str:
     return "k" if 0.299 * r + 0.587 * g + 0.114 * b > 0.5 else "w"
 
 
-CURVE_UNITS = {"PSNR": "PSNR (dB), higher is better", "SSIM": "SSIM, higher is better",
-               "MSE": "MSE, lower is better", "LPIPS": "LPIPS, lower is better"}  # fmt: skip
+CURVE_UNITS = {m.label: m.axis_label("")[1:] for m in REGISTRY.values()}  # "PSNR (dB), higher is better"
 
 
 def curve_figure(data: dict, xlabel: str, path: Path, title: str) -> None:
     """Each metric against ``xlabel``, one line per method of ``data`` (``{method: {x: {metric: value}}}``), in a
-    2 x 2 grid (legible at page width), each y axis with its unit and which way is better."""
-    fig, axes = plt.subplots(2, 2, figsize=(10, 7), constrained_layout=True)
+    grid of two columns (legible at page width; as many rows as the registered metrics need), each y axis with
+    its unit and which way is better."""
+    rows = -(-len(METRICS) // 2)
+    fig, axes = plt.subplots(rows, 2, figsize=(10, 3.5 * rows), constrained_layout=True, squeeze=False)
+    for ax in axes.flat[len(METRICS) :]:
+        ax.set_visible(False)
     for ax, (_, name, _) in zip(axes.flat, METRICS):
         for m, pts in sorted(data.items()):
             xs = list(pts)

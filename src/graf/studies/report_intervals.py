@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import csv
 import io
+import math
 from collections import defaultdict
 from pathlib import Path
 
@@ -56,7 +57,8 @@ def collect_spectra(runs: Path) -> tuple[dict, list]:
         by_eval: dict = defaultdict(lambda: {m: {} for m in METRICS})
         for row in read_per_spectrum(f.parent / result["per_spectrum"]):
             for m in METRICS:
-                by_eval[(row["eval_scene"], row["method"])][m][row["id"]] = row[m]
+                if not math.isnan(row[m]):  # NaN: an empty target, left out of every figure (its id of every method)
+                    by_eval[(row["eval_scene"], row["method"])][m][row["id"]] = row[m]
         test_bands = evaluation_bands(result)  # per evaluation: a cross-band job tests at another band
         for (eval_scene, method), values in by_eval.items():
             at = {"eval_scene": eval_scene, "eval_band": test_bands.get(eval_scene, "")}

@@ -12,17 +12,14 @@ from pathlib import Path
 import numpy as np
 
 from graf.errors import ConfigError
+from graf.metrics.names import REGISTRY
 from graf.run.config import family
 from graf.studies.table import read_run_result
 
 # neighbor reliance (PSNR with true minus with swapped neighbors): a column of the tables, not a figure
 RELIANCE = ("test/reliance_db", "reliance dB", "{:.2f}")
-METRICS = (
-    ("test/mse", "MSE", "{:.4f}"),
-    ("test/lpips", "LPIPS", "{:.3f}"),
-    ("test/psnr", "PSNR", "{:.2f}"),
-    ("test/ssim", "SSIM", "{:.3f}"),
-)
+# every registered metric (graf.metrics.names.REGISTRY): (results.json key, label, number format)
+METRICS = tuple((f"test/{m.name}", m.label, m.fmt) for m in REGISTRY.values())
 # the settings a study may vary, in the order its table blocks are nested
 AXES = ("trained_on", "train_band", "finetune", "L", "eval_scene", "eval_band")
 PSNR_TARGETS = (16.0, 18.0, 20.0, 22.0, 25.0)  # dB: "how densely must I measure for X dB?"

@@ -173,7 +173,7 @@ def _evaluations(r: dict) -> list[dict]:
     """A run's evaluations: one per test scene (``evaluations`` of a cross-scene run; the run itself before)."""
     return r.get("evaluations") or [
         {
-            "eval_scene": r.get("scene"),
+            "eval_scene": r.get("eval_scene") or r.get("scene"),
             "metrics": r.get("metrics", {}),
             "n_test": r.get("n_test"),
             "baselines": r.get("baselines") or {},
