@@ -9,6 +9,7 @@ is refused in one line naming it, never read into a traceback, never deleted.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -24,6 +25,7 @@ from graf.bands import Band
 from graf.data.spectrum_set import DataFormatError
 from graf.errors import is_user_error
 from graf.run.build import build_datamodule
+from graf.sim import checks
 from graf.sim.dataset import read_dataset
 
 pytest.importorskip("sionna.rt")
@@ -165,4 +167,49 @@ def test_a_truncated_file_is_refused_by_graf_simulate_and_by_readers_and_kept(sm
     assert str(h5) in line and "truncated" in line and "delete it" in line and "sim.overwrite=true" in line, line
     assert h5.read_bytes() == cut  # never deleted silently
     with pytest.raises(DataFormatError, match="unreadable.*truncated"):
+        read_dataset(h5)
+
+
+def test_a_damaged_file_is_refused_by_graf_simulate_and_by_readers(small_room_root, tmp_path, compose_cfg):
+    from graf.sim.dataset import generate
+
+    h5 = _copy(small_room_root, tmp_path) / "sim" / "small_room" / NAME
+    with h5py.File(h5, "r") as f:
+        chunk = f["spectra"].id.get_chunk_info(0)
+    data = bytearray(h5.read_bytes())
+    middle = chunk.byte_offset + chunk.size // 2
+    data[middle : middle + 2000] = bytes(2000)  # a compressed chunk of spectra zeroed: HDF5 still opens the file
+    h5.write_bytes(bytes(data))
+    with pytest.raises(DataFormatError, match="is damaged: its spectra cannot be read"):
+        read_dataset(h5)
+    with pytest.raises(DataFormatError, match="is damaged: its spectra cannot be read .*sim.overwrite=true"):
+        generate(_scene(compose_cfg), BAND, h5.parents[2], num_tx=24, progress=False)  # not skipped as there
+    assert h5.read_bytes() == bytes(data)
+
+
+def _drop_recorded(h5: Path, *where: str) -> None:
+    with h5py.File(h5, "r+") as f:
+        config = json.loads(f.attrs["config"])
+        node = config
+        for k in where[:-1]:
+            node = node[k]
+        del node[where[-1]]
+        f.attrs["config"] = json.dumps(config, sort_keys=True)
+
+
+def test_a_file_that_does_not_record_a_setting_is_refused_unless_its_value_then_is_known(
+    small_room_root, tmp_path, compose_cfg, monkeypatch
+):
+    """A setting added to the scene configs after a file was written: the file does not record it, so what made
+    the file is unknown (refused), unless RECORDED_SINCE gives the value files made before it used."""
+    root = _copy(small_room_root, tmp_path)
+    h5 = root / "sim" / "small_room" / NAME
+    _drop_recorded(h5, "scene", "array", "hemisphere")
+    with pytest.raises(DataFormatError, match="scene.small_room.array.hemisphere: absent in the file, 'front' asked"):
+        _scene(compose_cfg).load(root, BAND)
+    monkeypatch.setitem(checks.RECORDED_SINCE, ("scene", "array", "hemisphere"), "front")
+    assert len(_scene(compose_cfg).load(root, BAND).ids) == 24
+    with h5py.File(h5, "r+") as f:
+        del f.attrs["config"]
+    with pytest.raises(DataFormatError, match="has no 'config' attribute"):
         read_dataset(h5)

@@ -8,14 +8,18 @@ settings, the band's frequency and the number of positions, and for ``graf-simul
 chunks batch the sources Sionna RT traces together, which changes the spectra).  The scene's name and
 description shape nothing and are not compared.  A difference is refused in one line naming each differing
 setting with its value in the file and the asked one (:func:`compare_config`): a changed setting never reads, or
-skips tracing over, a dataset made by other settings.  A setting the asked configuration has and a file does
-not record (a key added to the scene configs after the file was written) is such a difference too ("absent in
-the file"): what the file was made with is then unknown.
+skips tracing over, a dataset made by other settings.  Files written before these checks record every setting
+compared (the recorded configuration has not changed since the simulator's first version), so they read as
+before when their settings are asked for.  A setting the asked configuration has and a file does not record (a
+key added to the scene configs later) is compared with the value files made before it used, when
+:data:`RECORDED_SINCE` gives it; otherwise it is a difference ("absent in the file"): what the file was made
+with is unknown.
 
 Every read also checks the arrays (:func:`check_arrays`, in the style of the NeRF2 folder readers): as many ids,
 positions and path counts as spectra, distinct ids, and a split of rows inside the file, neither part empty,
 no row twice, none in both.  A file HDF5 cannot open (truncated by a copy that stopped short, say) is refused
-as unreadable (:func:`open_dataset`) and left where it is: only its owner deletes it.
+as unreadable (:func:`open_dataset`), one whose compressed spectra cannot be read as damaged
+(:func:`read_spectra`), and either is left where it is: only its owner deletes it.
 """
 
 from __future__ import annotations
@@ -32,6 +36,10 @@ from graf.geometry.grid import SPECTRUM_SHAPE
 DATASETS = ("spectra", "positions", "ids", "train_idx", "test_idx")
 ATTRIBUTES = ("gateway_position", "gateway_orientation", "frequency_hz", "bounds", "config")
 UNSHAPING = {("scene", "name"), ("scene", "description")}  # free text and the folder's name: no spectrum changes
+# A setting added to the configs after files were written (none yet): where -> the value those files were made
+# with, compared in its place when a file does not record it.  Without an entry such a file is refused.
+RECORDED_SINCE: dict[tuple, object] = {}
+REMAKE = "delete it, or trace it again with graf-simulate ... sim.overwrite=true"
 _ABSENT = object()
 
 
@@ -43,9 +51,16 @@ def open_dataset(path: Path) -> h5py.File:
         what = "truncated (a run or a copy that stopped short)" if "truncated" in str(exc) else "truncated or not HDF5"
         raise DataFormatError(
             path,
-            f"is unreadable: HDF5 cannot open it ({exc}); the file is {what}: delete it, or trace it again with "
-            "graf-simulate ... sim.overwrite=true",
+            f"is unreadable: HDF5 cannot open it ({exc}); the file is {what}: {REMAKE}",
         ) from None
+
+
+def read_spectra(path: Path, f: h5py.File) -> np.ndarray:
+    """Every spectrum of the file; a damaged compressed chunk is refused in one line."""
+    try:
+        return f["spectra"][()]
+    except OSError as exc:
+        raise DataFormatError(path, f"is damaged: its spectra cannot be read ({exc}); {REMAKE}") from None
 
 
 def check_arrays(path: Path, f: h5py.File) -> int:
@@ -117,7 +132,7 @@ def compare_config(path: Path, stored: dict, asked: dict, scene_key: str, remedy
     asked = json.loads(json.dumps(asked, sort_keys=True, default=str))  # as the file stores it: lists, no tuples
     found: list[str] = []
     for key in sorted(asked):
-        _differences(stored.get(key, _ABSENT), asked[key], (key,), found, scene_key)
+        _differences(stored.get(key, RECORDED_SINCE.get((key,), _ABSENT)), asked[key], (key,), found, scene_key)
     if found:
         raise DataFormatError(path, f"was made with other settings than asked: {'; '.join(found)}; {remedy}")
 
@@ -127,7 +142,8 @@ def _differences(stored, asked, where: tuple, found: list[str], scene_key: str) 
         return
     if isinstance(stored, dict) and isinstance(asked, dict):
         for k in sorted(set(stored) | set(asked)):
-            _differences(stored.get(k, _ABSENT), asked.get(k, _ABSENT), (*where, k), found, scene_key)
+            old = stored.get(k, RECORDED_SINCE.get((*where, k), _ABSENT))
+            _differences(old, asked.get(k, _ABSENT), (*where, k), found, scene_key)
     elif stored is _ABSENT or asked is _ABSENT or stored != asked:
         found.append(f"{setting_name(where, scene_key)}: {_shown(stored)} in the file, {_shown(asked)} asked")
 

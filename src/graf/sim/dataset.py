@@ -51,7 +51,7 @@ from graf.errors import ConfigError
 from graf.geometry.grid import SPECTRUM_SHAPE
 from graf.io import atomic_write_json, atomic_write_npz
 from graf.sim.array import to_uint8
-from graf.sim.checks import check_arrays, compare_config, open_dataset, stored_config
+from graf.sim.checks import check_arrays, compare_config, open_dataset, read_spectra, stored_config
 
 log = logging.getLogger(__name__)
 FORMAT_VERSION = 1
@@ -138,11 +138,12 @@ def scene_config(scene, band: Band, n: int) -> dict:
 
 
 def check_file(path: Path, asked: dict, scene_key: str, remedy: str) -> None:
-    """Refuse a dataset file that is unreadable, whose arrays disagree, or that was made by other settings than
-    ``asked`` (:mod:`graf.sim.checks`); reads no spectrum."""
+    """Refuse a dataset file that is unreadable or damaged, whose arrays disagree, or that was made by other settings
+    than ``asked`` (:mod:`graf.sim.checks`): it reads every spectrum once, so a damaged chunk is not taken as done."""
     with open_dataset(path) as f:
         check_arrays(path, f)
         compare_config(path, stored_config(path, f), asked, scene_key, remedy)
+        read_spectra(path, f)
 
 
 def record_materials(manifest: Path, materials: list | None) -> list:
@@ -302,7 +303,7 @@ def read_dataset(path: str | Path, name: str | None = None) -> SpectrumSet:
             raise DataFormatError(path, "positions are not all finite")
         a = dict(f.attrs)
         ids = f["ids"][()].astype(np.int64)
-        spectra = torch.from_numpy(f["spectra"][()]).float().div_(255.0)
+        spectra = torch.from_numpy(read_spectra(path, f)).float().div_(255.0)
         warn_flat_spectra(spectra, ids, path)
         return SpectrumSet(
             name=name or str(a.get("scene", path.stem)),
