@@ -23,7 +23,7 @@ from hydra.utils import instantiate
 
 from graf.bands import Band
 from graf.data.spectrum_set import DataFormatError
-from graf.errors import is_user_error
+from graf.errors import ConfigError, is_user_error
 from graf.run.build import build_datamodule
 from graf.sim import checks
 from graf.sim.dataset import read_dataset
@@ -100,6 +100,14 @@ def test_every_setting_that_shapes_the_dataset_is_compared(small_room_root, comp
     with pytest.raises(DataFormatError, match="made with other settings") as err:
         generate(scene, BAND, small_room_root, num_tx=24, chunk_size=chunk, progress=False)
     assert says in str(err.value) and "\n" not in str(err.value), str(err.value)
+
+
+def test_a_dataset_of_fewer_than_two_positions_is_refused_before_tracing(compose_cfg, tmp_path):
+    from graf.sim.dataset import generate
+
+    with pytest.raises(ConfigError, match="sim.num_tx=1: a dataset needs at least 2 positions"):
+        generate(_scene(compose_cfg), BAND, tmp_path, num_tx=1, progress=False)
+    assert not (tmp_path / "sim").exists()
 
 
 def test_reading_a_simulated_scene_compares_its_settings(small_room_root, compose_cfg):

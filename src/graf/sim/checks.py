@@ -77,7 +77,8 @@ def check_arrays(path: Path, f: h5py.File) -> int:
         raise DataFormatError(path, f"spectra must be uint8 [N, 90, 360], got {s.dtype} {s.shape}")
     n = int(s.shape[0])
     if n < 2:
-        raise DataFormatError(path, f"holds {n} spectra; a dataset needs at least 2 (one to train on, one to test)")
+        what = f"{n} spectr{'um' if n == 1 else 'a'}"
+        raise DataFormatError(path, f"holds {what}; a dataset needs at least 2 (one to train on, one to test)")
     for key, what, tail in (("ids", "ids", ()), ("positions", "positions", (3,)), ("num_paths", "path counts", ())):
         if key in f and (len(f[key].shape) != 1 + len(tail) or f[key].shape[1:] != tail or f[key].shape[0] != n):
             shape = list(f[key].shape)

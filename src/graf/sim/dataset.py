@@ -91,6 +91,9 @@ def generate(
     parts = path.with_name(path.name + ".parts")
     positions = scene.positions(num_tx)
     n = len(positions)
+    if n < 2:  # the split would leave nothing to train on, and the file would be refused on every read
+        asked = f"sim.num_tx={num_tx}" if num_tx is not None else f"scene.{scene.name}.transmitters.count={n}"
+        raise ConfigError(f"{asked}: a dataset needs at least 2 positions (one to train on, one to test)")
     config = dataset_config(scene, band, n, chunk_size)
     index, count = (int(v) for v in shard)
     check_shard(index, count, overwrite, merge_only, parts)
