@@ -146,6 +146,8 @@ def _rewrite(h5: Path, key: str, values) -> None:
     ("key", "values", "says"),
     [
         ("ids", np.arange(1, 31), "24 spectra but 30 ids"),
+        ("ids", np.arange(0, 24), "ids must be integers from 1"),
+        ("ids", [1, *range(1, 24)], "spectrum id 1 appears 2 times in 'ids'"),
         ("test_idx", [3, 99], "test_idx holds row 99, but the file has 24 spectra (rows 0-23)"),
         ("test_idx", [], "test_idx is empty: no spectrum to test on"),
         ("train_idx", [-1, 2], "train_idx holds row -1"),

@@ -84,6 +84,8 @@ def check_arrays(path: Path, f: h5py.File) -> int:
             shape = list(f[key].shape)
             raise DataFormatError(path, f"has {n} spectra but {shape[0] if shape else 0} {what} (shape {shape})")
     ids = f["ids"][()]
+    if ids.dtype.kind not in "iu" or ids.min() < 1:
+        raise DataFormatError(path, f"ids must be integers from 1 (id k is row k-1, as NeRF2), got {ids[:5].tolist()}")
     values, counts = np.unique(ids, return_counts=True)
     if (counts > 1).any():
         raise DataFormatError(path, f"spectrum id {values[counts > 1][0]} appears {counts.max()} times in 'ids'")
