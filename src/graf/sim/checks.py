@@ -16,7 +16,7 @@ key added to the scene configs later) is compared with the value files made befo
 with is unknown.
 
 Every read also checks the arrays (:func:`check_arrays`, in the style of the NeRF2 folder readers): as many ids,
-positions and path counts as spectra, distinct ids, and a split of rows inside the file, neither part empty,
+positions and path counts as spectra, distinct ids from 1, and a split of rows inside the file, neither part empty,
 no row twice, none in both.  A file HDF5 cannot open (truncated by a copy that stopped short, say) is refused
 as unreadable (:func:`open_dataset`), one whose compressed spectra cannot be read as damaged
 (:func:`read_spectra`), and either is left where it is: only its owner deletes it.
@@ -48,7 +48,7 @@ def open_dataset(path: Path) -> h5py.File:
     try:
         return h5py.File(path, "r")
     except OSError as exc:
-        what = "truncated (a run or a copy that stopped short)" if "truncated" in str(exc) else "truncated or not HDF5"
+        what = "truncated (a copy or a disk that stopped short)" if "truncated" in str(exc) else "truncated or not HDF5"
         raise DataFormatError(
             path,
             f"is unreadable: HDF5 cannot open it ({exc}); the file is {what}: {REMAKE}",
