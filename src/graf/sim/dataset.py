@@ -17,7 +17,8 @@ read without our code; zarr would make thousands of small files and add a format
 Generation writes chunks of ``chunk_size`` spectra as separate files (atomically) under
 ``<file>.parts/``; a killed run, started again with the same command, skips finished chunks, so no
 spectrum is lost or made twice.  When every chunk is there, the HDF5 file is assembled in a temporary
-file and renamed into place.  A changed configuration is refused (the parts carry its fingerprint).
+file and renamed into place.  A changed configuration is refused: the parts carry its fingerprint, and the file
+records it, compared with the asked one by every later run and every read (:mod:`graf.sim.checks`).
 
 **Shards.**  ``shard=(i, n)`` traces only the i-th of n contiguous ranges of chunks (so of transmitter
 positions), one process or machine per shard sharing ``data_root``; each shard is resumable on its own.  The
@@ -50,12 +51,17 @@ from graf.errors import ConfigError
 from graf.geometry.grid import SPECTRUM_SHAPE
 from graf.io import atomic_write_json, atomic_write_npz
 from graf.sim.array import to_uint8
+from graf.sim.checks import check_arrays, compare_config, open_dataset, read_spectra, stored_config
 
 log = logging.getLogger(__name__)
 FORMAT_VERSION = 1
 ANGLE_CONVENTION = (
     "row r = elevation r+1 deg, column c = azimuth c+1 deg; direction (cos e cos a, cos e sin a, "
     "sin e) in the gateway frame (array in z=0, facing +z); rows cover the front hemisphere"
+)
+SIMULATE_REMEDY = (
+    "to trace the asked settings, give another data_root, or run with sim.overwrite=true to replace this file (or "
+    "delete it); to use this file, ask for the settings it was made with"
 )
 
 
@@ -85,10 +91,14 @@ def generate(
     parts = path.with_name(path.name + ".parts")
     positions = scene.positions(num_tx)
     n = len(positions)
+    if n < 2:  # the split would leave nothing to train on, and the file would be refused on every read
+        asked = f"sim.num_tx={num_tx}" if num_tx is not None else f"scene.{scene.name}.transmitters.count={n}"
+        raise ConfigError(f"{asked}: a dataset needs at least 2 positions (one to train on, one to test)")
     config = dataset_config(scene, band, n, chunk_size)
     index, count = (int(v) for v in shard)
     check_shard(index, count, overwrite, merge_only, parts)
-    if path.is_file() and not overwrite:
+    if path.is_file() and not overwrite:  # the file is whole and made by these settings, or refused
+        check_file(path, {k: v for k, v in config.items() if k != "format_version"}, scene.name, SIMULATE_REMEDY)
         log.info("%s exists; nothing to do (overwrite=true makes it again)", path)
         return {"path": str(path), "n": n, "made": 0, "seconds": 0.0, "spectra_per_second": None, "skipped": True}
     manifest = open_parts(path, parts, config, overwrite)
@@ -120,14 +130,23 @@ def generate(
 
 
 def dataset_config(scene, band: Band, n: int, chunk_size: int) -> dict:
-    """What makes a dataset file: its fingerprint (:func:`fingerprint`) guards the parts of a resumed run."""
-    return {
-        "scene": scene.config(),
-        "band": {"name": band.name, "frequency_hz": band.frequency_hz},
-        "num_tx": n,
-        "chunk_size": int(chunk_size),
-        "format_version": FORMAT_VERSION,
-    }
+    """What makes a dataset file: its fingerprint (:func:`fingerprint`) guards the parts of a resumed run, and the
+    file records it (compared on every later run and read: :mod:`graf.sim.checks`)."""
+    return {**scene_config(scene, band, n), "chunk_size": int(chunk_size), "format_version": FORMAT_VERSION}
+
+
+def scene_config(scene, band: Band, n: int) -> dict:
+    """The part of :func:`dataset_config` a scene's reader knows: the scene's config, the band, ``n`` positions."""
+    return {"scene": scene.config(), "band": {"name": band.name, "frequency_hz": band.frequency_hz}, "num_tx": n}
+
+
+def check_file(path: Path, asked: dict, scene_key: str, remedy: str) -> None:
+    """Refuse a dataset file that is unreadable or damaged, whose arrays disagree, or that was made by other settings
+    than ``asked`` (:mod:`graf.sim.checks`): it reads every spectrum once, so a damaged chunk is not taken as done."""
+    with open_dataset(path) as f:
+        check_arrays(path, f)
+        compare_config(path, stored_config(path, f), asked, scene_key, remedy)
+        read_spectra(path, f)
 
 
 def record_materials(manifest: Path, materials: list | None) -> list:
@@ -276,25 +295,18 @@ def _assemble(path: Path, parts: Path, chunks, scene, band: Band, positions, ant
 
 
 def read_dataset(path: str | Path, name: str | None = None) -> SpectrumSet:
-    """A simulated scene's dataset file as a :class:`SpectrumSet` (spectra = uint8 / 255)."""
+    """A simulated scene's dataset file as a :class:`SpectrumSet` (spectra = uint8 / 255), after the checks of
+    its arrays (:func:`graf.sim.checks.check_arrays`); what made it is compared by the scene's reader."""
     path = Path(path)
-    try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
-        raise DataFormatError(path, f"cannot be opened as HDF5 ({exc})") from None
-    with f:
-        for key in ("spectra", "positions", "ids", "train_idx", "test_idx"):
-            if key not in f:
-                raise DataFormatError(path, f"has no '{key}' dataset")
-        spectra = f["spectra"][()]
-        if spectra.ndim != 3 or spectra.shape[1:] != SPECTRUM_SHAPE or spectra.dtype != np.uint8:
-            raise DataFormatError(path, f"spectra must be uint8 [N, 90, 360], got {spectra.dtype} {spectra.shape}")
+    with open_dataset(path) as f:
+        check_arrays(path, f)
+        config = stored_config(path, f)
         positions = f["positions"][()]
         if not np.isfinite(positions).all():
             raise DataFormatError(path, "positions are not all finite")
         a = dict(f.attrs)
         ids = f["ids"][()].astype(np.int64)
-        spectra = torch.from_numpy(spectra).float().div_(255.0)
+        spectra = torch.from_numpy(read_spectra(path, f)).float().div_(255.0)
         warn_flat_spectra(spectra, ids, path)
         return SpectrumSet(
             name=name or str(a.get("scene", path.stem)),
@@ -310,7 +322,7 @@ def read_dataset(path: str | Path, name: str | None = None) -> SpectrumSet:
             split_source="seeded split stored in the dataset file",
             meta={
                 "bounds": np.asarray(a["bounds"], float).tolist(),
-                "config": json.loads(a["config"]),
+                "config": config,
                 "num_paths": f["num_paths"][()] if "num_paths" in f else None,
             },
         )

@@ -3,7 +3,8 @@
 The config models only what the scene needs: its geometry (a room or open ground, and box objects with
 ITU materials), the gateway's pose, the region and count of transmitter positions, the array (element
 pattern, pitch) and the tracing settings.  ``graf-simulate`` turns it into a dataset file per band
-(:mod:`graf.sim.dataset`); ``load`` reads that file for training and evaluation.
+(:mod:`graf.sim.dataset`); ``load`` reads that file for training and evaluation, after comparing the settings
+it records with the scene's (:mod:`graf.sim.checks`): a file made by other settings is refused.
 """
 
 from __future__ import annotations
@@ -18,7 +19,8 @@ import torch
 from graf.bands import Band
 from graf.data.spectrum_set import DataFormatError, SpectrumSet
 from graf.sim.array import PATTERNS, Bartlett, array_positions, rotation_from_axes
-from graf.sim.dataset import generate, read_dataset
+from graf.sim.checks import compare_config
+from graf.sim.dataset import generate, read_dataset, scene_config
 from graf.sim.geometry import SceneGeometry, build_geometry, sample_positions
 from graf.sim.tracer import SionnaTracer, spectra_from_paths
 
@@ -176,4 +178,17 @@ class SimulatedScene:
                     else ""
                 ),
             )
-        return read_dataset(path, name=self.name)
+        data = read_dataset(path, name=self.name)
+        count = int(self.transmitters["count"])
+        n = count if num_tx is None else min(int(num_tx), count)  # len(self.positions(num_tx)), without sampling
+        limit = "" if num_tx is None else f" sim.num_tx={num_tx}"
+        compare_config(
+            path,
+            data.meta["config"],
+            scene_config(self, band, n),
+            self.name,
+            f"it is not this scene's dataset: make one with `graf-simulate scene={self.name} band={band.name}{limit}` "
+            "and the asked settings into another data_root (or replace this file with sim.overwrite=true), or ask "
+            "for the settings it was made with",
+        )
+        return data
