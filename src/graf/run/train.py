@@ -25,7 +25,7 @@ from omegaconf import DictConfig
 from graf.callbacks import Preemption, TargetCount, TrainingInterrupted
 from graf.errors import ConfigError
 from graf.io import atomic_write_json
-from graf.models.base import CheckpointError, read_checkpoint
+from graf.models.base import CheckpointError, read_checkpoint, safe_loading
 from graf.run.build import BuiltRun, build
 from graf.run.config import (
     expand_heldout,
@@ -135,7 +135,8 @@ def fit(built: BuiltRun, step0: int) -> tuple[Timing, Training | None]:
         return Timing(), None
     t0 = time.perf_counter()
     try:
-        trainer.fit(model=model, datamodule=built.datamodule, ckpt_path=cfg.get("ckpt_path"))
+        with safe_loading():  # a resumed checkpoint: weights only (read_checkpoint has checked it already)
+            trainer.fit(model=model, datamodule=built.datamodule, ckpt_path=cfg.get("ckpt_path"), weights_only=True)
     except SIGTERMException:
         raise preempted(cfg, trainer, step0, time.perf_counter() - t0) from None
     except TrainingInterrupted:

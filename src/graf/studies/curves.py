@@ -179,10 +179,11 @@ def _killed_attempt(folder: Path) -> dict | None:
     ckpt = folder / "checkpoints" / "last.ckpt"
     if (folder / "results.json").exists() or not ckpt.exists():
         return None
-    import torch  # lazy: torch adds seconds to the command's start-up, and only a killed attempt needs it
+    # lazy: torch adds seconds to the command's start-up, and only a killed attempt needs it
+    from graf.models.base import read_checkpoint
 
     try:
-        state = torch.load(ckpt, map_location="cpu", weights_only=False)
+        state = read_checkpoint(ckpt)
         step = int(state["global_step"])
     except Exception as e:  # noqa: BLE001  (a truncated or foreign file: start the point again, say so)
         log.warning("%s: its checkpoint cannot be read (%s: %s); starting the point again", ckpt, type(e).__name__, e)
