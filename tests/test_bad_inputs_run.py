@@ -4,6 +4,7 @@ with one line naming the input and exit code 2, and nothing already written is l
 
 from __future__ import annotations
 
+import json
 import os
 import pickle
 import subprocess
@@ -117,3 +118,22 @@ def test_a_checkpoint_naming_a_foreign_class_does_not_import_it(tmp_path, monkey
     torch.save({"state_dict": {}, "graf": {"target": "graf.errors.UserError"}}, tmp_path / "g.ckpt")
     with pytest.raises(CheckpointError, match="graf.errors.UserError, which is not one of graf's methods"):
         load_checkpoint_model(cfg, str(tmp_path / "g.ckpt"), [])
+
+
+# ------------------------------------------------------------------- 2. a step count not a multiple of 50 finishes
+
+
+def test_a_step_count_off_the_checkpoint_interval_finishes_with_last_ckpt_at_the_final_step(compose_cfg, tmp_path):
+    """trainer.max_steps=60 with a checkpoint every 50 steps: Lightning saved last.ckpt at the end only when it had
+    saved nothing before, so last.ckpt held step 50 and graf-train refused the run after training (no
+    results.json, exit code 2).  The run, and a resume of it to 64 steps, now finish with last.ckpt at their end."""
+    cfg = compose_cfg("train", (*TINY, "trainer.max_steps=60"))
+    assert cfg.callbacks.model_checkpoint.every_n_train_steps == 50
+    out = Path(cfg.paths.output_dir)
+    train(cfg)
+    last = out / "checkpoints" / "last.ckpt"
+    assert json.loads((out / "results.json").read_text())["global_step"] == 60
+    assert read_checkpoint(last)["global_step"] == 60
+    train(compose_cfg("train", (*TINY, "trainer.max_steps=64", f"ckpt_path={last}")))
+    assert json.loads((out / "results.json").read_text())["global_step"] == 64
+    assert read_checkpoint(last)["global_step"] == 64

@@ -163,13 +163,18 @@ def check_last_checkpoint(trainer, out: Path) -> None:
     for cb in getattr(trainer, "checkpoint_callbacks", []):
         if not getattr(cb, "save_last", False) or not getattr(cb, "dirpath", None):
             continue
-        require_step(
-            Path(cb.dirpath) / "last.ckpt",
-            int(trainer.global_step),
-            f"training ended at step {int(trainer.global_step)} (its final weights are in "
-            f"{cb.last_model_path or 'no file'}); readers of last.ckpt would get stale weights: keep "
-            "callbacks.model_checkpoint.enable_version_counter=false",
-        )
+        last, step = Path(cb.dirpath) / "last.ckpt", int(trainer.global_step)
+        if cb.last_model_path and Path(cb.last_model_path) != last:  # a versioned copy (last-v1.ckpt)
+            fix = (
+                f"its final weights went to {cb.last_model_path}: keep "
+                "callbacks.model_checkpoint.enable_version_counter=false"
+            )
+        else:
+            fix = (
+                "its checkpoint callback did not save the final step: keep callbacks.model_checkpoint._target_="
+                "graf.callbacks.FinalCheckpoint"
+            )
+        require_step(last, step, f"training ended at step {step} ({fix}); readers of last.ckpt would get stale weights")
     stale = out / "preempted.json"
     if stale.is_file():
         log.info("%s: the pre-empted run has finished; removing its preempted.json", out)
