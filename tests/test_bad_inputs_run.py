@@ -4,19 +4,24 @@ with one line naming the input and exit code 2, and nothing already written is l
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import pickle
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
 import torch
 from omegaconf import OmegaConf
 
+from graf.errors import WriteError
+from graf.io import atomic_write_json
 from graf.models.base import CheckpointError, read_checkpoint
 from graf.run.evaluate import load_checkpoint_model
+from graf.run.output_folder import OutputFolderCheck
 from graf.run.train import train
 
 BIN = Path(sys.executable).parent
@@ -137,3 +142,83 @@ def test_a_step_count_off_the_checkpoint_interval_finishes_with_last_ckpt_at_the
     train(compose_cfg("train", (*TINY, "trainer.max_steps=64", f"ckpt_path={last}")))
     assert json.loads((out / "results.json").read_text())["global_step"] == 64
     assert read_checkpoint(last)["global_step"] == 64
+
+
+# --------------------------------------------------------------------------------------------- 3. output folders
+
+
+def _check(tmp_path, folder, capsys, **cfg) -> str:
+    config = OmegaConf.create({"hydra": {"run": {"dir": str(folder)}}, "task_name": "train", "ckpt_path": None, **cfg})
+    with pytest.raises(SystemExit) as e:
+        OutputFolderCheck().on_run_start(config=config)
+    assert e.value.code == 2
+    return _error_line(capsys.readouterr().err)
+
+
+def test_an_output_folder_that_is_a_file_or_too_long_a_name_is_one_line(tmp_path, capsys):
+    (tmp_path / "afile").write_text("kept")
+    line = _check(tmp_path, tmp_path / "afile", capsys)
+    assert f"hydra.run.dir={tmp_path / 'afile'}" in line and "is a file, not a folder" in line
+    line = _check(tmp_path, tmp_path / "afile" / "run", capsys)
+    assert f"{tmp_path / 'afile'} is a file, not a folder" in line
+    assert (tmp_path / "afile").read_text() == "kept"
+    line = _check(tmp_path, tmp_path / ("x" * 300), capsys)
+    assert "x" * 300 in line and "300 bytes long" in line
+
+
+@pytest.mark.parametrize(
+    ("code", "said"),
+    [(errno.ENOSPC, "no space is left on its disk"), (errno.EROFS, "read-only"), (errno.EACCES, "permission")],
+)
+def test_an_output_folder_on_a_full_or_read_only_disk_is_one_line(tmp_path, capsys, monkeypatch, code, said):
+    def refuse(*args, **kwargs):
+        raise OSError(code, os.strerror(code))
+
+    monkeypatch.setattr(tempfile, "mkstemp", refuse)
+    line = _check(tmp_path, tmp_path / "run", capsys)
+    assert f"hydra.run.dir={tmp_path / 'run'}: cannot be this run's output folder" in line and said in line
+
+
+def test_a_full_disk_at_results_json_is_one_line_and_keeps_the_file_there(tmp_path, monkeypatch):
+    atomic_write_json(tmp_path / "results.json", {"old": 1})
+
+    def full(fd):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "fsync", full)
+    with pytest.raises(WriteError, match=r"results.json: cannot be written \(No space left on device\)"):
+        atomic_write_json(tmp_path / "results.json", {"new": 2})
+    assert json.loads((tmp_path / "results.json").read_text()) == {"old": 1}
+    assert [f.name for f in tmp_path.iterdir()] == ["results.json"]  # no temp file left
+
+
+def test_a_new_run_in_an_interrupted_runs_folder_is_refused_and_keeps_its_checkpoint(tmp_path):
+    """graf-train in a folder holding checkpoints/last.ckpt and no results.json overwrote that run's checkpoint (and
+    Hydra its .hydra/ first): refused before anything is written, unless the run resumes that checkpoint."""
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "checkpoints" / "last.ckpt").write_bytes(b"the interrupted run's state")
+    (run / ".hydra").mkdir()
+    (run / ".hydra" / "overrides.yaml").write_text("- model=knn_dl\n")
+    p = _cli("graf-train", "model=knn", "logger=none", "plot_count=0", f"hydra.run.dir={run}", cwd=tmp_path)
+    assert p.returncode == 2
+    line = _error_line(p.stderr)
+    assert f"hydra.run.dir={run}" in line and "interrupted training run" in line
+    assert f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}" in line and "another folder" in line
+    assert (run / "checkpoints" / "last.ckpt").read_bytes() == b"the interrupted run's state"
+    assert (run / ".hydra" / "overrides.yaml").read_text() == "- model=knn_dl\n"
+    assert sorted(f.name for f in run.iterdir()) == [".hydra", "checkpoints"]
+
+
+def test_a_run_resuming_the_interrupted_run_in_its_folder_is_let_in(tmp_path, capsys):
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    last = run / "checkpoints" / "last.ckpt"
+    last.write_bytes(b"state")
+    config = OmegaConf.create({"hydra": {"run": {"dir": str(run)}}, "task_name": "train", "ckpt_path": str(last)})
+    OutputFolderCheck().on_run_start(config=config)  # no exit
+    line = _check(tmp_path, run, capsys, ckpt_path=str(tmp_path / "other.ckpt"))
+    assert "interrupted training run" in line
+    # graf-eval writing its results.json beside the interrupted checkpoint, even one testing it: refused
+    line = _check(tmp_path, run, capsys, task_name="eval", ckpt_path=str(last))
+    assert "interrupted training run" in line
