@@ -95,9 +95,10 @@ def refused_load(path, exc: BaseException) -> CheckpointError:
     return CheckpointError(f"{path}: is not a readable checkpoint ({what}; read as weights only)")
 
 
-def read_checkpoint(path) -> dict:
+def read_checkpoint(path, lightning: bool = True) -> dict:
     """A Lightning checkpoint as a dict, with clear errors for a missing, unreadable or foreign file.  Loaded
-    weights only (:func:`safe_loading`): a file holding other objects is refused and none of them runs."""
+    weights only (:func:`safe_loading`): a file holding other objects is refused and none of them runs.
+    ``lightning=False``: any dict (the records graf-curves reads need no ``state_dict``)."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint file does not exist")
@@ -110,7 +111,7 @@ def read_checkpoint(path) -> dict:
     except Exception as exc:
         first = (str(exc).strip().splitlines() or ["the file is empty or cut short"])[0]
         raise CheckpointError(f"{path}: is not a readable checkpoint ({type(exc).__name__}: {first})") from None
-    if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
+    if not isinstance(ckpt, dict) or (lightning and "state_dict" not in ckpt):
         raise CheckpointError(f"{path}: is not a Lightning checkpoint (no state_dict)")
     return ckpt
 
