@@ -126,9 +126,12 @@ def test_a_killed_point_resumes_from_its_periodic_checkpoint_and_its_saved_secon
     # from again, its seconds not counted twice
     torch.save({"global_step": 5000, "graf_attempt": {"start_step": 4500, "global_step": 5000, "fit_s": 300.0}}, ckpt)
     assert resume_from(folder, prev) == ckpt and len(preempted_runs(folder)) == 2
-    # a finished point is never resumed; an unreadable checkpoint starts the point again from the previous one
+    # a finished point is never resumed; an unreadable checkpoint starts the point again from the previous one,
+    # moved aside (graf-train refuses a new run beside an interrupted run's checkpoint)
     ckpt.write_bytes(b"truncated")
     assert resume_from(folder, prev) == prev / "checkpoints" / "last.ckpt"
+    assert (folder / "checkpoints.unreadable" / "last.ckpt").read_bytes() == b"truncated" and not ckpt.exists()
+    (folder / "checkpoints").mkdir()
     (folder / "results.json").write_text("{}")
     torch.save({"global_step": 5000}, ckpt)
     assert resume_from(folder, prev) == prev / "checkpoints" / "last.ckpt"

@@ -1,4 +1,5 @@
-"""Callbacks: the test predictions for results files and figures, and the pre-emption stop."""
+"""Callbacks: the test predictions for results files and figures, the periodic and final checkpoints, and the
+pre-emption stop."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.distributed as dist
-from lightning.pytorch.callbacks import Callback
+from lightning.pytorch.callbacks import Callback, ModelCheckpoint
 
 from graf.geometry.grid import SPECTRUM_SHAPE
 from graf.metrics.names import METRIC_NAMES
@@ -68,6 +69,27 @@ class PredictionCollector(Callback):
             "ids": torch.cat(self.ids).numpy().astype(np.int64),
             **values,
         }
+
+
+class FinalCheckpoint(ModelCheckpoint):
+    """Lightning's ``ModelCheckpoint`` (every ``every_n_train_steps`` steps, ``last.ckpt`` with ``save_last``) that
+    also saves the step training ends at.  Lightning's own saves ``last.ckpt`` at the end of training only when it
+    has saved nothing before: a run of 60 steps with checkpoints every 50 ended with ``last.ckpt`` at step 50, and
+    every reader of ``last.ckpt`` (graf-eval, fine-tuning, graf-curves' next point, a resume with a longer
+    ``trainer.max_steps``) would have got stale weights (graf-train refused it, after training)."""
+
+    @property
+    def state_key(self) -> str:
+        """Lightning's ``ModelCheckpoint``'s: checkpoints written by either resume under the other without warning."""
+        return super().state_key.replace(type(self).__qualname__, ModelCheckpoint.__qualname__, 1)
+
+    def on_train_end(self, trainer, pl_module) -> None:
+        super().on_train_end(trainer, pl_module)
+        if not self._should_skip_saving_checkpoint(trainer):  # not saved at this step yet (nor a sanity check)
+            candidates = self._monitor_candidates(trainer)
+            if self.monitor is None or self.monitor in candidates:
+                self._save_topk_checkpoint(trainer, candidates)
+            self._save_last_checkpoint(trainer, candidates)
 
 
 class TrainingInterrupted(Exception):

@@ -28,6 +28,10 @@ class ConfigError(UserError):
     """A configuration that cannot run as given; the message says what to set."""
 
 
+class WriteError(UserError):
+    """A file that cannot be written where the user asked (a full disk, a read-only folder); the message names it."""
+
+
 PREEMPTED_EXIT_CODE = 143  # 128 + SIGTERM: what a shell reports for a job ended by SIGTERM
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import io
 import json
 import os
@@ -10,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from graf.errors import ConfigError
+from graf.errors import ConfigError, WriteError
 
 
 def writable_dir(path: str | os.PathLike, setting: str) -> Path:
@@ -28,18 +29,28 @@ def writable_dir(path: str | os.PathLike, setting: str) -> Path:
     return path
 
 
+# what the place written to lacks (not a bug of graf's): a write failing so ends the command with one line
+NOT_WRITABLE = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.ENAMETOOLONG)
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``path`` whole or not at all: a failed write leaves the file that was there.  A disk that is full or
+    read-only raises :class:`graf.errors.WriteError` naming the file."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    tmp = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+    except BaseException as exc:
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
+        if isinstance(exc, OSError) and exc.errno in NOT_WRITABLE:
+            raise WriteError(f"{path}: cannot be written ({exc.strerror or exc})") from None
         raise
     return path
 

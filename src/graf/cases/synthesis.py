@@ -31,7 +31,7 @@ from graf.data.spectrum_set import DataFormatError
 from graf.errors import ConfigError
 from graf.geometry.grid import SPECTRUM_SHAPE
 from graf.io import atomic_write_json
-from graf.models.base import check_checkpoint, read_checkpoint
+from graf.models.base import check_checkpoint, read_checkpoint, safe_loading
 from graf.run.build import build_datamodule, model_config_for_neighbors
 from graf.run.config import output_dir, single_scene_config, task_wrapper
 
@@ -63,7 +63,8 @@ def load_model(model_cfg: DictConfig, ckpt_path: str | None, what: str | None = 
     model_cls = hydra.utils.get_class(model_cfg._target_)
     if ckpt_path:
         check_checkpoint(read_checkpoint(ckpt_path), model_cls, ckpt_path)
-        return model_cls.load_from_checkpoint(ckpt_path, map_location="cpu")
+        with safe_loading():
+            return model_cls.load_from_checkpoint(ckpt_path, map_location="cpu", weights_only=True)
     model = hydra.utils.instantiate(model_cfg)
     if getattr(model, "has_trainable_parameters", False):
         raise ConfigError(

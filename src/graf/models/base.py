@@ -11,15 +11,30 @@ Every checkpoint carries ``checkpoint["graf"] = {"target": <class path>, "layout
 bumps ``LAYOUT`` when its weights change meaning (and says why in ``LAYOUT_CHANGES``); loading a checkpoint
 of another layout, or of another class, is refused with a message that names the file and the reason
 (:func:`check_checkpoint`).
+
+Checkpoints are read safely (:func:`read_checkpoint`, :func:`safe_loading`): weights only (tensors, plain containers
+and numbers), with an allow-list of the few other types a checkpoint of this project may hold
+(:data:`CHECKPOINT_TYPES`).  A file that holds anything else (a crafted pickle whose objects would run code as they
+are loaded) is refused with one line, and nothing in it runs; the class a checkpoint names is imported only when it
+is one of graf's methods (:func:`checkpoint_class`).
 """
 
 from __future__ import annotations
 
+import collections
 import math
+import pickle
+import re
+import typing
+import warnings
 from pathlib import Path
 
 import lightning as L
 import torch
+from hydra.utils import get_class
+from omegaconf import DictConfig, ListConfig
+from omegaconf import base as omegaconf_base
+from omegaconf import nodes as omegaconf_nodes
 
 from graf.data.fingerprint import register_scene
 from graf.errors import UserError
@@ -35,18 +50,85 @@ def class_path(cls: type) -> str:
     return f"{cls.__module__}.{cls.__qualname__}"
 
 
-def read_checkpoint(path) -> dict:
-    """A Lightning checkpoint as a dict, with clear errors for a missing or unreadable file."""
+# What a checkpoint may hold besides tensors, plain containers and numbers (torch's weights-only load): the
+# hyperparameters of a model built from a config (OmegaConf containers, as Lightning saves them) and the plain
+# types those are pickled with.  Nothing here runs code when loaded.
+CHECKPOINT_TYPES: tuple = (
+    DictConfig,
+    ListConfig,
+    omegaconf_base.ContainerMetadata,
+    omegaconf_base.Metadata,
+    omegaconf_nodes.AnyNode,
+    omegaconf_nodes.StringNode,
+    omegaconf_nodes.IntegerNode,
+    omegaconf_nodes.FloatNode,
+    omegaconf_nodes.BooleanNode,
+    typing.Any,
+    dict,
+    list,
+    int,
+    float,
+    collections.defaultdict,
+    collections.OrderedDict,
+)
+
+
+def safe_loading():
+    """The context in which every checkpoint is loaded (:func:`read_checkpoint`, and Lightning's own loads with
+    ``weights_only=True``): torch's weights-only unpickler with :data:`CHECKPOINT_TYPES` allowed."""
+    return torch.serialization.safe_globals(list(CHECKPOINT_TYPES))
+
+
+def refused_load(path, exc: BaseException) -> CheckpointError:
+    """The one-line error for a file torch's weights-only load refused: the type it would not load when torch names
+    one (a pickle of foreign objects, possibly crafted to run code), else what torch found."""
+    text = str(exc)
+    found = re.search(r"unsupported (?:global:? )?GLOBAL ([\w.]+)", text, re.IGNORECASE)
+    if found:
+        return CheckpointError(
+            f"{path}: is not a checkpoint of this project: it holds an object of type {found.group(1)}, which graf's "
+            "checkpoints never hold; not loaded (loading it could run code in it)"
+        )
+    torch_own = ("Weights only load failed", "Check the documentation", "Please file an issue", "(1)", "(2)")
+    lines = [ln.strip() for ln in text.split("WeightsUnpickler error:")[-1].splitlines()]
+    what = next((ln for ln in lines if ln and not ln.startswith(torch_own)), "not a weights-only pickle")
+    return CheckpointError(f"{path}: is not a readable checkpoint ({what}; read as weights only)")
+
+
+def read_checkpoint(path, lightning: bool = True) -> dict:
+    """A Lightning checkpoint as a dict, with clear errors for a missing, unreadable or foreign file.  Loaded
+    weights only (:func:`safe_loading`): a file holding other objects is refused and none of them runs.
+    ``lightning=False``: any dict (the records graf-curves reads need no ``state_dict``)."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint file does not exist")
     try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+        with safe_loading(), warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="Detected pickle protocol")  # a plain pickle: refused below
+            ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        raise refused_load(path, exc) from None
     except Exception as exc:
-        raise CheckpointError(f"{path}: is not a readable checkpoint ({type(exc).__name__}: {exc})") from None
-    if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
+        first = (str(exc).strip().splitlines() or ["the file is empty or cut short"])[0]
+        raise CheckpointError(f"{path}: is not a readable checkpoint ({type(exc).__name__}: {first})") from None
+    if not isinstance(ckpt, dict) or (lightning and "state_dict" not in ckpt):
         raise CheckpointError(f"{path}: is not a Lightning checkpoint (no state_dict)")
     return ckpt
+
+
+def checkpoint_class(target, path) -> type:
+    """The method class a checkpoint names (``checkpoint["graf"]["target"]``): imported only when it is one of
+    graf's (a crafted file naming another module must not make graf import it), and a :class:`SpectrumModule`."""
+    name = str(target)
+    if not name.startswith("graf."):
+        raise CheckpointError(f"{path}: names the class {name!r}, which is not one of graf's methods")
+    try:
+        cls = get_class(name)
+    except Exception:
+        raise CheckpointError(f"{path}: names the class {name}, which this version of graf does not have") from None
+    if not (isinstance(cls, type) and issubclass(cls, SpectrumModule)):
+        raise CheckpointError(f"{path}: names {name}, which is not one of graf's methods")
+    return cls
 
 
 def check_checkpoint(ckpt: dict, cls: type, path) -> None:

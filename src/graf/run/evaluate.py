@@ -18,7 +18,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from graf.models.base import CheckpointError, check_checkpoint, read_checkpoint
+from graf.models.base import CheckpointError, check_checkpoint, checkpoint_class, read_checkpoint, safe_loading
 from graf.run.build import build
 from graf.run.config import CONF_DIR, output_dir, override_key, task_wrapper, with_baselines_switch
 from graf.run.record import CheckpointInfo, Results, RunFacts
@@ -45,12 +45,12 @@ def load_checkpoint_model(cfg: DictConfig, path: str, overrides: Sequence[str]) 
     target = (ckpt.get("graf") or {}).get("target")
     if target is None:  # written before checkpoints named their class: trust model=..., check the layout
         target = cfg.model._target_
-    elif choice is not None and get_class(cfg.model._target_) is not get_class(target):
+    elif choice is not None and get_class(cfg.model._target_) is not checkpoint_class(target, path):
         raise CheckpointError(
             f"{path}: holds a {target} checkpoint, but model={choice} is {cfg.model._target_}; "
             "drop model=... (graf-eval takes the class from the checkpoint)"
         )
-    cls = get_class(target)
+    cls = checkpoint_class(target, path)
     check_checkpoint(ckpt, cls, path)
     saved = dict(ckpt.get("hyper_parameters") or {})
     allowed = tuple(getattr(cls, "INFERENCE_SETTINGS", ()))
@@ -68,7 +68,8 @@ def load_checkpoint_model(cfg: DictConfig, path: str, overrides: Sequence[str]) 
                 f"{key}={was}); only inference settings "
                 f"may be overridden at evaluation: {', '.join('model.' + a for a in allowed) or 'none'}"
             )
-    model = cls.load_from_checkpoint(path, map_location="cpu", **applied)
+    with safe_loading():
+        model = cls.load_from_checkpoint(path, map_location="cpu", weights_only=True, **applied)
     ran = OmegaConf.create({"_target_": target, **{k: v for k, v in dict(model.hparams).items()}})
     layout = int((ckpt.get("graf") or {}).get("layout", 1))
     info = CheckpointInfo(str(path), int(ckpt.get("global_step", 0)), target, layout, saved, applied)
@@ -107,7 +108,7 @@ def checkpoint_model_choice(args: Sequence[str]) -> str | None:
     path = next(a.split("=", 1)[1] for a in args if a.startswith("ckpt_path="))
     try:
         target = (read_checkpoint(path).get("graf") or {}).get("target")
-        cls = get_class(target) if target else None
+        cls = checkpoint_class(target, path) if target else None
     except Exception:
         return None
     if cls is None:

@@ -27,7 +27,7 @@ from graf.callbacks import Preemption, TargetCount, TrainingInterrupted
 from graf.data.splits import mixed_seed
 from graf.errors import ConfigError
 from graf.io import atomic_write_json
-from graf.models.base import CheckpointError, read_checkpoint
+from graf.models.base import CheckpointError, read_checkpoint, safe_loading
 from graf.run.build import BuiltRun, build
 from graf.run.config import (
     expand_heldout,
@@ -143,7 +143,8 @@ def fit(built: BuiltRun, step0: int) -> tuple[Timing, Training | None]:
         lightning.seed_everything(mixed_seed(int(cfg.seed), FIT_STREAM) % 2**32, workers=True, verbose=False)
     t0 = time.perf_counter()
     try:
-        trainer.fit(model=model, datamodule=built.datamodule, ckpt_path=cfg.get("ckpt_path"))
+        with safe_loading():  # a resumed checkpoint: weights only (read_checkpoint has checked it already)
+            trainer.fit(model=model, datamodule=built.datamodule, ckpt_path=cfg.get("ckpt_path"), weights_only=True)
     except SIGTERMException:
         raise preempted(cfg, trainer, step0, time.perf_counter() - t0) from None
     except TrainingInterrupted:
@@ -170,13 +171,18 @@ def check_last_checkpoint(trainer, out: Path) -> None:
     for cb in getattr(trainer, "checkpoint_callbacks", []):
         if not getattr(cb, "save_last", False) or not getattr(cb, "dirpath", None):
             continue
-        require_step(
-            Path(cb.dirpath) / "last.ckpt",
-            int(trainer.global_step),
-            f"training ended at step {int(trainer.global_step)} (its final weights are in "
-            f"{cb.last_model_path or 'no file'}); readers of last.ckpt would get stale weights: keep "
-            "callbacks.model_checkpoint.enable_version_counter=false",
-        )
+        last, step = Path(cb.dirpath) / "last.ckpt", int(trainer.global_step)
+        if cb.last_model_path and Path(cb.last_model_path) != last:  # a versioned copy (last-v1.ckpt)
+            fix = (
+                f"its final weights went to {cb.last_model_path}: keep "
+                "callbacks.model_checkpoint.enable_version_counter=false"
+            )
+        else:
+            fix = (
+                "its checkpoint callback did not save the final step: keep callbacks.model_checkpoint._target_="
+                "graf.callbacks.FinalCheckpoint"
+            )
+        require_step(last, step, f"training ended at step {step} ({fix}); readers of last.ckpt would get stale weights")
     stale = out / "preempted.json"
     if stale.is_file():
         log.info("%s: the pre-empted run has finished; removing its preempted.json", out)

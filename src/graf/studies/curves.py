@@ -175,17 +175,23 @@ def _recorded_checkpoint(folder: Path, recorded: str | None) -> Path | None:
 def _killed_attempt(folder: Path) -> dict | None:
     """The record of an attempt killed outright (no ``preempted.json``, no ``results.json``) that left a periodic
     ``checkpoints/last.ckpt``: its step and the seconds its saved steps cost (``graf.callbacks.AttemptClock``).
-    None if there is no such checkpoint, or it cannot be read (the point then starts again)."""
+    None if there is no such checkpoint, or it cannot be read (the point then starts again, its ``checkpoints/``
+    moved aside to ``checkpoints.unreadable``: graf-train refuses a new run beside an interrupted run's checkpoint)."""
     ckpt = folder / "checkpoints" / "last.ckpt"
     if (folder / "results.json").exists() or not ckpt.exists():
         return None
-    import torch  # lazy: torch adds seconds to the command's start-up, and only a killed attempt needs it
+    # lazy: torch adds seconds to the command's start-up, and only a killed attempt needs it
+    from graf.models.base import read_checkpoint
 
     try:
-        state = torch.load(ckpt, map_location="cpu", weights_only=False)
+        state = read_checkpoint(ckpt, lightning=False)
         step = int(state["global_step"])
     except Exception as e:  # noqa: BLE001  (a truncated or foreign file: start the point again, say so)
-        log.warning("%s: its checkpoint cannot be read (%s: %s); starting the point again", ckpt, type(e).__name__, e)
+        aside, k = folder / "checkpoints.unreadable", 1
+        while aside.exists():
+            aside, k = folder / f"checkpoints.unreadable_{k}", k + 1
+        (folder / "checkpoints").rename(aside)
+        log.warning("%s: its checkpoint cannot be read (%s); moved to %s, starting the point again", ckpt, e, aside)
         return None
     attempt = state.get("graf_attempt") or {}
     fit_s = attempt.get("fit_s") if attempt.get("global_step") == step else None

@@ -282,7 +282,8 @@ def _jobs(cfg: DictConfig, sc: DictConfig, ckpt: Path) -> list[tuple[str, list[s
 def _run_scene(
     cfg: DictConfig, scene: str, sc: DictConfig, out: Path, env: dict, failed: list[dict], meta: dict
 ) -> list[dict]:
-    """Run the scene's points not done before (tables rewritten after each); the failures, updated."""
+    """Run the scene's points not done before (a training point killed before its results.json resumes from its
+    checkpoint; tables rewritten after each); the failures, updated."""
     skip = set(sc.get("skip_points") or [])
     ckpt = out / scene / "base" / "checkpoints" / "last.ckpt"
     for name, cmd in _jobs(cfg, sc, ckpt):
@@ -297,6 +298,9 @@ def _run_scene(
             failed.append({"scene": scene, "point": name, "log": f"no base checkpoint {ckpt}"})
             atomic_write_json(out / "failed.json", failed)
             continue
+        killed = folder / "checkpoints" / "last.ckpt"
+        if "graf.cli.train" in cmd and killed.is_file():  # an attempt killed before its results.json: resumed
+            cmd = [*cmd, f"ckpt_path={killed}"]
         log.info("%s / %s: %s", scene, name, " ".join(cmd[3:]))
         t0 = time.perf_counter()
         ok, tail = run_command(cmd + [f"hydra.run.dir={folder}"], folder, env, cfg.run_timeout_s)
