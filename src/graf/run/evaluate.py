@@ -20,7 +20,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from graf.models.base import CheckpointError, check_checkpoint, read_checkpoint
 from graf.run.build import build
-from graf.run.config import CONF_DIR, output_dir, override_key, task_wrapper, with_baselines_switch
+from graf.run.config import CONF_DIR, check_run_settings, output_dir, override_key, task_wrapper, with_baselines_switch
 from graf.run.record import CheckpointInfo, Results, RunFacts
 from graf.run.writer import set_aside_finished, test_and_report
 
@@ -80,6 +80,7 @@ def evaluate(cfg: DictConfig, overrides: Sequence[str] | None = None) -> Results
     """``overrides``: the command line's overrides (taken from Hydra when run as a command)."""
     started = time.perf_counter()
     cfg = with_baselines_switch(cfg)
+    check_run_settings(cfg)  # before a finished run's files are moved aside
     set_aside_finished(output_dir(cfg), [cfg.get("ckpt_path")])
     built = build(cfg, trains=False)
     checkpoint = None

@@ -28,6 +28,7 @@ from graf.io import atomic_write_json
 from graf.models.base import CheckpointError, read_checkpoint
 from graf.run.build import BuiltRun, build
 from graf.run.config import (
+    check_run_settings,
     expand_heldout,
     family,
     output_dir,
@@ -62,6 +63,7 @@ def train(cfg: DictConfig) -> Results:
     if not_run is not None:
         return not_run
     cfg = expand_heldout(resolve_base(with_baselines_switch(cfg)))
+    check_run_settings(cfg)  # before a finished run's files are moved aside
     check_finetune(cfg)
     ft = cfg.get("finetune") or {}
     if ft.get("init_from"):

@@ -1,0 +1,88 @@
+"""Nothing silently wrong, part two (issue 52): a value out of its range (a seed numpy refuses, a learning rate that
+is nan or negative, a fractional neighbor count), a Ctrl+C at any stage and an unquoted non-ASCII path each end the
+command with one line naming the input and its exit code, and nothing already written is lost."""
+
+from __future__ import annotations
+
+import math
+import sys
+
+import pytest
+
+from graf.cli import evaluate as graf_eval
+from graf.cli import train as graf_train
+from graf.models.graf import GRaFModule
+from graf.models.knn_dl import KNNDLModule
+from graf.models.nerf2 import NeRF2Module
+
+HINT = "(HYDRA_FULL_ERROR=1 shows the full traceback)"
+QUICK = ("logger=none", "plot_count=0", "trainer.accelerator=cpu", "trainer.enable_progress_bar=false")
+
+
+def _main(monkeypatch, capsys, main, *args: str) -> tuple[int | None, str]:
+    """Run a command's ``main`` in this process with this command line: its exit code (None: returned), stderr."""
+    monkeypatch.setattr(sys, "argv", ["graf", *args])
+    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
+    code = None
+    try:
+        main()
+    except SystemExit as exc:
+        code = exc.code
+    return code, capsys.readouterr().err
+
+
+def _one_line(err: str) -> str:
+    """The command's one error line (Hydra's log lines, ``[time][name]``, aside), checked to be all it said."""
+    lines = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("[")]
+    assert lines[-1] == HINT and len(lines) == 2 and "Traceback" not in err, err
+    return lines[0]
+
+
+# ---------------------------------------------------------------------------------------------- 1. values
+
+
+@pytest.mark.parametrize("seed", ["-1", "99999999999999999999", "4294967296"])
+def test_a_seed_numpy_refuses_is_one_line_and_a_finished_run_stays(monkeypatch, capsys, tmp_path, seed):
+    """seed=-1 was numpy's ValueError in a 40-line traceback, after a finished run's files had been moved aside."""
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "results.json").write_text("{}")
+    code, err = _main(monkeypatch, capsys, graf_eval.main, "model=knn", f"seed={seed}", *QUICK, f"hydra.run.dir={out}")
+    assert code == 2
+    assert _one_line(err) == f"error: seed must be an integer from 0 to 4294967295, got {seed}"
+    assert (out / "results.json").read_text() == "{}" and not list(out.glob("replaced_*"))
+
+
+@pytest.mark.parametrize(
+    "args, says",
+    [
+        (("model=knn_dl", "model.lr=nan"), "model.lr=nan: must be a finite number > 0 (a learning rate)"),
+        (("model=knn_dl", "model.lr=inf"), "model.lr=inf: must be a finite number > 0 (a learning rate)"),
+        # KNN-DL's own refusals said "model.max_rank=null: must be an integer" (filled in only after the run built)
+        (("model=knn_dl", "model.lr=-1"), "model.lr=-1: must be a finite number > 0 (a learning rate)"),
+        (("model=knn_dl", "model.idw_power=-1"), "model.idw_power=-1: must be a finite number > 0 (the IDW exponent)"),
+        (("model=knn_dl", "model.lr_decay=2"), "model.lr_decay=2: must be in (0, 1]"),
+        (("model=knn_dl", "model.lr=abc"), "model.lr=abc: must be a finite number > 0"),
+        (("model=graf_cpu", "model.lr=-1"), "model.lr=-1: must be a finite number > 0 (a learning rate)"),
+        (("model=graf_cpu", "model.lr_decay=0"), "model.lr_decay=0: must be in (0, 1]"),
+        (("model=nerf2_cpu", "model.lr=nan"), "model.lr=nan: must be a finite number > 0 (a learning rate)"),
+        (("neighbors.L=2.5",), "neighbors.L=2.5: must be an integer"),  # it ran as L = 2, recorded as 2.5
+        (("neighbors=fixed", "neighbors.L=2.5"), "neighbors.L=2.5: must be an integer"),
+        (("neighbors.L_train=[3,10.5]",), "neighbors.L_train=[3, 10.5]: must be a list of integers"),
+    ],
+)
+def test_a_value_out_of_its_range_is_the_constructors_own_line(monkeypatch, capsys, tmp_path, args, says):
+    """model.lr=nan reached torch's optimiser ("Invalid learning rate: nan", a traceback); model.lr=-1 trained."""
+    out = tmp_path / "run"
+    args = (*args, "trainer.max_steps=1", *QUICK, f"hydra.run.dir={out}")
+    code, err = _main(monkeypatch, capsys, graf_train.main, *args)
+    assert code == 2
+    assert _one_line(err).startswith(f"error: {says}"), err
+    assert not (out / "results.json").exists()
+
+
+@pytest.mark.parametrize("lr", [math.nan, math.inf, -1e-3, 0.0])
+@pytest.mark.parametrize("model", [GRaFModule, KNNDLModule, NeRF2Module])
+def test_every_method_refuses_a_learning_rate_that_is_not_finite_and_positive(model, lr):
+    with pytest.raises(ValueError, match=r"^model\.lr=.*: must be a finite number > 0"):
+        model(lr=lr)
