@@ -86,3 +86,25 @@ def test_a_value_out_of_its_range_is_the_constructors_own_line(monkeypatch, caps
 def test_every_method_refuses_a_learning_rate_that_is_not_finite_and_positive(model, lr):
     with pytest.raises(ValueError, match=r"^model\.lr=.*: must be a finite number > 0"):
         model(lr=lr)
+
+
+# ---------------------------------------------------------------------------------------------- 3. unquoted paths
+
+
+@pytest.mark.parametrize("key", ["data_root", "hydra.run.dir"])
+def test_an_unquoted_non_ascii_path_says_how_to_quote_it(monkeypatch, capsys, tmp_path, key):
+    """It was Hydra's ``LexerNoViableAltException: data_root=/tmp/dätä`` and nothing more."""
+    arg = f"{key}={tmp_path}/dätä"
+    code, err = _main(monkeypatch, capsys, graf_eval.main, "model=knn", arg, *QUICK)
+    assert code == 2
+    says = f"Hydra reads a value with non-ASCII characters only in quotes: write '{key}=\"{tmp_path}/dätä\"'"
+    assert _one_line(err) == f"error: {arg}: {says}"
+    assert not (tmp_path / "dätä").exists()
+
+
+def test_the_quoted_form_it_shows_runs(monkeypatch, capsys, tmp_path):
+    out = tmp_path / "ñ"
+    args = ("model=knn", f'data_root="{tmp_path}/dätä"', f'hydra.run.dir="{out}"', *QUICK)
+    code, err = _main(monkeypatch, capsys, graf_eval.main, *args, "trainer.limit_test_batches=1")
+    assert code is None, err
+    assert (out / "results.json").is_file()
