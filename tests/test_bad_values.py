@@ -4,13 +4,20 @@ command with one line naming the input and its exit code, and nothing already wr
 
 from __future__ import annotations
 
+import importlib.abc
+import json
 import math
+import os
+import shlex
+import signal
+import subprocess
 import sys
 
 import pytest
 
 from graf.cli import evaluate as graf_eval
 from graf.cli import train as graf_train
+from graf.models.base import SpectrumModule
 from graf.models.graf import GRaFModule
 from graf.models.knn_dl import KNNDLModule
 from graf.models.nerf2 import NeRF2Module
@@ -86,6 +93,96 @@ def test_a_value_out_of_its_range_is_the_constructors_own_line(monkeypatch, caps
 def test_every_method_refuses_a_learning_rate_that_is_not_finite_and_positive(model, lr):
     with pytest.raises(ValueError, match=r"^model\.lr=.*: must be a finite number > 0"):
         model(lr=lr)
+
+
+# ---------------------------------------------------------------------------------------------- 2. Ctrl+C
+
+
+class NoWandb(importlib.abc.MetaPathFinder):
+    """Records an import of wandb (which takes seconds, and a second Ctrl+C during it printed a second traceback)."""
+
+    def __init__(self):
+        self.imported = False
+
+    def find_spec(self, name, path=None, target=None):
+        self.imported = self.imported or name == "wandb"
+
+
+@pytest.fixture
+def interrupted(monkeypatch):
+    """The command's exit path must not import wandb; the SIGINT handler the command leaves (a second Ctrl+C
+    ignored while it ends) is put back afterwards."""
+    handler = signal.getsignal(signal.SIGINT)
+    finder = NoWandb()
+    monkeypatch.delitem(sys.modules, "wandb", raising=False)
+    monkeypatch.setattr(sys, "meta_path", [finder, *sys.meta_path])
+    yield finder
+    signal.signal(signal.SIGINT, handler)
+
+
+def _interrupt(*args, **kwargs):
+    raise KeyboardInterrupt
+
+
+def _lines(err: str) -> list[str]:
+    """What the command said on stderr, Hydra's and Lightning's log lines (``[time][name]``) aside."""
+    return [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("[")]
+
+
+def test_ctrl_c_during_the_imports_is_one_line_and_exit_code_130():
+    """It was a 50-line traceback from inside torch's imports, and the process died by SIGINT."""
+    code = "import os, signal, graf.cli; os.kill(os.getpid(), signal.SIGINT); import graf.cli.train"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert p.returncode == 130
+    assert p.stderr == "interrupted (Ctrl+C) during start-up; nothing was run: run the command again\n"
+
+
+def test_ctrl_c_during_set_up_says_so_and_where_the_finished_run_is_kept(monkeypatch, capsys, tmp_path, interrupted):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "results.json").write_text('{"finished": true}')
+    monkeypatch.setattr("graf.run.train.build", _interrupt)
+    code, err = _main(monkeypatch, capsys, graf_train.main, "model=knn_dl", *QUICK, f"hydra.run.dir={out}")
+    (aside,) = out.glob("replaced_*")
+    assert code == 130
+    assert _lines(err) == [
+        f"interrupted (Ctrl+C) during set-up; nothing was trained; output folder: {out}; the finished run that was "
+        f"there is kept in {aside}; run the command again"
+    ]
+    assert json.loads((aside / "results.replaced.json").read_text()) == {"finished": True}
+    assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN  # a second Ctrl+C while it ends is ignored
+    assert not interrupted.imported
+
+
+def test_ctrl_c_during_testing_says_training_finished_and_how_to_test_it(monkeypatch, capsys, tmp_path, interrupted):
+    """It was Lightning's exit code 1 with nothing said.  The command it gives tests the trained weights."""
+    out = tmp_path / "run"
+    args = ["model=knn_dl", "trainer.max_steps=2", "data.batch_size=2", "baselines={}", *QUICK, f"hydra.run.dir={out}"]
+    monkeypatch.setattr(SpectrumModule, "test_step", _interrupt)
+    code, err = _main(monkeypatch, capsys, graf_train.main, *args, "trainer.limit_test_batches=1")
+    ckpt = out / "checkpoints" / "last.ckpt"
+    resume = ["graf", *args, "trainer.limit_test_batches=1", f"ckpt_path={ckpt}"]
+    assert code == 130
+    assert _lines(err) == [
+        f"interrupted (Ctrl+C) during testing; training had finished at step 2 (checkpoint: {ckpt}); results.json "
+        f"was not written; output folder: {out}",
+        f"to test it, resume with: {shlex.join(resume)}",
+    ]
+    assert not (out / "results.json").exists() and not interrupted.imported
+    monkeypatch.undo()
+    code, err = _main(monkeypatch, capsys, graf_train.main, *resume[1:])
+    assert code is None, err
+    assert json.loads((out / "results.json").read_text())["training"]["steps_trained"] == 0
+
+
+def test_ctrl_c_while_graf_eval_tests_says_so(monkeypatch, capsys, tmp_path, interrupted):
+    out = tmp_path / "run"
+    monkeypatch.setattr(SpectrumModule, "test_step", _interrupt)
+    code, err = _main(monkeypatch, capsys, graf_eval.main, "model=knn", *QUICK, f"hydra.run.dir={out}")
+    assert code == 130
+    says = f"results.json was not written; output folder: {out}; run the command again"
+    assert _lines(err) == [f"interrupted (Ctrl+C) during testing; {says}"]
 
 
 # ---------------------------------------------------------------------------------------------- 3. unquoted paths

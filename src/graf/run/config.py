@@ -9,6 +9,7 @@ from __future__ import annotations
 import functools
 import logging
 import os
+import sys
 from pathlib import Path
 
 from hydra import compose
@@ -57,13 +58,11 @@ def task_wrapper(task):
                 log.exception("%s failed; output folder: %s", cfg.get("task_name", "task"), output_dir(cfg))
             raise
         finally:
-            try:
-                import wandb  # lazy: wandb takes seconds to import, and only a run with its logger has started it
-
-                if wandb.run is not None:
-                    wandb.finish()
-            except ImportError:  # pragma: no cover
-                pass
+            # only a run with the wandb logger has imported wandb: never import it here (it takes seconds, and a
+            # second Ctrl+C during that import printed a second traceback)
+            wandb = sys.modules.get("wandb")
+            if getattr(wandb, "run", None) is not None:
+                wandb.finish()
 
     return wrapped
 
