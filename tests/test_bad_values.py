@@ -21,6 +21,7 @@ from graf.models.base import SpectrumModule
 from graf.models.graf import GRaFModule
 from graf.models.knn_dl import KNNDLModule
 from graf.models.nerf2 import NeRF2Module
+from graf.run.resume import Interrupted
 
 HINT = "(HYDRA_FULL_ERROR=1 shows the full traceback)"
 QUICK = ("logger=none", "plot_count=0", "trainer.accelerator=cpu", "trainer.enable_progress_bar=false")
@@ -183,6 +184,21 @@ def test_ctrl_c_while_graf_eval_tests_says_so(monkeypatch, capsys, tmp_path, int
     assert code == 130
     says = f"results.json was not written; output folder: {out}; run the command again"
     assert _lines(err) == [f"interrupted (Ctrl+C) during testing; {says}"]
+
+
+def test_ctrl_c_stops_a_multirun_at_the_job_it_came_in(monkeypatch, capsys, tmp_path, interrupted):
+    """A job's training stopped by Ctrl+C was a traceback with exit code 1, and the multirun went on to the next job."""
+    said = "interrupted (Ctrl+C): training stopped at step 1 of 2 (epoch 0); output folder: X"
+
+    def stopped(*args, **kwargs):
+        raise Interrupted(said)
+
+    monkeypatch.setattr("graf.run.train.fit", stopped)
+    args = ("-m", "model=knn_dl", "seed=0,1", "trainer.max_steps=2", *QUICK, f"hydra.sweep.dir={tmp_path}")
+    code, err = _main(monkeypatch, capsys, graf_train.main, *args)
+    assert code == 130
+    assert _lines(err) == [said]
+    assert (tmp_path / "0").is_dir() and not (tmp_path / "1").exists()
 
 
 # ---------------------------------------------------------------------------------------------- 3. unquoted paths

@@ -38,10 +38,13 @@ def cli_errors(main):
                 exc.said = interrupted_line(f"output folder: {output_dir(cfg)}")
             raise
         except Exception as exc:
-            if multirun:
+            ctrl_c = getattr(exc, "exit_code", None) == INTERRUPTED_EXIT_CODE  # training stopped by Ctrl+C
+            if multirun and not ctrl_c:  # (a Ctrl+C stops a multirun here: its next job would not start)
                 record_job(cfg, exc)
                 raise
-            if hasattr(exc, "exit_code"):  # a run stopped on purpose (pre-emption): its own code
+            if hasattr(exc, "exit_code"):  # a run stopped on purpose (pre-emption, Ctrl+C): its own code
+                if ctrl_c:
+                    ignore_further()
                 print(str(exc), file=sys.stderr)
                 sys.exit(int(exc.exit_code))
             if not is_user_error(exc) or full_error():
