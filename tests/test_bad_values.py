@@ -61,6 +61,14 @@ def test_a_seed_numpy_refuses_is_one_line_and_a_finished_run_stays(monkeypatch, 
     assert (out / "results.json").read_text() == "{}" and not list(out.glob("replaced_*"))
 
 
+def test_graf_bench_refuses_such_a_seed_before_it_runs(monkeypatch, capsys, tmp_path):
+    from graf.cli import bench as graf_bench
+
+    code, err = _main(monkeypatch, capsys, graf_bench.main, "seed=-1", "quick=true", f"hydra.run.dir={tmp_path}")
+    assert code == 2
+    assert _one_line(err) == "error: seed must be an integer from 0 to 4294967295, got -1"
+
+
 @pytest.mark.parametrize(
     "args, says",
     [
