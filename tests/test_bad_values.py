@@ -191,7 +191,7 @@ def test_ctrl_c_while_graf_eval_tests_says_so(monkeypatch, capsys, tmp_path, int
     code, err = _main(monkeypatch, capsys, graf_eval.main, "model=knn", *QUICK, f"hydra.run.dir={out}")
     assert code == 130
     says = f"results.json was not written; output folder: {out}; run the command again"
-    assert _lines(err) == [f"interrupted (Ctrl+C) during testing; {says}"]
+    assert _lines(err) == [f"interrupted (Ctrl+C) during testing; {says}"] and not interrupted.imported
 
 
 def test_ctrl_c_stops_a_multirun_at_the_job_it_came_in(monkeypatch, capsys, tmp_path, interrupted):
