@@ -285,7 +285,7 @@ def test_collection_keys_and_no_compute_group_merging(weights):
     mc.update(x, x)  # identical: MSE and LPIPS states both 0 -> must NOT be merged into one group
     mc.update(x, y)
     out = mc.compute()
-    assert set(out) == {"test/mse", "test/psnr", "test/ssim", "test/lpips"}
+    assert set(out) == {"test/mse", "test/psnr", "test/ssim", "test/lpips", "test/n_empty"}
     exp_mse = float(mse_per_sample(x, y).mean()) / 2
     exp_lpips = float(lpips_distance(x.unsqueeze(1), y.unsqueeze(1)).mean()) / 2
     assert abs(float(out["test/mse"]) - exp_mse) < 1e-6

@@ -29,6 +29,7 @@ OPAQUE = {
     "base_scenes",
     "applied_overrides",
     "prediction_sha256",
+    "scene_indices",
 }
 FAST = ("trainer.limit_test_batches=1",)
 

@@ -90,7 +90,7 @@ def test_cross_scene_matrix_tables_heatmaps_and_spectra(tmp_path):
     g = [r for r in rows if r["method"] == "graf" and r["trained_on"] == "b_v1" and r["eval_scene"] == "a_v2"]
     assert len(g) == 1 and float(g[0]["PSNR"]) == 10.5 and g[0]["n_test"] == "30" and g[0]["steps"] == "300"
     md = (tmp_path / "out" / "report.md").read_text()
-    assert "| b_v1 | a_v2 | graf | 30 | 300 | 0.0891 | 0.895 | 10.50 | 0.105 |" in md
+    assert "| b_v1 | a_v2 | graf | 30 | 300 | 0.0891 | 10.50 | 0.105 | 0.895 |" in md
     tex = (tmp_path / "out" / "report.tex").read_text()
     assert (
         r"b\_v1 & a\_v2 & graf & 30 & 300 & 0.0891 & 0.895 & 10.50 & 0.105 &  \\" in tex

@@ -84,7 +84,9 @@ def instantiated_key(exc: BaseException) -> str | None:
 def mistyped_setting(cfg, key: str, said: str = "") -> str | None:
     """``<key>.<setting>=<value>: must be <type>`` for the first setting of the config node ``key`` whose value is
     not of the type its target's constructor is annotated with; None when every value fits, when nothing is known,
-    or when the constructor's own message (``said``) names that setting already."""
+    or when the constructor's own message (``said``) names that setting, or names any setting of the node as
+    ``model.<name>`` or ``<key>.<name>`` (its own refusal: a value it left for the run to fill in, such as
+    KNN-DL's ``max_rank: null``, is no mistake of the user's)."""
 
     try:
         node = OmegaConf.to_container(OmegaConf.select(cfg, key), resolve=True)
@@ -92,6 +94,8 @@ def mistyped_setting(cfg, key: str, said: str = "") -> str | None:
         hints = typing.get_type_hints(target.__init__ if isinstance(target, type) else target)
     except Exception:
         return None
+    if any(re.search(rf"\b(model|{re.escape(key)})\.{re.escape(name)}\b", said) for name in node):
+        return None  # the constructor's own refusal of one of its settings (model.lr=-1), whatever else is unfilled
     for name, value in node.items():
         hint = hints.get(name)
         if hint is not None and not fits(value, hint):

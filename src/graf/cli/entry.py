@@ -11,8 +11,9 @@ from omegaconf import DictConfig
 
 from graf.console import filter_known_warnings
 from graf.errors import ConfigError, is_user_error, user_message
+from graf.interrupts import INTERRUPTED_EXIT_CODE, ignore_further, interrupted_line, stage
 from graf.run.command import fail, full_error, in_multirun, record_job, run_multirun, users_environment
-from graf.run.config import CONF_PATH
+from graf.run.config import CONF_PATH, output_dir
 from graf.run.overrides import check_overrides, modernize
 
 __all__ = ["CONF_PATH", "cli_errors", "graf_command"]
@@ -30,13 +31,20 @@ def cli_errors(main):
         filter_known_warnings()
         multirun = in_multirun()
         try:
-            with users_environment():
+            with users_environment(), stage(str(cfg.get("task_name") or "the command")):
                 result = main(cfg, *args, **kwargs)
+        except KeyboardInterrupt as exc:  # said by graf_command, with the output folder unless its stage said more
+            if not getattr(exc, "said", None):
+                exc.said = interrupted_line(f"output folder: {output_dir(cfg)}")
+            raise
         except Exception as exc:
-            if multirun:
+            ctrl_c = getattr(exc, "exit_code", None) == INTERRUPTED_EXIT_CODE  # training stopped by Ctrl+C
+            if multirun and not ctrl_c:  # (a Ctrl+C stops a multirun here: its next job would not start)
                 record_job(cfg, exc)
                 raise
-            if hasattr(exc, "exit_code"):  # a run stopped on purpose (pre-emption): its own code
+            if hasattr(exc, "exit_code"):  # a run stopped on purpose (pre-emption, Ctrl+C): its own code
+                if ctrl_c:
+                    ignore_further()
                 print(str(exc), file=sys.stderr)
                 sys.exit(int(exc.exit_code))
             if not is_user_error(exc) or full_error():
@@ -54,14 +62,26 @@ def graf_command(config_name: str):
     :func:`cli_errors`.  Before Hydra reads the command line, old spellings are brought up to date with a warning
     (:func:`graf.run.overrides.modernize`) and the overrides Hydra would refuse with a page are refused with one
     line and exit code 2 (:func:`graf.run.overrides.check_overrides`); a multirun ends with its failed jobs
-    counted (:func:`graf.run.command.run_multirun`).  ``HYDRA_FULL_ERROR=1`` leaves every error to Hydra, in
-    full.  Called with a composed config, ``main`` runs on it directly."""
+    counted (:func:`graf.run.command.run_multirun`); a Ctrl+C at any stage ends it with the line of that stage
+    (:mod:`graf.interrupts`) and exit code 130.  ``HYDRA_FULL_ERROR=1`` leaves every error to Hydra, in full.
+    Called with a composed config, ``main`` runs on it directly."""
 
     def decorate(main):
         hydra_main = hydra.main(version_base="1.3", config_path=CONF_PATH, config_name=config_name)(cli_errors(main))
 
         @functools.wraps(main)
         def command(cfg: DictConfig | None = None):
+            try:
+                return run_command(cfg)
+            except KeyboardInterrupt as exc:  # at any stage: its line (graf.interrupts), exit code 130
+                if full_error():
+                    raise
+                ignore_further()
+                said = getattr(exc, "said", None) or interrupted_line("nothing was run: run the command again")
+                print(said, file=sys.stderr)
+                sys.exit(INTERRUPTED_EXIT_CODE)
+
+        def run_command(cfg: DictConfig | None):
             if cfg is not None:
                 return hydra_main(cfg)
             sys.argv[1:], warnings = modernize(sys.argv[1:])

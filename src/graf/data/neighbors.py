@@ -22,6 +22,7 @@ rule (nothing excluded), as in :func:`select_neighbors`.
 from __future__ import annotations
 
 import logging
+import numbers
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -135,6 +136,22 @@ def select_neighbors(
     return Neighbors(index=index, mask=mask, distance=distance, widened=widened, short=short)
 
 
+def is_whole(value) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def check_counts(L, L_train) -> None:
+    """Refuse a neighbor count that is not a whole number (``neighbors.L=2.5`` ran as 2 while the record said
+    2.5), and an ``L_train`` that is not a pair of them.  A TypeError: a run's error names the setting and its
+    value from the constructor's annotations (:func:`graf.errors.mistyped_setting`)."""
+    pair = list(L_train) if isinstance(L_train, Sequence) and not isinstance(L_train, str) else [L_train]
+    for value in (L, *pair):
+        if not is_whole(value):
+            raise TypeError(f"a neighbor count must be an integer, got {value!r}")
+    if len(pair) != 2:
+        raise TypeError(f"the training range of neighbor counts must be a pair [lo, hi], got {list(pair)}")
+
+
 class NeighborSelector:
     """Configured neighbor selection (``conf/neighbors/*.yaml``).
 
@@ -148,6 +165,7 @@ class NeighborSelector:
     """
 
     def __init__(self, L: int, L_train: Sequence[int], radius: float | None, exclude_within: float = 0.0):
+        check_counts(L, L_train)
         lo, hi = (int(v) for v in L_train)
         if int(L) < 1 or lo < 1 or hi < lo:
             raise ConfigError(f"neighbors: need L >= 1 and 1 <= L_train[0] <= L_train[1], got L={L}, L_train={L_train}")

@@ -3,6 +3,7 @@
 so a 300-step run decays over 300 steps, not over the paper's 300,000 at a nearly constant rate.  A length set
 explicitly is kept; one more than :data:`LONG` times the run's steps is warned about in one line.  Each module
 keeps what ran in ``schedule_record`` (``results.json`` ``schedule``: kind, steps, start and end learning rate).
+Every method's constructor refuses a learning rate that is not finite and positive (:func:`check_rates`).
 """
 
 from __future__ import annotations
@@ -58,3 +59,17 @@ def cosine_record(lr: float, eta_min: float, length: int, steps: int | None) -> 
     """What a cosine schedule of period ``length`` (CosineAnnealingLR) does in a run of ``steps``."""
     end = None if steps is None else eta_min + (lr - eta_min) * (1 + math.cos(math.pi * steps / length)) / 2
     return {"kind": "cosine", "length_steps": length, "run_steps": steps, "lr_start": lr, "lr_end": end}
+
+
+def is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def check_rates(lr, lr_decay=None) -> None:
+    """Refuse, naming the setting and its value, a learning rate ``model.lr`` that is not a finite number > 0
+    (torch's optimiser would take nan, and a negative rate climbs the loss) or a decay factor ``model.lr_decay``
+    outside (0, 1]."""
+    if not (is_number(lr) and math.isfinite(lr) and lr > 0):
+        raise ValueError(f"model.lr={lr}: must be a finite number > 0 (a learning rate)")
+    if lr_decay is not None and not (is_number(lr_decay) and 0 < lr_decay <= 1):
+        raise ValueError(f"model.lr_decay={lr_decay}: must be in (0, 1] (the factor the learning rate falls by)")

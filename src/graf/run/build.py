@@ -18,7 +18,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from graf.console import is_terminal
 from graf.data.datamodule import SpectrumDataModule
-from graf.data.fingerprint import find_scene, next_index, register_scene, eval_scene_index
+from graf.data.fingerprint import eval_scene_index, find_scene, next_index, register_scene
 from graf.data.neighbors import NeighborSelector
 from graf.errors import ConfigError
 from graf.models.base import read_checkpoint

@@ -9,6 +9,7 @@ from __future__ import annotations
 import functools
 import logging
 import os
+import sys
 from pathlib import Path
 
 from hydra import compose
@@ -57,13 +58,11 @@ def task_wrapper(task):
                 log.exception("%s failed; output folder: %s", cfg.get("task_name", "task"), output_dir(cfg))
             raise
         finally:
-            try:
-                import wandb  # lazy: wandb takes seconds to import, and only a run with its logger has started it
-
-                if wandb.run is not None:
-                    wandb.finish()
-            except ImportError:  # pragma: no cover
-                pass
+            # only a run with the wandb logger has imported wandb: never import it here (it takes seconds, and a
+            # second Ctrl+C during that import printed a second traceback)
+            wandb = sys.modules.get("wandb")
+            if getattr(wandb, "run", None) is not None:
+                wandb.finish()
 
     return wrapped
 
@@ -262,11 +261,16 @@ def run_settings(cfg: DictConfig) -> dict:
     return {"data": c.get("data"), "neighbors": c.get("neighbors"), "seed": c.get("seed"), "trainer": trainer}
 
 
+SEED_MAX = 2**32 - 1  # numpy's (and so Lightning's seed_everything's) largest seed
+
+
 def check_run_settings(cfg: DictConfig) -> None:
-    """Top-level settings that must be integers, checked before anything is built (one clear error)."""
-    for key, low in (("seed", None), ("torch_threads", 1)):
+    """Top-level settings that must be integers in a range, checked before anything is built or moved (one clear
+    error): ``seed`` in numpy's range 0..2**32-1, ``torch_threads`` >= 1."""
+    for key, low, high in (("seed", 0, SEED_MAX), ("torch_threads", 1, None)):
         v = cfg.get(key)
         if v is None:
             continue
-        if isinstance(v, bool) or not isinstance(v, int) or (low is not None and v < low):
-            raise ConfigError(f"{key} must be an integer{'' if low is None else f' >= {low}'}, got {v!r}")
+        if isinstance(v, bool) or not isinstance(v, int) or v < low or (high is not None and v > high):
+            span = f" >= {low}" if high is None else f" from {low} to {high}"
+            raise ConfigError(f"{key} must be an integer{span}, got {v!r}")

@@ -18,10 +18,12 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from graf.interrupts import stage
 from graf.models.base import CheckpointError, check_checkpoint, checkpoint_class, read_checkpoint, safe_loading
 from graf.run.build import build
-from graf.run.config import CONF_DIR, output_dir, override_key, task_wrapper, with_baselines_switch
+from graf.run.config import CONF_DIR, check_run_settings, output_dir, override_key, task_wrapper, with_baselines_switch
 from graf.run.record import CheckpointInfo, Results, RunFacts
+from graf.run.resume import not_done
 from graf.run.writer import set_aside_finished, test_and_report
 
 
@@ -80,19 +82,22 @@ def load_checkpoint_model(cfg: DictConfig, path: str, overrides: Sequence[str]) 
 def evaluate(cfg: DictConfig, overrides: Sequence[str] | None = None) -> Results:
     """``overrides``: the command line's overrides (taken from Hydra when run as a command)."""
     started = time.perf_counter()
-    cfg = with_baselines_switch(cfg)
-    set_aside_finished(output_dir(cfg), [cfg.get("ckpt_path")])
-    built = build(cfg, trains=False)
-    checkpoint = None
-    if cfg.get("ckpt_path"):
-        if overrides is None:
-            overrides = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
-        model, ran, checkpoint = load_checkpoint_model(built.cfg, cfg.ckpt_path, overrides)
-        run_cfg = built.cfg.copy()
-        with open_dict(run_cfg):  # the model that runs is the checkpoint's: the config records it
-            run_cfg.model = ran
-        built = dataclasses.replace(built, model=model, cfg=run_cfg)
-    return Results(*test_and_report(built.cfg, built, RunFacts("eval", started, checkpoint=checkpoint)))
+    cfg, out, aside = with_baselines_switch(cfg), output_dir(cfg), []
+    with stage("set-up", lambda: not_done(out, aside, "nothing was tested")):
+        check_run_settings(cfg)  # before a finished run's files are moved aside
+        aside += [p for p in [set_aside_finished(out, [cfg.get("ckpt_path")])] if p]
+        built = build(cfg, trains=False)
+        checkpoint = None
+        if cfg.get("ckpt_path"):
+            if overrides is None:
+                overrides = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
+            model, ran, checkpoint = load_checkpoint_model(built.cfg, cfg.ckpt_path, overrides)
+            run_cfg = built.cfg.copy()
+            with open_dict(run_cfg):  # the model that runs is the checkpoint's: the config records it
+                run_cfg.model = ran
+            built = dataclasses.replace(built, model=model, cfg=run_cfg)
+    with stage("testing", lambda: not_done(out, aside, "results.json was not written")):
+        return Results(*test_and_report(built.cfg, built, RunFacts("eval", started, checkpoint=checkpoint)))
 
 
 def checkpoint_model_choice(args: Sequence[str]) -> str | None:

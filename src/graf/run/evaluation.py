@@ -53,17 +53,28 @@ def evaluate_model(cfg: DictConfig, model, dm, loggers=()) -> ModelEvaluation:
     t0 = time.perf_counter()
     metrics = {}
     if cfg.get("validate", True):
-        trainer.validate(model=model, datamodule=dm, verbose=False)
+        interruptible(trainer, trainer.validate, model=model, datamodule=dm, verbose=False)
         metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("val/")}
     t1 = time.perf_counter()
     if cfg.get("test", True):
-        trainer.test(model=model, datamodule=dm, verbose=False)
+        interruptible(trainer, trainer.test, model=model, datamodule=dm, verbose=False)
         metrics.update({k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")})
     t2 = time.perf_counter()
     if cfg.get("reliance", True) and getattr(model, "uses_neighbors", True):
         metrics.update(reliance_figures(cfg, model, dm, metrics, trainer))
     timing = Timing(val_s=round(t1 - t0, 3), test_s=round(t2 - t1, 3), reliance_s=round(time.perf_counter() - t2, 3))
     return ModelEvaluation(record_order(metrics), collector.arrays(), timing)
+
+
+def interruptible(trainer, run, **kwargs):
+    """``trainer.validate`` or ``trainer.test`` (``run``); a Ctrl+C, which Lightning turns into exit code 1 with
+    nothing said, is raised on as the KeyboardInterrupt it was (the command then says where it stopped)."""
+    try:
+        return run(**kwargs)
+    except SystemExit:
+        if trainer.interrupted:
+            raise KeyboardInterrupt from None
+        raise
 
 
 def reliance_figures(cfg: DictConfig, model, dm, metrics: dict, trainer) -> dict:

@@ -1,10 +1,12 @@
 """A command line's overrides before Hydra sees them: old spellings brought up to date (with a warning), and the
 mistakes Hydra would report as a page (an unknown option of a config group, ``+key=`` on a key that exists, a
-key that does not exist) refused in one line (:class:`graf.errors.ConfigError`).  Used by
+key that does not exist, a path with a non-ASCII character left unquoted) refused in one line
+(:class:`graf.errors.ConfigError`), with the quoted form to write for the last.  Used by
 :func:`graf.cli.entry.graf_command`."""
 
 from __future__ import annotations
 
+import shlex
 from pathlib import Path
 
 from hydra import compose, initialize_config_dir
@@ -119,6 +121,32 @@ def composition_error(exc: ConfigCompositionException, args: list[str]) -> Confi
     return ConfigError(" ".join((text + cause).split()))
 
 
+def quoted(arg: str) -> str | None:
+    """The override with its value (each value of a sweep ``a,b``) in quotes, when Hydra's grammar reads that; None
+    when it does not, or when the value is quoted or a list or mapping already."""
+    prefix, key, value = split_key(arg)
+    if not value or value[0] in "\"'[{":
+        return None
+    items = [v if v[:1] in "\"'" else (f'"{v}"' if '"' not in v else f"'{v}'") for v in value.split(",")]
+    fixed = f"{prefix}{key}={','.join(items)}"
+    try:
+        OverridesParser.create().parse_overrides([fixed])
+    except OverrideParseException:
+        return None
+    return fixed
+
+
+def parse_error(exc: OverrideParseException) -> ConfigError:
+    """Hydra's syntax error as one line; for a value that Hydra reads only quoted (a path with a non-ASCII
+    character, ``data_root=/tmp/dätä``: ``LexerNoViableAltException`` and nothing more), the quoted form to write,
+    quoted for the shell as well."""
+    fixed = quoted(exc.override)
+    if fixed is None:
+        return ConfigError(f"{exc.override}: {exc.message.splitlines()[0]}")
+    what = "a value with non-ASCII characters" if not exc.override.isascii() else "this value"
+    return ConfigError(f"{exc.override}: Hydra reads {what} only in quotes: write {shlex.quote(fixed)}")
+
+
 def check_overrides(config_name: str, args: list[str]) -> None:
     """Refuse, with one line (:class:`ConfigError`), the overrides that Hydra would refuse with a page: a syntax
     error, an unknown option of a config group, and anything else the first job's config cannot be composed
@@ -126,7 +154,7 @@ def check_overrides(config_name: str, args: list[str]) -> None:
     try:
         overrides = OverridesParser.create().parse_overrides(args)
     except OverrideParseException as exc:
-        raise ConfigError(f"{exc.override}: {exc.message.splitlines()[0]}") from exc
+        raise parse_error(exc) from exc
     check_group_values(overrides)
     try:
         first = first_job(overrides)

@@ -1,7 +1,8 @@
 """Stopping and resuming a training run: a resumed checkpoint checked against the run's settings
 (:func:`check_resume`), and what a run stopped on purpose says and leaves: SIGTERM (a cluster's pre-emption,
 :func:`preempted`: ``preempted.json``, exit code 143) or Ctrl+C (:func:`interrupted`: exit code 130), each with the
-way to resume it.
+way to resume it; a Ctrl+C before or after training says what was kept (:func:`not_done`,
+:func:`tested_after_training`).
 """
 
 from __future__ import annotations
@@ -17,14 +18,13 @@ from omegaconf import DictConfig
 from graf.callbacks import Preemption
 from graf.data.fingerprint import find_scene
 from graf.errors import Preempted
+from graf.interrupts import INTERRUPTED_EXIT_CODE
 from graf.io import atomic_write_json, is_rank_zero
 from graf.models.base import CheckpointError, check_checkpoint, read_checkpoint
 from graf.run.config import output_dir, override_key, run_settings
 from graf.run.record import Resumed
 
 log = logging.getLogger("graf")
-
-INTERRUPTED_EXIT_CODE = 130  # 128 + SIGINT: what a shell reports for a command stopped by Ctrl+C
 
 
 class Interrupted(Exception):
@@ -38,12 +38,7 @@ def interrupted(cfg: DictConfig, trainer) -> Interrupted:
     """After a Ctrl+C stopped ``trainer.fit``: the :class:`Interrupted` to raise, saying at which step and epoch
     it stopped, the output folder, and the command that resumes it (from the checkpoint the
     :class:`graf.callbacks.Preemption` callback saved, else the newest one there is)."""
-    pre = next((cb for cb in trainer.callbacks if isinstance(cb, Preemption)), None)
-    ckpt = (pre.saved or {}).get("checkpoint") if pre else None
-    if ckpt is None:
-        ckpt = next(
-            (cb.last_model_path for cb in trainer.checkpoint_callbacks if getattr(cb, "last_model_path", "")), None
-        )
+    ckpt = last_checkpoint(trainer)
     where = (
         f"interrupted (Ctrl+C): training stopped at step {int(trainer.global_step)} of {int(trainer.max_steps)} "
         f"(epoch {int(trainer.current_epoch)}); output folder: {output_dir(cfg)}"
@@ -51,6 +46,40 @@ def interrupted(cfg: DictConfig, trainer) -> Interrupted:
     if not ckpt:
         return Interrupted(f"{where}; no checkpoint was written: run the command again to start over")
     return Interrupted(f"{where}; checkpoint: {ckpt}\nresume with: {resume_command(ckpt)}")
+
+
+def last_checkpoint(trainer) -> str | None:
+    """The checkpoint the :class:`graf.callbacks.Preemption` callback saved at an interrupt, else the newest one the
+    run wrote (None: none)."""
+    pre = next((cb for cb in trainer.callbacks if isinstance(cb, Preemption)), None)
+    ckpt = (pre.saved or {}).get("checkpoint") if pre else None
+    if ckpt is None:
+        ckpt = next(
+            (cb.last_model_path for cb in trainer.checkpoint_callbacks if getattr(cb, "last_model_path", "")), None
+        )
+    return ckpt
+
+
+def not_done(out: Path, aside: list[Path], what: str) -> str:
+    """What a Ctrl+C before anything was finished leaves (``what``: ``nothing was trained``), for
+    :func:`graf.interrupts.stage`: the output folder, where a finished run moved aside from it is kept, and what
+    to do (the same command again)."""
+    kept = f"; the finished run that was there is kept in {aside[0]}" if aside else ""
+    return f"{what}; output folder: {out}{kept}; run the command again"
+
+
+def tested_after_training(built, trained: bool) -> str:
+    """What a Ctrl+C while graf-train tests leaves, for :func:`graf.interrupts.stage`: when it trained, the step
+    and checkpoint training finished at and the command that tests them (the same command resuming that
+    checkpoint, which trains nothing more); otherwise that nothing was written."""
+    out, trainer = built.output_dir, built.trainer
+    ckpt = last_checkpoint(trainer) if trained else None
+    if not ckpt:
+        return not_done(out, [], "results.json was not written")
+    return (
+        f"training had finished at step {int(trainer.global_step)} (checkpoint: {ckpt}); results.json was not "
+        f"written; output folder: {out}\nto test it, resume with: {resume_command(ckpt)}"
+    )
 
 
 def resume_command(ckpt: str) -> str:

@@ -26,10 +26,12 @@ from omegaconf import DictConfig
 from graf.callbacks import Preemption, TargetCount, TrainingInterrupted
 from graf.data.splits import mixed_seed
 from graf.errors import ConfigError
+from graf.interrupts import stage
 from graf.io import atomic_write_json
 from graf.models.base import CheckpointError, read_checkpoint, safe_loading
 from graf.run.build import BuiltRun, build
 from graf.run.config import (
+    check_run_settings,
     expand_heldout,
     family,
     output_dir,
@@ -46,8 +48,8 @@ from graf.run.finetune import (
     load_weights,
     resolve_base,
 )
-from graf.run.record import Results, RunFacts, RunResult, Timing, Training, finished_scene_metrics
-from graf.run.resume import check_resume, interrupted, preempted
+from graf.run.record import Results, Resumed, RunFacts, RunResult, Timing, Training, finished_scene_metrics
+from graf.run.resume import check_resume, interrupted, not_done, preempted, tested_after_training
 from graf.run.writer import set_aside_finished, test_and_report
 
 log = logging.getLogger("graf")
@@ -56,14 +58,37 @@ log = logging.getLogger("graf")
 @task_wrapper
 def train(cfg: DictConfig) -> Results:
     """Fit the model when it has parameters (or fine-tune, or nothing for a zero-shot test), then validate and
-    test it beside its baselines and write ``results.json``."""
+    test it beside its baselines and write ``results.json``.  A Ctrl+C says its stage, what was kept and how to
+    go on (:mod:`graf.interrupts`)."""
     started = time.perf_counter()
     out = output_dir(cfg)
     cfg = with_study_budget(cfg)
     not_run = job_not_run(cfg, out)
     if not_run is not None:
         return not_run
+    aside: list[Path] = []
+    with stage("set-up", lambda: not_done(out, aside, "nothing was trained")):
+        cfg, built, resumed, zero_shot = set_up(cfg, out, aside)
+    ft = cfg.get("finetune") or {}
+    if zero_shot:
+        log.info("finetune=none: testing %s zero-shot (no step trained)", ft.init_from)
+        timing, training = Timing(), None
+    else:
+        with stage("training", lambda: not_done(out, aside, "results.json was not written")):
+            timing, training = fit(built, resumed.global_step if resumed else 0)
+    tuned = finetune_record(cfg, built.datamodule, timing.fit_steps or 0) if ft.get("init_from") else None
+    # the final weights are validated and tested (nothing is chosen on the test split)
+    with stage("testing", lambda: tested_after_training(built, training is not None)):
+        facts = RunFacts("train", started, timing, training, resumed, tuned)
+        return Results(*test_and_report(built.cfg, built, facts))
+
+
+def set_up(cfg: DictConfig, out: Path, aside: list[Path]) -> tuple[DictConfig, BuiltRun, Resumed | None, bool]:
+    """The run's config (held-out scenes, fine-tuning, the base model trained first when it is missing), the built
+    run, the checkpoint it resumes (checked) and whether it is a zero-shot test (``finetune=none``).  A finished
+    run's files in ``out`` are moved aside first (their folder is added to ``aside``), unless this run resumes it."""
     cfg = expand_heldout(resolve_base(with_baselines_switch(cfg)))
+    check_run_settings(cfg)  # before a finished run's files are moved aside
     check_finetune(cfg)
     ft = cfg.get("finetune") or {}
     if ft.get("init_from"):
@@ -71,21 +96,14 @@ def train(cfg: DictConfig) -> Results:
         cfg = finetune_config(cfg)
     check_training_length(cfg)
     if not is_inside(cfg.get("ckpt_path"), out):  # a resume of the run in this folder keeps its files
-        set_aside_finished(out, [ft.get("init_from")])
+        aside += [p for p in [set_aside_finished(out, [ft.get("init_from")])] if p]
     zero_shot = bool(ft.get("init_from")) and ft.get("fraction") is None  # finetune=none
     built = build(cfg, trains=not zero_shot)
     if ft.get("init_from"):
         load_weights(built.model, ft.init_from)
     # resume: refuse another class's, an old layout's or other settings' checkpoint up front
     resumed = check_resume(cfg, built.model, built.datamodule, cfg.ckpt_path) if cfg.get("ckpt_path") else None
-    if zero_shot:
-        log.info("finetune=none: testing %s zero-shot (no step trained)", ft.init_from)
-        timing, training = Timing(), None
-    else:
-        timing, training = fit(built, resumed.global_step if resumed else 0)
-    tuned = finetune_record(cfg, built.datamodule, timing.fit_steps or 0) if ft.get("init_from") else None
-    # the final weights are validated and tested (nothing is chosen on the test split)
-    return Results(*test_and_report(built.cfg, built, RunFacts("train", started, timing, training, resumed, tuned)))
+    return cfg, built, resumed, zero_shot
 
 
 def job_not_run(cfg: DictConfig, out: Path) -> Results | None:

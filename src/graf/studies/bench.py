@@ -84,7 +84,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from graf.errors import ConfigError
 from graf.run.build import build_datamodule, model_config_for_neighbors
-from graf.run.config import CONF_DIR, band_choices, output_dir, task_wrapper
+from graf.run.config import CONF_DIR, band_choices, check_run_settings, output_dir, task_wrapper
 from graf.sim_commands.simulate import simulate
 from graf.studies.bench_load import LOAD_LIMIT, SPREAD_LIMIT, disturbances
 from graf.studies.bench_measure import (
@@ -220,6 +220,7 @@ def _selected(cfg: DictConfig, group: str, only_key: str) -> list[str]:
 @task_wrapper
 def bench(cfg: DictConfig) -> dict:
     """graf-bench: one row per (scene, model) of ``cfg`` (module doc), written after each; the result."""
+    check_run_settings(cfg)  # a seed numpy refuses, before anything runs
     if cfg.get("threads") is not None:
         torch.set_num_threads(int(cfg.threads))
     quick = bool(cfg.get("quick", False))

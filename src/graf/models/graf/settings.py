@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 from graf.models.graf.residual import WEIGHTINGS
+from graf.models.schedule import check_rates
 
 LOSSES = ("mse", "log_mse")
 ATTENTION_KERNELS = ("auto", "sdpa", "math")
@@ -32,3 +33,4 @@ def check_settings(hp: Mapping) -> None:
         raise ValueError(f"model.ray_window must be >= 0 (0: attention over the whole ray), got {hp['ray_window']}")
     if hp["attention"] not in ATTENTION_KERNELS:
         raise ValueError(f"model.attention must be one of {ATTENTION_KERNELS}, got {hp['attention']!r}")
+    check_rates(hp["lr"], hp["lr_decay"])

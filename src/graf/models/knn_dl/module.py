@@ -44,6 +44,7 @@ ray), L2 loss; Adam with an exponential learning-rate decay by ``lr_decay`` over
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import torch
@@ -54,6 +55,7 @@ from graf.geometry.grid import N_AZIMUTH, N_ELEVATION
 from graf.models.base import SpectrumModule, adam_exponential_decay
 from graf.models.knn.weights import idw_weights
 from graf.models.knn_dl.weightnet import WeightNet, upsample_maps
+from graf.models.schedule import check_rates, is_number
 
 
 class KNNDLModule(SpectrumModule):
@@ -76,7 +78,7 @@ class KNNDLModule(SpectrumModule):
         decoder_hidden: int = 32,
         pe_freqs: int = 6,
         dir_freqs: int = 3,
-        max_rank: int = 10,
+        max_rank: int | None = 10,
         signed_scale: float = 0.5,
         idw_power: float = 1.0,
         lr: float = 1e-3,
@@ -105,9 +107,9 @@ class KNNDLModule(SpectrumModule):
                 raise ValueError(f"model.{key} must be >= 0, got {value}")
         if signed_scale < 0:
             raise ValueError(f"model.signed_scale must be >= 0, got {signed_scale}")
-        if idw_power <= 0 or lr <= 0 or not 0 < lr_decay <= 1:
-            bad = "idw_power" if idw_power <= 0 else "lr" if lr <= 0 else "lr_decay"
-            raise ValueError(f"model.{bad} out of range (idw_power > 0, lr > 0, 0 < lr_decay <= 1)")
+        if not (is_number(idw_power) and math.isfinite(idw_power) and idw_power > 0):
+            raise ValueError(f"model.idw_power={idw_power}: must be a finite number > 0 (the IDW exponent)")
+        check_rates(lr, lr_decay)
         self.save_hyperparameters()
         self.signed_scale, self.idw_power = float(signed_scale), float(idw_power)
         self.lr, self.lr_decay = float(lr), float(lr_decay)

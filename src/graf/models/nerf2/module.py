@@ -44,7 +44,7 @@ from graf.geometry.rays import fp32, num_samples, random_pixels, render_spectra,
 from graf.models.base import SpectrumModule
 from graf.models.nerf2.network import NeRF2Network
 from graf.models.nerf2.renderer import render_rays, sample_distances
-from graf.models.schedule import cosine_record, run_steps, schedule_length
+from graf.models.schedule import check_rates, cosine_record, run_steps, schedule_length
 
 
 class NeRF2Module(SpectrumModule):
@@ -85,16 +85,18 @@ class NeRF2Module(SpectrumModule):
             "path_loss": path_loss,
             "rays_per_step": rays_per_step,
             "chunk_rays": chunk_rays,
-            "lr": lr,
             "t_max": 1 if t_max is None else t_max,
         }
+        check_rates(lr)
         for key, value in positive.items():
             if not value > 0:
                 raise ValueError(f"model.{key} must be positive, got {value!r}")
         if near < 0:
             raise ValueError(f"model.near must be >= 0 (m), got {near!r}")
-        if weight_decay < 0 or eta_min < 0:
-            raise ValueError(f"model.weight_decay and model.eta_min must be >= 0, got {weight_decay!r}, {eta_min!r}")
+        if not (0 <= weight_decay < float("inf") and 0 <= eta_min < float("inf")):  # nan and inf refused too
+            raise ValueError(
+                f"model.weight_decay and model.eta_min must be finite and >= 0, got {weight_decay!r}, {eta_min!r}"
+            )
         skips = [int(s) for s in skips]  # plain ints in the checkpoint, not a ListConfig
         self.save_hyperparameters()
         self.near, self.max_samples, self.sample_spacing = float(near), int(max_samples), float(sample_spacing)
