@@ -29,6 +29,7 @@ METRIC_KEYS = (
     TEST_KEYS
     | {k.replace("test/", "val/") for k in TEST_KEYS}
     | {"test/psnr_swapped", "test/reliance_db", "val/psnr_swapped", "val/reliance_db"}
+    | {"test/n_empty", "val/n_empty"}
 )
 
 

@@ -293,7 +293,7 @@ def test_collection_keys_and_no_compute_group_merging(weights):
     assert abs(exp_mse - exp_lpips) > 1e-3
     fast = spectrum_metrics("val/", lpips=False)
     fast.update(x, y)
-    assert set(fast.compute()) == {"val/mse", "val/psnr", "val/ssim"}
+    assert set(fast.compute()) == {"val/mse", "val/psnr", "val/ssim", "val/n_empty"}
 
 
 def test_lpips_weights_not_in_state_dict(weights):
