@@ -190,3 +190,58 @@ def test_a_fifth_registered_metric_reaches_the_curve_figures(monkeypatch, tmp_pa
     data = {"knn": {2: {"PSNR": 20.0, "SSIM": 0.7, "MSE": 0.01, "LPIPS": 0.2, "FID": 3.0}}}
     report_figures.curve_figure(data, "L", tmp_path / "c.png", "t")
     assert "FID" in seen[0] and len([t for t in seen[0] if t]) == 5
+
+
+def test_training_runs_with_deterministic_algorithms_whose_index_backward_is_reproducible(compose_cfg):
+    """The backward of advanced indexing (index_put_ with accumulate) adds with atomics across CPU threads unless
+    deterministic algorithms are on: 2-thread training then varied in its last bits from run to run.  The default
+    trainer turns them on (warning where an op has none)."""
+    import hydra
+
+    from graf.run.build import trainer_args
+
+    cfg = compose_cfg("train", ())
+    threads = torch.get_num_threads()
+    try:
+        hydra.utils.instantiate(trainer_args(cfg), logger=False)
+        assert torch.are_deterministic_algorithms_enabled() and torch.is_deterministic_algorithms_warn_only_enabled()
+        torch.set_num_threads(2)
+        g = torch.Generator().manual_seed(0)
+        x = torch.zeros(256, 32, requires_grad=True)
+        idx = torch.randint(0, 256, (100_000,), generator=g)
+        w = torch.randn(100_000, 32, generator=g)
+        grads = set()
+        for _ in range(10):
+            x.grad = None
+            (x[idx] * w).sum().backward()
+            grads.add(x.grad.numpy().tobytes())
+        assert len(grads) == 1
+    finally:
+        torch.set_num_threads(threads)
+        torch.use_deterministic_algorithms(False)
+
+
+def test_graf_gathers_rows_with_a_backward_that_adds_in_a_fixed_order():
+    """GRaF's gathers of per-target rows and map cells (``ray_features.rows``: index_select) give advanced
+    indexing's values, and a backward that is bit-equal from run to run on two threads even without
+    deterministic algorithms (advanced indexing's is not: it adds with atomics)."""
+    from graf.models.graf.ray_features import rows
+
+    threads, was = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
+    try:
+        torch.use_deterministic_algorithms(False)
+        torch.set_num_threads(2)
+        g = torch.Generator().manual_seed(1)
+        x = torch.randn(256, 8, 4, generator=g, requires_grad=True)
+        idx = torch.randint(0, 256, (50_000,), generator=g)
+        w = torch.randn(50_000, 8, 4, generator=g)
+        assert torch.equal(rows(x, idx), x[idx])
+        grads = set()
+        for _ in range(10):
+            x.grad = None
+            (rows(x, idx) * w).sum().backward()
+            grads.add(x.grad.numpy().tobytes())
+        assert len(grads) == 1
+    finally:
+        torch.set_num_threads(threads)
+        torch.use_deterministic_algorithms(was, warn_only=True)

@@ -60,6 +60,7 @@ from graf.models.graf.features import Dims, build_features
 from graf.models.graf.features.base import mlp
 from graf.models.graf.inference import SerialThreads, fast_path, ray_pass, rays_in_chunks, split_batch
 from graf.models.graf.legacy import upgrade_arguments, upgrade_hparams, upgrade_optimizer_states, upgrade_state_dict
+from graf.models.graf.ray_features import rows
 from graf.models.graf.residual import KNNBase, NoBase
 from graf.models.graf.settings import check_settings
 from graf.models.graf.tables import flat_scene_voxels, ray_sampling_summary, scene_ray_table
@@ -340,7 +341,7 @@ class GRaFModule(SpectrumModule):
             t_in = torch.stack([tables[b]["t_in"] for b in range(len(tables))])[bi, pix]
             step = torch.stack([tables[b]["step"] for b in range(len(tables))])[bi, pix]
             q, code = self._voxel_inputs(pix, t_in, step, ctx["wavelength"][bi], ctx["scene_index"][bi], S)
-        q = q + ctx["target_query"][bi][:, None, :]
+        q = q + rows(ctx["target_query"], bi)[:, None, :]
         x, tokens, key_mask, ray = self.features.scene_inputs(ctx, q, bi, pix, one_item)
         fast = fast_path(self.fast_inference, self.training, x)
         return self.features.output(ray_pass(self, x, tokens, key_mask, code, fast), ray)

@@ -50,6 +50,14 @@ def _centre_coords(h: int, w: int, device) -> tuple:
     return y0, (y0 + 1).clamp(max=h - 1), y - y0.float(), x0, (x0 + 1).clamp(max=w + 1), x - x0.float()
 
 
+def rows(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """``x[index]`` along the first axis by ``index_select``: the same values, and a backward that adds the
+    gradients of repeated rows in a fixed order.  Advanced indexing's backward (``index_put_`` with accumulate)
+    adds them with atomics across CPU threads, so a 2-thread training varied in its last bits from run to run
+    (issue 52)."""
+    return x.index_select(0, index.reshape(-1)).view(*index.shape, *x.shape[1:])
+
+
 def pad_wrap(maps: torch.Tensor) -> torch.Tensor:
     """``[..., h, w]`` -> ``[..., h, w + 2]``: one wrapped azimuth column on each side."""
     return torch.cat([maps[..., -1:], maps, maps[..., :1]], dim=-1)
@@ -59,13 +67,16 @@ def sample_wrap(padded: torch.Tensor, bi: torch.Tensor, pix: torch.Tensor, w: in
     """``upsample_wrap`` read at the given pixels only: ``padded [B, L, k, h, w + 2]`` (:func:`pad_wrap` of the
     maps), items ``bi [n]``, pixels ``pix [n]`` -> ``[n, L, k]``, the same values (the same arithmetic in the
     same order) as ``upsample_wrap(maps)[b, l, :, row, col]``, at a cost linear in the rays drawn."""
-    h = padded.shape[-2]
+    _, L, k, h, w2 = padded.shape
     y0, y1, wy, x0, x1, wx = _centre_coords(h, w, padded.device)
     r, c = pix // N_AZIMUTH, pix % N_AZIMUTH
     wy, wx = wy.to(padded.dtype)[r][:, None, None], wx.to(padded.dtype)[c][:, None, None]
+    flat = padded.reshape(-1)  # read by index_select: a backward that adds in a fixed order (see rows)
+    channel = (torch.arange(L * k, device=padded.device) * (h * w2)).view(1, L, k)  # [1, L, k]
+    item = (bi * (L * k * h * w2)).view(-1, 1, 1)
 
-    def at(rows, cols):  # [n, L, k]
-        return padded[bi, :, :, rows, cols]
+    def at(ys, xs):  # [n, L, k]
+        return rows(flat, item + channel + (ys * w2 + xs).view(-1, 1, 1))
 
     top = at(y0[r], x0[c]) * (1 - wy) + at(y1[r], x0[c]) * wy
     bottom = at(y0[r], x1[c]) * (1 - wy) + at(y1[r], x1[c]) * wy

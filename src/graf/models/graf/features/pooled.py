@@ -9,6 +9,7 @@ import torch
 from torch import nn
 
 from graf.models.graf.features.base import Dims, NeighborFeatures, complex_head, mlp
+from graf.models.graf.ray_features import rows
 
 
 class PooledFeatures(NeighborFeatures):
@@ -45,7 +46,7 @@ class PooledFeatures(NeighborFeatures):
             x = q.reshape(1, q.shape[0] * q.shape[1], q.shape[2])
             return x, ctx["tokens"][b : b + 1], None if key_mask is None else key_mask[b : b + 1], {}
         # each ray's voxels attend to its own target's neighbors
-        return q, ctx["tokens"][bi], None if key_mask is None else key_mask[bi], {}
+        return q, rows(ctx["tokens"], bi), None if key_mask is None else key_mask[bi], {}
 
     def output(self, state: torch.Tensor, ray: dict) -> torch.Tensor:
         return self.head(state).float()

@@ -16,7 +16,7 @@ from torch import nn
 
 from graf.models.graf.features.base import Dims, NeighborFeatures, complex_head
 from graf.models.graf.inference import split_batch
-from graf.models.graf.ray_features import RayNeighborTokens, all_pixel_inputs, pad_wrap, pixel_window, sample_wrap
+from graf.models.graf.ray_features import RayNeighborTokens, all_pixel_inputs, pad_wrap, pixel_window, rows, sample_wrap
 from graf.models.knn.weights import idw_weights
 
 
@@ -83,11 +83,11 @@ class RayFeatures(NeighborFeatures):
         if "ray_inputs" in ctx:  # inference: every pixel's inputs read at once (prepare)
             inputs = ctx["ray_inputs"][bi, pix]  # [n, L, k + K]
             window = inputs[..., ctx["ray_maps"].shape[2] :]
-            tokens, logits = self.ray_tokens.from_inputs(inputs, ctx["geo"][bi])
+            tokens, logits = self.ray_tokens.from_inputs(inputs, rows(ctx["geo"], bi))
         else:
             window = pixel_window(ctx["src"], bi, pix, self.pixel_window)  # [n, L, K]
             feats = sample_wrap(ctx["ray_maps"], bi, pix, ctx["ray_maps"].shape[-1] - 2)  # [n, L, k]
-            tokens, logits = self.ray_tokens(feats, window, ctx["geo"][bi])
+            tokens, logits = self.ray_tokens(feats, window, rows(ctx["geo"], bi))
         key_mask = None if ctx["key_mask"] is None else ctx["key_mask"][bi]
         return q, tokens, key_mask, {"window": window, "tokens": tokens, "logits": logits}
 
