@@ -23,20 +23,16 @@ from graf.models.knn_dl import KNNDLModule
 from graf.models.nerf2 import NeRF2Module
 from graf.run.resume import Interrupted
 
+from .test_entry_points import _main as run_main
+
 HINT = "(HYDRA_FULL_ERROR=1 shows the full traceback)"
 QUICK = ("logger=none", "plot_count=0", "trainer.accelerator=cpu", "trainer.enable_progress_bar=false")
 
 
 def _main(monkeypatch, capsys, main, *args: str) -> tuple[int | None, str]:
     """Run a command's ``main`` in this process with this command line: its exit code (None: returned), stderr."""
-    monkeypatch.setattr(sys, "argv", ["graf", *args])
-    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
-    code = None
-    try:
-        main()
-    except SystemExit as exc:
-        code = exc.code
-    return code, capsys.readouterr().err
+    code, _, err = run_main(monkeypatch, capsys, main, *args)
+    return code, err
 
 
 def _one_line(err: str) -> str:
