@@ -20,6 +20,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from graf.models.graf.kernels import train as train_kernel
+
 KERNELS = ("auto", "sdpa", "math")
 MATH_SCORES_PER_PIECE = 1 << 18  # the math kernel's score tensor per piece (1 MB in fp32: stays in cache)
 
@@ -59,6 +61,7 @@ class MultiHeadAttention(nn.Module):
         self.v = nn.Linear(d_model, inner)
         self.out = nn.Linear(inner, d_model)
         self.dropout = float(dropout)
+        self.fused_training = False  # with autograd on a CPU: the compiled kernel with its backward (set by the model)
 
     def _split(self, x: torch.Tensor) -> torch.Tensor:  # [B, N, H*Dh] -> [B, H, N, Dh]
         return x.unflatten(-1, (self.num_heads, self.head_dim)).transpose(1, 2)
@@ -77,7 +80,29 @@ class MultiHeadAttention(nn.Module):
             and not (self.dropout and self.training)
         )
 
+    def _fused(self, x: torch.Tensor, context: torch.Tensor, key_mask: torch.Tensor | None) -> torch.Tensor | None:
+        """The attention through :mod:`graf.models.graf.kernels.train` (token-major, no transposes; q, k and v
+        of a self-attention in one projection, k and v of a cross-attention in one), or None where it does not
+        apply (then the torch path runs: the same function within float rounding)."""
+        H, Dh = self.num_heads, self.head_dim
+        if x.dim() != 3 or context.dim() != 3 or x.shape[0] != context.shape[0] or (self.dropout and self.training):
+            return None
+        if context is x:
+            w = torch.cat([self.q.weight, self.k.weight, self.v.weight])
+            q, kv = F.linear(x, w, torch.cat([self.q.bias, self.k.bias, self.v.bias])), None
+        else:
+            w, b = torch.cat([self.k.weight, self.v.weight]), torch.cat([self.k.bias, self.v.bias])
+            q, kv = self.q(x), F.linear(context, w, b)
+        if not train_kernel.supported(q, kv, H, Dh, key_mask):
+            return None
+        y = train_kernel.attention(q, kv, H, Dh, key_mask, Dh**-0.5)  # [B, Nq, H, Dh]
+        return self.out(y.flatten(-2))
+
     def forward(self, x: torch.Tensor, context: torch.Tensor, key_mask: torch.Tensor | None = None) -> torch.Tensor:
+        if self.fused_training and torch.is_grad_enabled() and x.device.type == "cpu" and x.dtype == torch.float32:
+            y = self._fused(x, context, key_mask)
+            if y is not None:
+                return y
         q, k, v = self._split(self.q(x)), self._split(self.k(context)), self._split(self.v(context))
         # [B, 1, 1, Nk], True = attend.  Callers pass None when nothing is padded (keeps SDPA's fused kernels)
         mask = None if key_mask is None else key_mask[:, None, None, :].to(torch.bool)

@@ -58,22 +58,27 @@ def scene_blocks(
     return x
 
 
-def _self_blocks(blocks: nn.ModuleList, v: torch.Tensor, fast: bool) -> torch.Tensor:
+def _self_blocks(blocks: nn.ModuleList, v: torch.Tensor, fast: bool, mask: torch.Tensor | None = None) -> torch.Tensor:
     if not fast:
         for blk in blocks:
-            v = blk(v)
+            v = blk(v, mask)
         return v
     per = max(1, FAST_PIECE_VOXELS // v.shape[1])
     pieces = [run_blocks(blocks, piece) for piece in v.split(per)]  # each piece through every block in cache
     return pieces[0] if len(pieces) == 1 else torch.cat(pieces)
 
 
-def ray_transformer(blocks: nn.ModuleList, v: torch.Tensor, window: int, fast: bool) -> torch.Tensor:
+def ray_transformer(
+    blocks: nn.ModuleList, v: torch.Tensor, window: int, fast: bool, mask: torch.Tensor | None = None
+) -> torch.Tensor:
     """The ray blocks over ``v [n, S, d]``: full self-attention along the ray, or, with ``window`` W and S > W,
-    attention within consecutive windows of W voxels (the last window holds the remainder)."""
+    attention within consecutive windows of W voxels (the last window holds the remainder).  ``mask [n, S]``
+    (padded rays, full attention only): True for each ray's own voxels, the only keys attended to."""
     n, S, d = v.shape
     if not window or S <= window:
-        return _self_blocks(blocks, v, fast)
+        return _self_blocks(blocks, v, fast, mask)
+    if mask is not None:
+        raise ValueError("padded rays need attention over the whole ray (model.ray_window 0 or >= S)")
     k = S // window
     if fast:  # every block on the windows: the blocks are per window, so the windows can go through all at once
         head = _self_blocks(blocks, v[:, : k * window].reshape(n * k, window, d), fast).reshape(n, k * window, d)
@@ -84,13 +89,27 @@ def ray_transformer(blocks: nn.ModuleList, v: torch.Tensor, window: int, fast: b
     return v
 
 
-def ray_pass(model: nn.Module, x: torch.Tensor, tokens: torch.Tensor, key_mask, code: torch.Tensor, fast: bool):
+def ray_pass(
+    model: nn.Module,
+    x: torch.Tensor,
+    tokens: torch.Tensor,
+    key_mask,
+    code: torch.Tensor,
+    fast: bool,
+    voxels: torch.Tensor | None = None,
+):
     """GRaF's rays from their voxel queries to their pooled state ``[n, d]``: the scene blocks (queries ``x [n, S,
     d]`` over ``tokens [n or 1, L, d]``), MLP2 plus the voxels' distance ``code [n, S, d]``, the ray transformer,
-    the mean over each ray.  On the fast path with the compiled kernels, all of it feature-major on pieces of
-    :data:`FAST_PIECE_VOXELS` voxels (each piece through every stage while it is in cache, MLP2's hidden layer
-    never in memory: :func:`fused_ray_pass`)."""
+    the mean over each ray.  ``voxels [n, S]`` (rays padded to S, :mod:`graf.models.graf.buckets`): True for each
+    ray's own voxels; the padding is left out of the ray transformer's keys and of the mean.  On the fast path
+    with the compiled kernels, all of it feature-major on pieces of :data:`FAST_PIECE_VOXELS` voxels (each piece
+    through every stage while it is in cache, MLP2's hidden layer never in memory: :func:`fused_ray_pass`)."""
     n, S, d = code.shape
+    if voxels is not None:
+        x = scene_blocks(model.scene_blocks, x, tokens, key_mask, False)
+        v = ray_transformer(model.ray_blocks, model.mlp2(x).view(n, S, d) + code, model.ray_window, False, voxels)
+        w = voxels.to(v.dtype)[..., None]
+        return ((v * w).sum(dim=1) / w.sum(dim=1)).float()
     if fast:
         # one long query axis over shared tokens (pooled): the scene blocks act per position, so per ray as well
         xr = x.view(n, S, d) if x.shape[:2] == (1, n * S) and tokens.shape[0] == 1 else x

@@ -53,13 +53,15 @@ from graf.geometry.encoding import PositionalEncoding, sinusoidal_encoding, to_g
 from graf.geometry.grid import N_AZIMUTH, N_ELEVATION, local_directions
 from graf.geometry.rays import fp32, random_pixels
 from graf.models.base import SpectrumModule, adam_exponential_decay
-from graf.models.graf.attention import CrossAttentionBlock, SelfAttentionBlock
+from graf.models.graf.attention import CrossAttentionBlock, MultiHeadAttention, SelfAttentionBlock
+from graf.models.graf.buckets import buckets, voxel_mask
 from graf.models.graf.cache import EvalCache, weights_stamp
 from graf.models.graf.encoder import ResNetEncoder
 from graf.models.graf.features import Dims, build_features
 from graf.models.graf.features.base import mlp
 from graf.models.graf.inference import SerialThreads, fast_path, ray_pass, rays_in_chunks, split_batch
 from graf.models.graf.legacy import upgrade_arguments, upgrade_hparams, upgrade_optimizer_states, upgrade_state_dict
+from graf.models.graf.pieces import PieceStep
 from graf.models.graf.ray_features import rows
 from graf.models.graf.residual import KNNBase, NoBase
 from graf.models.graf.settings import check_settings
@@ -74,7 +76,8 @@ SCENE_TABLE_VOXELS = 2_000_000  # scenes with more voxels per spectrum compute t
 
 
 class GRaFModule(SpectrumModule):
-    INFERENCE_SETTINGS = ("chunk_rays", "fast_inference")  # graf-eval may change these on a trained checkpoint
+    # how fast, not what: graf-eval and a resumed run may change these on a trained checkpoint
+    INFERENCE_SETTINGS = ("chunk_rays", "fast_inference", "fast_training", "train_pieces")
     LAYOUT = 3
     LAYOUT_CHANGES = {
         2: "positions are now metres in the gateway frame (layout 1 normalised them by each scene's "
@@ -100,6 +103,13 @@ class GRaFModule(SpectrumModule):
             log(MSE of the target's rays + 1e-6): the training counterpart of the mean per-spectrum PSNR, so
             spectra that are already well predicted are not traded for the badly predicted ones).
         use_scene_index: 4-D positions (x, y, z, scene index) for cross-scene training.
+        fast_training: training on a CPU in fp32 through the fast path: the attention through the compiled kernel
+            with its backward (:mod:`graf.models.graf.kernels.train`) and a step's rays in few padded groups
+            (:mod:`graf.models.graf.buckets`): the same function within float rounding; false: the plain path (one
+            group per voxel count, torch's attention).  And a step's rays in ``train_pieces`` slices, each forward
+            and backward on its own thread (:mod:`graf.models.graf.pieces`).
+        train_pieces: the slices of a step's rays on the fast path (null: torch's thread count); fixed, so a
+            result does not depend on how many threads ran them.
         fast_inference: at inference on a CPU in fp32, run the blocks through the fused attention kernel and the
             chunks of a spectrum on all threads (:mod:`graf.models.graf.inference`): the same output within float
             rounding; false: the plain path (the blocks' own forward), as in training.
@@ -137,6 +147,8 @@ class GRaFModule(SpectrumModule):
         attention: str = "auto",
         features: Mapping | str = "pooled",
         fast_inference: bool = True,
+        fast_training: bool = True,
+        train_pieces: int | None = None,
         **legacy,
     ):
         super().__init__()
@@ -153,7 +165,8 @@ class GRaFModule(SpectrumModule):
         self.residual, self.use_scene_index = bool(residual), bool(use_scene_index)
         self.loss_name, self.length_unit = loss, float(length_unit)
         self.sample_spacing, self.ray_window = float(voxel_wavelengths), int(ray_window)
-        self.fast_inference = bool(fast_inference)
+        self.fast_inference, self.fast_training = bool(fast_inference), bool(fast_training)
+        self.train_pieces = None if train_pieces is None else int(train_pieces)
         self._ray_tables: dict = {}  # geometry only: per scene geometry and band, never stale
         self.eval_cache = EvalCache()  # weights-dependent tables of evaluation (see _cached)
         self.base = KNNBase(weighting) if self.residual else NoBase()
@@ -189,6 +202,9 @@ class GRaFModule(SpectrumModule):
             for _ in range(hp["ray_blocks"])
         )
         self.features.make_output(dims, self.residual)  # last, as before the components: same seed, same weights
+        for m in self.modules():
+            if isinstance(m, MultiHeadAttention):
+                m.fused_training = bool(hp.get("fast_training", True))
 
     @property
     def method(self) -> str:
@@ -317,8 +333,11 @@ class GRaFModule(SpectrumModule):
         compute = partial(flat_scene_voxels, table, self._voxel_inputs, wl, scene_index, self.d_model, device)
         return self._cached("voxels", stamp, (id(table), scene_index, wl, autocast), compute)
 
-    def _render_group(self, ctx: dict, bi: torch.Tensor, pix: torch.Tensor, S: int) -> torch.Tensor:
-        """``[n, 2]`` (re, im) of ``n`` rays with ``S`` voxels each (items ``bi [n]``, pixels ``pix [n]``)."""
+    def _render_group(
+        self, ctx: dict, bi: torch.Tensor, pix: torch.Tensor, S: int, samples: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """``[n, 2]`` (re, im) of ``n`` rays with ``S`` voxels each (items ``bi [n]``, pixels ``pix [n]``), or with
+        ``samples [n]`` voxels each padded to ``S`` (:meth:`render` in training)."""
         n = pix.shape[0]
         tables = ctx["tables"]
         one_item = bool((bi == bi[0]).all())
@@ -344,7 +363,13 @@ class GRaFModule(SpectrumModule):
         q = q + rows(ctx["target_query"], bi)[:, None, :]
         x, tokens, key_mask, ray = self.features.scene_inputs(ctx, q, bi, pix, one_item)
         fast = fast_path(self.fast_inference, self.training, x)
-        return self.features.output(ray_pass(self, x, tokens, key_mask, code, fast), ray)
+        voxels = None if samples is None else voxel_mask(samples, S)
+        return self.features.output(ray_pass(self, x, tokens, key_mask, code, fast, voxels), ray)
+
+    def padded_groups(self) -> bool:
+        """Whether :meth:`render` joins voxel counts into padded groups (:mod:`graf.models.graf.buckets`): in a
+        training step on the fast path (``fast_training``) with attention over the whole ray."""
+        return self.fast_training and torch.is_grad_enabled() and not self.ray_window
 
     def render(self, ctx: dict, pix: torch.Tensor) -> torch.Tensor:
         """Predicted values ``[B, R]`` of the pixels ``pix [B, R]`` (long, ``r * 360 + c``).  Rays are grouped
@@ -355,10 +380,17 @@ class GRaFModule(SpectrumModule):
         flat_pix = pix.flatten()
         bi = torch.arange(B, device=pix.device).repeat_interleave(R)
         order, outs = [], []
-        for S in torch.unique(S_all).tolist():
-            sel = (S_all == S).nonzero().flatten()
-            order.append(sel)
-            outs.append(self._render_group(ctx, bi[sel], flat_pix[sel], int(S)))
+        sizes, counts = torch.unique(S_all, return_counts=True)
+        if self.padded_groups():
+            for group in buckets(dict(zip(sizes.tolist(), counts.tolist()))):
+                sel = ((S_all >= group[0]) & (S_all <= group[-1])).nonzero().flatten()
+                order.append(sel)
+                outs.append(self._render_group(ctx, bi[sel], flat_pix[sel], int(group[-1]), S_all[sel]))
+        else:
+            for S in sizes.tolist():
+                sel = (S_all == S).nonzero().flatten()
+                order.append(sel)
+                outs.append(self._render_group(ctx, bi[sel], flat_pix[sel], int(S)))
         out = torch.cat(outs)[torch.argsort(torch.cat(order))]  # back to (b, r) order
         re, im = out.view(B, R, 2).unbind(-1)
         re = self.base.add(ctx, pix, re)
@@ -378,8 +410,16 @@ class GRaFModule(SpectrumModule):
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         B = batch["tgt_pos"].shape[0]
-        pix = random_pixels(B, self.rays_per_step, self.global_step, batch["tgt_pos"].device)
-        pred = self.render(self.prepare(batch), pix)
+        device = batch["tgt_pos"].device
+        pix = random_pixels(B, self.rays_per_step, self.global_step, device)
+        if self.fast_training and device.type == "cpu" and not torch.is_autocast_enabled("cpu"):
+            with SerialThreads(device):  # the encoder on the cores other processes leave
+                ctx = self.prepare(batch)
+            params = [p for p in self.parameters() if p.requires_grad]
+            pieces = self.train_pieces or torch.get_num_threads()
+            pred = PieceStep(self.render, ctx, pix, params, pieces, torch.get_num_threads()).forward()
+        else:
+            pred = self.render(self.prepare(batch), pix)
         target = batch["tgt_spectrum"].flatten(1).gather(1, pix).float()
         if self.loss_name == "mse":
             loss = F.mse_loss(pred.float(), target)

@@ -498,3 +498,211 @@ extern "C" void graf_ray_pass_lanes(const RayPass *p, const float *x, const floa
         }
     }
 }
+
+// ------------------------------------------------------------------------------------------ training: attention
+// Multi-head attention with a backward, for GRaF's training on a CPU (graf.models.graf.kernels.train): token-major
+// operands as the projections write them (no transposes), 16 queries per vector, nothing of size queries x keys
+// in memory.  Group g, position s, head h, feature e of q lives at q[g * qg + s * qs + h * qh + e] (likewise k, v);
+// o and do are contiguous [G, Sq, H, Dh]; lse [G, H, 2, Sq]: each softmax row's maximum score, then the inverse of
+// its denominator (what the backward recomputes the probabilities from).
+// mask [G, Sk] (mask_stride; nonzero = attend; at least one key per group) or null.  Scores are scale * q . k.
+struct AttnArgs {
+    const float *q, *k, *v;
+    const uint8_t *mask;
+    int64_t qg, qs, qh, kg, ks, kh, vg, vs, vh, mask_stride;
+    int64_t H, Dh, Sq, Sk;
+    int64_t dqs, dks;  // the backward's outputs: elements from one position to the next in dq, and in dk and dv
+    float scale;
+};
+
+static inline vf gather_lanes(const float *p, int64_t stride, int64_t nl) {
+    float tmp[LANES] = {0};
+    for (int64_t l = 0; l < nl; l++) tmp[l] = p[l * stride];
+    vf v;
+    std::memcpy(&v, tmp, sizeof v);
+    return v;
+}
+
+static inline float hsum(vf v) {
+    float tmp[LANES];
+    std::memcpy(tmp, &v, sizeof tmp);
+    float s0 = 0, s1 = 0, s2 = 0, s3 = 0;
+    for (int l = 0; l < LANES; l += 4) {
+        s0 += tmp[l];
+        s1 += tmp[l + 1];
+        s2 += tmp[l + 2];
+        s3 += tmp[l + 3];
+    }
+    return (s0 + s1) + (s2 + s3);
+}
+
+// the scale * q . k of 16 queries (qv [Dh]) with key row kj [Dh]
+static inline vf score(const vf *qv, const float *kj, int64_t Dh, float scale) {
+    vf acc = splat(0.0f);
+    for (int64_t e = 0; e < Dh; e++) acc += qv[e] * kj[e];
+    return acc * scale;
+}
+
+// groups [g0, g1): o [G, Sq, H, Dh], lse [G, H, 2, Sq].  DH: the head size known at compile time (0: a->Dh)
+template <int DH>
+static void attn_train_fwd(const AttnArgs *a, float *o, float *lse, int64_t g0, int64_t g1) {
+    const int64_t H = a->H, Dh = SIZE(DH, a->Dh), Sq = a->Sq, Sk = a->Sk;
+    std::vector<vf> s_buf((size_t)Sk + 1);
+    vf *s = s_buf.data();
+    for (int64_t g = g0; g < g1; g++) {
+        const uint8_t *mg = a->mask ? a->mask + g * a->mask_stride : nullptr;
+        for (int64_t h = 0; h < H; h++) {
+            const float *qh = a->q + g * a->qg + h * a->qh;
+            const float *kh = a->k + g * a->kg + h * a->kh;
+            const float *vh = a->v + g * a->vg + h * a->vh;
+            for (int64_t i0 = 0; i0 < Sq; i0 += LANES) {
+                const int64_t nl = Sq - i0 < LANES ? Sq - i0 : LANES;
+                vf qv[MAX_DIM], out[MAX_DIM];
+                for (int64_t e = 0; e < Dh; e++) qv[e] = gather_lanes(qh + i0 * a->qs + e, a->qs, nl);
+                vf mx = splat(-INFINITY);
+                for (int64_t j = 0; j < Sk; j++) {
+                    if (mg && !mg[j]) continue;
+                    s[j] = score(qv, kh + j * a->ks, Dh, a->scale);
+                    mx = s[j] > mx ? s[j] : mx;
+                }
+                for (int64_t e = 0; e < Dh; e++) out[e] = splat(0.0f);
+                vf sum = splat(0.0f);
+                for (int64_t j = 0; j < Sk; j++) {
+                    if (mg && !mg[j]) continue;
+                    vf p = vexp(s[j] - mx);
+                    sum += p;
+                    const float *vj = vh + j * a->vs;
+                    for (int64_t e = 0; e < Dh; e++) out[e] += p * vj[e];
+                }
+                float ot[MAX_DIM][LANES];
+                const vf inv = 1.0f / sum;
+                for (int64_t e = 0; e < Dh; e++) {
+                    vf r = out[e] * inv;
+                    std::memcpy(ot[e], &r, sizeof r);
+                }
+                float *lg = lse + (g * H + h) * 2 * Sq;  // the rows' maxima, then their denominators' inverses
+                store_lanes(lg + i0, mx, nl);
+                store_lanes(lg + Sq + i0, inv, nl);
+                for (int64_t l = 0; l < nl; l++) {
+                    float *ol = o + ((g * Sq + i0 + l) * H + h) * Dh;
+                    for (int64_t e = 0; e < Dh; e++) ol[e] = ot[e][l];
+                }
+            }
+        }
+    }
+}
+
+extern "C" void graf_attn_train_fwd(const AttnArgs *a, float *o, float *lse, int64_t g0, int64_t g1) {
+    if (a->Dh == 8)
+        attn_train_fwd<8>(a, o, lse, g0, g1);
+    else if (a->Dh == 16)
+        attn_train_fwd<16>(a, o, lse, g0, g1);
+    else
+        attn_train_fwd<0>(a, o, lse, g0, g1);
+}
+
+// groups [g0, g1): from o, lse and do (contiguous [G, Sq, H, Dh]) the gradients dq, dk and dv (position stride
+// dqs for dq, dks for dk and dv, heads then features contiguous: they may interleave in one buffer as the
+// projections' outputs do; masked keys get 0).  The probabilities are recomputed, twice: with 16 queries per
+// vector for dq, then with 16 keys per vector for dk and dv (sums over queries), so no vector is ever summed across
+// its lanes.
+template <int DH>
+static void attn_train_bwd(const AttnArgs *a, const float *o, const float *lse, const float *dout, float *dq,
+                           float *dk, float *dv, int64_t g0, int64_t g1) {
+    const int64_t H = a->H, Dh = SIZE(DH, a->Dh), Sq = a->Sq, Sk = a->Sk, HD = H * Dh;
+    static thread_local std::vector<float> delta;
+    delta.resize((size_t)Sq);
+    for (int64_t g = g0; g < g1; g++) {
+        const uint8_t *mg = a->mask ? a->mask + g * a->mask_stride : nullptr;
+        for (int64_t h = 0; h < H; h++) {
+            const float *qh = a->q + g * a->qg + h * a->qh;
+            const float *kh = a->k + g * a->kg + h * a->kh;
+            const float *vh = a->v + g * a->vg + h * a->vh;
+            const float *lh = lse + (g * H + h) * 2 * Sq, *ih = lh + Sq;  // maxima, inverse denominators
+            // dq: 16 queries per vector
+            for (int64_t i0 = 0; i0 < Sq; i0 += LANES) {
+                const int64_t nl = Sq - i0 < LANES ? Sq - i0 : LANES;
+                const int64_t row = (g * Sq + i0) * HD + h * Dh;  // o, do of query i0, head h
+                float *dqr = dq + (g * Sq + i0) * a->dqs + h * Dh;
+                vf qv[MAX_DIM], dov[MAX_DIM], dqv[MAX_DIM];
+                vf dl = splat(0.0f);
+                for (int64_t e = 0; e < Dh; e++) {
+                    qv[e] = gather_lanes(qh + i0 * a->qs + e, a->qs, nl);
+                    dov[e] = gather_lanes(dout + row + e, HD, nl);  // zero in unused lanes
+                    dl += dov[e] * gather_lanes(o + row + e, HD, nl);
+                    dqv[e] = splat(0.0f);
+                }
+                store_lanes(delta.data() + i0, dl, nl);
+                vf lv = load_lanes(lh + i0, nl), iv = load_lanes(ih + i0, nl);
+                for (int64_t j = 0; j < Sk; j++) {
+                    if (mg && !mg[j]) continue;
+                    const float *kj = kh + j * a->ks, *vj = vh + j * a->vs;
+                    vf p = vexp(score(qv, kj, Dh, a->scale) - lv) * iv;
+                    vf dp = splat(0.0f);
+                    for (int64_t e = 0; e < Dh; e++) dp += dov[e] * vj[e];
+                    vf ds = p * (dp - dl);
+                    for (int64_t e = 0; e < Dh; e++) dqv[e] += ds * kj[e];
+                }
+                float t[LANES];
+                for (int64_t e = 0; e < Dh; e++) {
+                    vf r = dqv[e] * a->scale;
+                    std::memcpy(t, &r, sizeof t);
+                    for (int64_t l = 0; l < nl; l++) dqr[l * a->dqs + e] = t[l];
+                }
+            }
+            // dk, dv: 16 keys per vector
+            for (int64_t j0 = 0; j0 < Sk; j0 += LANES) {
+                const int64_t nl = Sk - j0 < LANES ? Sk - j0 : LANES;
+                vf kv[MAX_DIM], vv[MAX_DIM], dkv[MAX_DIM], dvv[MAX_DIM];
+                float live[LANES] = {0};
+                for (int64_t l = 0; l < nl; l++) live[l] = (mg && !mg[j0 + l]) ? 0.0f : 1.0f;
+                vf lane_on;
+                std::memcpy(&lane_on, live, sizeof lane_on);
+                for (int64_t e = 0; e < Dh; e++) {
+                    kv[e] = gather_lanes(kh + j0 * a->ks + e, a->ks, nl);
+                    vv[e] = gather_lanes(vh + j0 * a->vs + e, a->vs, nl);
+                    dkv[e] = dvv[e] = splat(0.0f);
+                }
+                for (int64_t i = 0; i < Sq; i++) {
+                    const float *qi = qh + i * a->qs, *doi = dout + (g * Sq + i) * HD + h * Dh;
+                    vf s = splat(0.0f);
+                    for (int64_t e = 0; e < Dh; e++) s += kv[e] * qi[e];
+                    // masked and unused key lanes: the score is clamped far below the maximum, then zeroed
+                    vf x = s * a->scale - lh[i];
+                    x = x < 0.0f ? x : splat(0.0f);
+                    vf p = vexp(x) * (lane_on * ih[i]);
+                    vf dp = splat(0.0f);
+                    for (int64_t e = 0; e < Dh; e++) dp += vv[e] * doi[e];
+                    vf ds = p * (dp - delta[i]);
+                    for (int64_t e = 0; e < Dh; e++) {
+                        dvv[e] += p * doi[e];
+                        dkv[e] += ds * qi[e];
+                    }
+                }
+                float tk[MAX_DIM][LANES], tv[MAX_DIM][LANES];
+                for (int64_t e = 0; e < Dh; e++) {
+                    vf r = dkv[e] * a->scale;
+                    std::memcpy(tk[e], &r, sizeof r);
+                    std::memcpy(tv[e], &dvv[e], sizeof r);
+                }
+                for (int64_t l = 0; l < nl; l++) {
+                    float *dkj = dk + (g * Sk + j0 + l) * a->dks + h * Dh, *dvj = dv + (g * Sk + j0 + l) * a->dks + h * Dh;
+                    for (int64_t e = 0; e < Dh; e++) {
+                        dkj[e] = tk[e][l];
+                        dvj[e] = tv[e][l];
+                    }
+                }
+            }
+        }
+    }
+}
+
+extern "C" void graf_attn_train_bwd(const AttnArgs *a, const float *o, const float *lse, const float *dout, float *dq,
+                                    float *dk, float *dv, int64_t g0, int64_t g1) {
+    if (a->Dh == 8)
+        attn_train_bwd<8>(a, o, lse, dout, dq, dk, dv, g0, g1);
+    else if (a->Dh == 16)
+        attn_train_bwd<16>(a, o, lse, dout, dq, dk, dv, g0, g1);
+    else
+        attn_train_bwd<0>(a, o, lse, dout, dq, dk, dv, g0, g1);
+}

@@ -104,6 +104,11 @@ def _load() -> ctypes.CDLL | None:
     rp.argtypes += [ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p] + [ctypes.c_int64] * 3
     lib.graf_ray_pass_lanes.restype = None
     lib.graf_ray_pass_lanes.argtypes = rp.argtypes
+    lib.graf_attn_train_fwd.restype = None
+    lib.graf_attn_train_fwd.argtypes = [ctypes.POINTER(AttnArgs), ctypes.c_void_p, ctypes.c_void_p]
+    lib.graf_attn_train_fwd.argtypes += [ctypes.c_int64] * 2
+    lib.graf_attn_train_bwd.restype = None
+    lib.graf_attn_train_bwd.argtypes = [ctypes.POINTER(AttnArgs)] + [ctypes.c_void_p] * 6 + [ctypes.c_int64] * 2
     return lib
 
 
@@ -114,6 +119,15 @@ class BlockWeights(ctypes.Structure):
     _fields_ += [(n, ctypes.c_void_p) for n in ("w1", "b1", "w2", "b2", "g2", "be2")]
     _fields_ += [("eps1", ctypes.c_float), ("eps2", ctypes.c_float)]
     _fields_ += [(n, ctypes.c_int64) for n in ("d", "H", "Dh", "F")]
+
+
+class AttnArgs(ctypes.Structure):
+    """``struct AttnArgs`` of attention_cpu.cpp: the operands (pointers, element strides) of the training attention."""
+
+    _fields_ = [(n, ctypes.c_void_p) for n in ("q", "k", "v", "mask")]
+    _fields_ += [(n, ctypes.c_int64) for n in ("qg", "qs", "qh", "kg", "ks", "kh", "vg", "vs", "vh", "mask_stride")]
+    _fields_ += [(n, ctypes.c_int64) for n in ("H", "Dh", "Sq", "Sk", "dqs", "dks")]
+    _fields_ += [("scale", ctypes.c_float)]
 
 
 class RayPass(ctypes.Structure):
