@@ -212,5 +212,12 @@ def test_compete_times_each_row_again_beside_a_busy_process(bench_cfg):
             row["infer_s_per_spectrum_loaded"] / row["infer_s_per_spectrum"], rel=2e-3
         )
         assert isinstance(row["disturbed"], bool) and isinstance(row["disturbances"], list)
+        if row["preset"] == "graf_cpu":  # training steps too, where the model trains
+            assert row["train_s_per_step_loaded"] > 0
+            assert row["train_slowdown"] == pytest.approx(
+                row["train_s_per_step_loaded"] / row["train_s_per_step"], rel=2e-3
+            )
+        else:
+            assert "train_slowdown" not in row or row["train_slowdown"] is None
     md = (Path(cfg.paths.output_dir) / "bench.md").read_text()
-    assert "beside a busy process" in md and "slowdown" in md
+    assert "s/spectrum beside a busy process" in md and "s/step beside a busy process" in md

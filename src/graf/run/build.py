@@ -150,6 +150,7 @@ def build(cfg: DictConfig, trains: bool = True) -> BuiltRun:
     whether the run trains the model on its scenes (graf-eval and a zero-shot test do not: a test scene is then
     "within-scene" only when the checkpoint was trained on its content)."""
     check_run_settings(cfg)
+    check_not_validation_only(cfg, scene_configs(cfg.get("eval_scene")) or scene_configs(cfg.get("scene")))
     if cfg.get("torch_threads"):
         torch.set_num_threads(int(cfg.torch_threads))
     if cfg.get("seed") is not None:
@@ -202,6 +203,22 @@ def instantiate_group(cfg: DictConfig, group: str) -> list:
         if isinstance(c, DictConfig) and "_target_" in c
     )
     return [x for x in made if x is not None]
+
+
+def check_not_validation_only(cfg: DictConfig, configs: list) -> None:
+    """Refuse to test on a validation layout (``validation_only: true`` in its catalog entry: ``conference_v4``,
+    ``office_v4``): it validates and draws learning curves (``test=false``) so that no choice sees a study's test
+    layouts, and is never itself a test scene."""
+    if not cfg.get("test", True):
+        return
+    for c in configs:
+        if c.get("validation_only"):
+            name = c.get("name")
+            raise ConfigError(
+                f"scene {name} is a validation layout (validation_only: true in scene_catalog/{name}.yaml): it is "
+                "validated on, never tested; validate on it with test=false (as graf-curves does), or test on "
+                "another scene"
+            )
 
 
 def eval_datamodules(cfg: DictConfig, train_dm, table: dict | None = None, seen: dict | None = None) -> list[EvalScene]:

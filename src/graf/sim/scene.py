@@ -58,8 +58,12 @@ class SimulatedScene:
         num_tx: int | None = None,
         band: str | None = None,
         fixed_band: bool = False,
+        validation_only: bool = False,
     ):
         self.name = name
+        # a validation layout: validated on, never tested (graf.run.build refuses it as a test scene); it does not
+        # shape the dataset, so it is not in config()
+        self.validation_only = bool(validation_only)
         self.band, self.fixed_band = (
             band,
             bool(fixed_band),

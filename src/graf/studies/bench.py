@@ -44,7 +44,8 @@ simulated conference_v1 at 2.4 GHz) and every model of ``models`` (default: ``gr
 - ``bench.compete=true``: after the quiet timing, the model's evaluation caches are emptied and the warm-up and
   the timed spectra run again beside a competing single-threaded process the bench starts
   (``infer_s_per_spectrum_loaded``, ``infer_load_cores_loaded``) and ``infer_slowdown`` = loaded / quiet: the
-  methods side by side under the same load.
+  methods side by side under the same load; likewise the timed training steps (``train_s_per_step_loaded``,
+  ``train_load_cores_loaded``, ``train_slowdown``).
 
 Everything runs on the GPU when ``torch.cuda.is_available()`` (``device_type``: ``cuda``; the table's first
 line names the device), else on the CPU with ``threads`` threads (null: torch's default; recorded).
@@ -329,7 +330,7 @@ def _bench_model(cfg: DictConfig, m: str, scene_name: str, infer: list, train: l
             compete = bool(cfg.bench.get("compete"))
             row.update(measure_inference(model, infer, device, light_warmup=quick, compete=compete))
             if row["trainable_parameters"]:
-                row.update(measure_training(model, train, device, light_warmup=quick))
+                row.update(measure_training(model, train, device, light_warmup=quick, compete=compete))
         if not row["trainable_parameters"]:
             row.update(dict.fromkeys(("train_s_per_step", "train_rays_per_step", "train_rays_per_s", "peak_mb_train")))
         row["disturbances"] = disturbances(row)

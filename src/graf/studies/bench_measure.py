@@ -266,9 +266,12 @@ def measure_inference(
     return out
 
 
-def measure_training(model, batches: list[dict], device: torch.device, light_warmup: bool = False) -> dict:
+def measure_training(
+    model, batches: list[dict], device: torch.device, light_warmup: bool = False, compete: bool = False
+) -> dict:
     """One warm-up optimiser step on ``batches[0]`` (``light``: at ``LIGHT_WARMUP_RAYS`` rays where the model
-    has a ``rays_per_step`` setting), then one timed step per later batch (see module doc)."""
+    has a ``rays_per_step`` setting), then one timed step per later batch (see module doc).  ``compete``: the
+    later batches' steps timed again beside a competing process (:class:`Competitor`), and the slowdown."""
     model.train()
     model.log = lambda *args, **kwargs: None  # no Trainer: Lightning's log would only warn
     with PeakMemory(device) as mem:
@@ -292,6 +295,10 @@ def measure_training(model, batches: list[dict], device: torch.device, light_war
                 model.rays_per_step = rays
         with LoadMeter() as load:
             times = [_timed(lambda b=b, i=i: step(b, i), device) for i, b in enumerate(batches[1:], start=1)]
+        loaded = None
+        if compete:
+            with Competitor(), LoadMeter() as loaded_load:
+                loaded = [_timed(lambda b=b, i=i: step(b, i), device) for i, b in enumerate(batches[1:], start=1)]
     opt = sched = None  # the optimiser state is released before the next measurement
     B = int(batches[0]["tgt_pos"].shape[0])
     rays = rays_per_train_step(model, B)
@@ -305,4 +312,14 @@ def measure_training(model, batches: list[dict], device: torch.device, light_war
         "train_rays_per_step": rays,
         "train_rays_per_s": round(rays / s, 1) if s else None,
         "peak_mb_train": None if mem.mb is None else round(mem.mb, 1),
+        **(
+            {}
+            if loaded is None
+            else {
+                "train_s_per_step_loaded": _median(loaded),
+                "train_times_s_loaded": [round(t, 6) for t in loaded],
+                "train_load_cores_loaded": loaded_load.cores,
+                "train_slowdown": round(_median(loaded) / s, 3) if s else None,
+            }
+        ),
     }

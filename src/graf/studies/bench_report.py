@@ -83,7 +83,7 @@ def markdown(result: dict) -> str:
     ]
     compete = bool(result.get("compete"))
     if compete:
-        cols += ["s/spectrum beside a busy process", "slowdown"]
+        cols += ["s/spectrum beside a busy process", "slowdown", "s/step beside a busy process", "slowdown"]
     lines = [head, "", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for r in result["rows"]:
         if r.get("error"):
@@ -109,6 +109,7 @@ def markdown(result: dict) -> str:
             ]
             if compete:
                 cells += [fmt(r.get("infer_s_per_spectrum_loaded")), fmt(r.get("infer_slowdown"), ".3g")]
+                cells += [fmt(r.get("train_s_per_step_loaded")), fmt(r.get("train_slowdown"), ".3g")]
         lines.append("| " + " | ".join(str(c).replace("|", "/") for c in cells) + " |")
     return "\n".join(lines) + "\n"
 
