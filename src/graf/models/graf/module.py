@@ -412,10 +412,11 @@ class GRaFModule(SpectrumModule):
         B = batch["tgt_pos"].shape[0]
         device = batch["tgt_pos"].device
         pix = random_pixels(B, self.rays_per_step, self.global_step, device)
-        if self.fast_training and device.type == "cpu" and not torch.is_autocast_enabled("cpu"):
-            with SerialThreads(device):  # the encoder on the cores other processes leave
-                ctx = self.prepare(batch)
-            params = [p for p in self.parameters() if p.requires_grad]
+        params = [p for p in self.parameters() if p.requires_grad]
+        if self.fast_training and params and device.type == "cpu" and not torch.is_autocast_enabled("cpu"):
+            # the encoder on the threads set, whatever the load (a thread count can change the last bits); the pieces
+            # on as many workers as the load leaves cores, which changes no bit (graf.models.graf.pieces)
+            ctx = self.prepare(batch)
             pieces = self.train_pieces or torch.get_num_threads()
             pred = PieceStep(self.render, ctx, pix, params, pieces, torch.get_num_threads()).forward()
         else:

@@ -5,7 +5,7 @@ synchronisation, and beside another busy process every operation waits for the s
 15-20x slower beside one busy process).  Here the step is cut where it is cheap to cut:
 
 1. the batch's context (:meth:`GRaFModule.prepare`: the neighbor encoder, the per-batch tables) once, on torch's
-   threads (fewer while other processes are busy: :class:`graf.models.graf.inference.SerialThreads`);
+   threads (all of those set, whatever the load: a thread count can change a convolution's last bits);
 2. the rays in ``pieces`` fixed slices (each target's rays cut alike), each rendered on a worker thread with one
    intra-op thread and its own autograd graph from *detached copies* of the context's tensors;
 3. the loss on the whole prediction (any loss, per-target ones included), in this thread;
