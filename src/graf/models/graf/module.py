@@ -413,7 +413,16 @@ class GRaFModule(SpectrumModule):
         device = batch["tgt_pos"].device
         pix = random_pixels(B, self.rays_per_step, self.global_step, device)
         params = [p for p in self.parameters() if p.requires_grad]
-        if self.fast_training and params and device.type == "cpu" and not torch.is_autocast_enabled("cpu"):
+        # not under data-parallel training: DDP reduces the gradients the autograd engine accumulates, and the pieces
+        # write theirs themselves
+        distributed = torch.distributed.is_available() and torch.distributed.is_initialized()
+        if (
+            self.fast_training
+            and params
+            and device.type == "cpu"
+            and not distributed
+            and not torch.is_autocast_enabled("cpu")
+        ):
             # the encoder on the threads set, whatever the load (a thread count can change the last bits); the pieces
             # on as many workers as the load leaves cores, which changes no bit (graf.models.graf.pieces)
             ctx = self.prepare(batch)
