@@ -219,10 +219,12 @@ def family(scene: str) -> str:
 
 def heldout_scenes(train: list[str], heldout) -> list[str]:
     """``eval_scene=heldout``: the catalog scenes of the training scenes' families that the run does not train
-    on (``heldout: auto``), or those of a list that share a family with a training scene."""
+    on (``heldout: auto``; not the validation layouts, ``validation_only``, which are never tested), or those of a
+    list that share a family with a training scene."""
     families = {family(n) for n in train}
     if heldout == "auto":
-        candidates = sorted(p.stem for p in (CONF_DIR / "scene_catalog").glob("*.yaml"))
+        paths = sorted((CONF_DIR / "scene_catalog").glob("*.yaml"))
+        candidates = [p.stem for p in paths if "\nvalidation_only: true" not in p.read_text()]
     else:
         candidates = [str(n) for n in heldout]
         unknown = [n for n in candidates if not (CONF_DIR / "scene_catalog" / f"{n}.yaml").is_file()]

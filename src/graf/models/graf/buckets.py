@@ -46,3 +46,16 @@ def voxel_mask(samples: torch.Tensor, S: int) -> torch.Tensor | None:
     if bool((samples == S).all()):
         return None
     return torch.arange(S, device=samples.device)[None, :] < samples[:, None]
+
+
+def ray_groups(samples: torch.Tensor, padded: bool) -> list[tuple[torch.Tensor, int, torch.Tensor | None]]:
+    """A step's rays by voxel count (``samples [n]``): ``(indices, S, per-ray counts or None)`` per group; one group
+    per count, or (``padded``) the least-cost groups of :func:`buckets`, each padded to its largest S."""
+    sizes, counts = torch.unique(samples, return_counts=True)
+    if not padded:
+        return [((samples == S).nonzero().flatten(), int(S), None) for S in sizes.tolist()]
+    out = []
+    for group in buckets(dict(zip(sizes.tolist(), counts.tolist()))):
+        sel = ((samples >= group[0]) & (samples <= group[-1])).nonzero().flatten()
+        out.append((sel, int(group[-1]), samples[sel]))
+    return out

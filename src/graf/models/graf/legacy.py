@@ -83,3 +83,13 @@ def upgrade_optimizer_states(model: nn.Module, checkpoint: dict) -> None:
                 "optimiser has: it cannot be resumed (start from its weights with finetune.init_from=)"
             )
         state["state"] = {new_index[int(i)]: s for i, s in state["state"].items()}
+
+
+# what each GRaF checkpoint layout changed (GRaFModule.LAYOUT_CHANGES)
+LAYOUT_CHANGES = {
+    2: "positions are now metres in the gateway frame (layout 1 normalised them by each scene's "
+    "box), ray directions are encoded, and voxels are encoded by their distance in wavelengths "
+    "(layout 1 had a learned voxel-index table sized by max_samples)",
+    3: "each ray's voxels now run from its own entry to its own exit of the scene box (layout 2 "
+    "cut every ray at the box's farthest corner), so the same weights see other voxels",
+}

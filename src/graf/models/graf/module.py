@@ -23,19 +23,13 @@ a ray from the gateway; the predicted value of a ray is
 ``residual=True`` (with ``pooled`` or ``ray``) adds the KNN interpolation to the real part, ``|base + re + j
 im|``, and starts as KNN (:mod:`graf.models.graf.residual`).
 
-**Geometry, the same in every scene**: every position (voxels, target, neighbors) and direction is
-expressed in the item's *gateway frame* (origin at the receiving array, its axes;
-:func:`graf.geometry.encoding.to_gateway_frame`) in units of ``length_unit`` metres (4 m by default), so one
-unit is the same length in every scene a model is trained or tested on; offsets ``P_l - P`` are rotated into
-the same axes.  ``use_scene_index`` appends the scene index as a fourth coordinate of every absolute position
-(3-D PE: 63 dims, 4-D: 84 dims); offsets stay 3-D.
+**Geometry, the same in every scene**: positions and directions in the item's gateway frame in units of
+``length_unit`` metres (:func:`graf.geometry.encoding.to_gateway_frame`); ``use_scene_index`` appends the scene
+index as a fourth coordinate of absolute positions.
 
-Training: ``rays_per_step`` random pixels per step, split evenly across the batch's targets (drawn
-without replacement per target, seeded from the global step), per-ray L2 loss; Adam with an exponential
-learning-rate decay by ``lr_decay`` over ``decay_steps`` steps (stepped every optimiser step).
-Inference (:meth:`GRaFModule.predict_spectra`): all 32400 rays in chunks of at most ``chunk_rays`` rays
-(over the whole batch), spread over the CPU's threads, the blocks through a fused attention kernel
-(``fast_inference``, :mod:`graf.models.graf.inference`); neighbor tokens are computed once per batch.
+Training: ``rays_per_step`` random pixels per step (seeded by the step), per-ray L2 loss, Adam with an exponential
+decay by ``lr_decay`` over ``decay_steps``.  Inference (:meth:`GRaFModule.predict_spectra`): all 32400 rays in chunks
+of ``chunk_rays`` through a fused attention kernel (:mod:`graf.models.graf.inference`).
 Checkpoints written before ``model/features`` load through :mod:`graf.models.graf.legacy`.
 """
 
@@ -54,14 +48,20 @@ from graf.geometry.grid import N_AZIMUTH, N_ELEVATION, local_directions
 from graf.geometry.rays import fp32, random_pixels
 from graf.models.base import SpectrumModule, adam_exponential_decay
 from graf.models.graf.attention import CrossAttentionBlock, MultiHeadAttention, SelfAttentionBlock
-from graf.models.graf.buckets import buckets, voxel_mask
+from graf.models.graf.buckets import ray_groups, voxel_mask
 from graf.models.graf.cache import EvalCache, weights_stamp
 from graf.models.graf.encoder import ResNetEncoder
 from graf.models.graf.features import Dims, build_features
 from graf.models.graf.features.base import mlp
 from graf.models.graf.inference import SerialThreads, fast_path, ray_pass, rays_in_chunks, split_batch
-from graf.models.graf.legacy import upgrade_arguments, upgrade_hparams, upgrade_optimizer_states, upgrade_state_dict
-from graf.models.graf.pieces import PieceStep
+from graf.models.graf.legacy import (
+    LAYOUT_CHANGES,
+    upgrade_arguments,
+    upgrade_hparams,
+    upgrade_optimizer_states,
+    upgrade_state_dict,
+)
+from graf.models.graf.pieces import piece_prediction
 from graf.models.graf.ray_features import rows
 from graf.models.graf.residual import KNNBase, NoBase
 from graf.models.graf.settings import check_settings
@@ -79,13 +79,7 @@ class GRaFModule(SpectrumModule):
     # how fast, not what: graf-eval and a resumed run may change these on a trained checkpoint
     INFERENCE_SETTINGS = ("chunk_rays", "fast_inference", "fast_training", "train_pieces")
     LAYOUT = 3
-    LAYOUT_CHANGES = {
-        2: "positions are now metres in the gateway frame (layout 1 normalised them by each scene's "
-        "box), ray directions are encoded, and voxels are encoded by their distance in wavelengths "
-        "(layout 1 had a learned voxel-index table sized by max_samples)",
-        3: "each ray's voxels now run from its own entry to its own exit of the scene box (layout 2 "
-        "cut every ray at the box's farthest corner), so the same weights see other voxels",
-    }
+    LAYOUT_CHANGES = LAYOUT_CHANGES  # graf.models.graf.legacy: what each layout changed
     upgrade_hparams = staticmethod(upgrade_hparams)  # a checkpoint's hyperparameters in the current form
     """Args (all in ``conf/model/graf.yaml``):
         encoder_widths / encoder_downsample: ResNet-18 stage widths; average pooling of the spectra first.
@@ -99,24 +93,14 @@ class GRaFModule(SpectrumModule):
         chunk_rays: rays per forward chunk at inference (bounds memory).
         lr / lr_decay / decay_steps: Adam; the lr is multiplied by lr_decay over decay_steps steps (null: the run's).
         residual / weighting: predict |KNN(weighting) + re + j im| instead of |re + j im| (pooled and ray).
-        loss: ``mse`` (the seed's per-ray L2) or ``log_mse`` (the mean over the batch's targets of
-            log(MSE of the target's rays + 1e-6): the training counterpart of the mean per-spectrum PSNR, so
-            spectra that are already well predicted are not traded for the badly predicted ones).
+        loss: ``mse`` (per-ray L2) or ``log_mse`` (mean over targets of log(per-target MSE + 1e-6)).
         use_scene_index: 4-D positions (x, y, z, scene index) for cross-scene training.
-        fast_training: training on a CPU in fp32 through the fast path: the attention through the compiled kernel
-            with its backward (:mod:`graf.models.graf.kernels.train`) and a step's rays in few padded groups
-            (:mod:`graf.models.graf.buckets`): the same function within float rounding; false: the plain path (one
-            group per voxel count, torch's attention).  And a step's rays in ``train_pieces`` slices, each forward
-            and backward on its own thread (:mod:`graf.models.graf.pieces`).
-        train_pieces: the slices of a step's rays on the fast path (null: torch's thread count); fixed, so a
-            result does not depend on how many threads ran them.
-        fast_inference: at inference on a CPU in fp32, run the blocks through the fused attention kernel and the
-            chunks of a spectrum on all threads (:mod:`graf.models.graf.inference`): the same output within float
-            rounding; false: the plain path (the blocks' own forward), as in training.
+        fast_training / train_pieces: training on a CPU through the fast path (compiled attention with a backward,
+            padded groups, the rays in ``train_pieces`` slices on worker threads: graf.models.graf.pieces); the same
+            function within float rounding.
+        fast_inference: CPU fp32 inference through the fused kernel (graf.models.graf.inference); false: plain.
         features: the neighbor-feature component's config (``conf/model/features/<mode>.yaml``: a mapping with
             ``_target_`` and the mode's own settings), or a mode name (its default settings).
-        **legacy: ``neighbor_features`` (or ``neighbour_features``), ``ray_feature_dim``, ``pixel_window`` of a
-            checkpoint written before ``features``: deprecated (:mod:`graf.models.graf.legacy`).
     """
 
     def __init__(
@@ -333,11 +317,8 @@ class GRaFModule(SpectrumModule):
         compute = partial(flat_scene_voxels, table, self._voxel_inputs, wl, scene_index, self.d_model, device)
         return self._cached("voxels", stamp, (id(table), scene_index, wl, autocast), compute)
 
-    def _render_group(
-        self, ctx: dict, bi: torch.Tensor, pix: torch.Tensor, S: int, samples: torch.Tensor | None = None
-    ) -> torch.Tensor:
-        """``[n, 2]`` (re, im) of ``n`` rays with ``S`` voxels each (items ``bi [n]``, pixels ``pix [n]``), or with
-        ``samples [n]`` voxels each padded to ``S`` (:meth:`render` in training)."""
+    def _render_group(self, ctx: dict, bi: torch.Tensor, pix: torch.Tensor, S: int, samples=None) -> torch.Tensor:
+        """``[n, 2]`` (re, im) of rays of ``S`` voxels (``samples [n]``: padded to ``S``) of items ``bi``."""
         n = pix.shape[0]
         tables = ctx["tables"]
         one_item = bool((bi == bi[0]).all())
@@ -366,11 +347,6 @@ class GRaFModule(SpectrumModule):
         voxels = None if samples is None else voxel_mask(samples, S)
         return self.features.output(ray_pass(self, x, tokens, key_mask, code, fast, voxels), ray)
 
-    def padded_groups(self) -> bool:
-        """Whether :meth:`render` joins voxel counts into padded groups (:mod:`graf.models.graf.buckets`): in a
-        training step on the fast path (``fast_training``) with attention over the whole ray."""
-        return self.fast_training and torch.is_grad_enabled() and not self.ray_window
-
     def render(self, ctx: dict, pix: torch.Tensor) -> torch.Tensor:
         """Predicted values ``[B, R]`` of the pixels ``pix [B, R]`` (long, ``r * 360 + c``).  Rays are grouped
         by their voxel count (exactly, no padding or masks); nothing runs per ray in Python."""
@@ -380,17 +356,11 @@ class GRaFModule(SpectrumModule):
         flat_pix = pix.flatten()
         bi = torch.arange(B, device=pix.device).repeat_interleave(R)
         order, outs = [], []
-        sizes, counts = torch.unique(S_all, return_counts=True)
-        if self.padded_groups():
-            for group in buckets(dict(zip(sizes.tolist(), counts.tolist()))):
-                sel = ((S_all >= group[0]) & (S_all <= group[-1])).nonzero().flatten()
-                order.append(sel)
-                outs.append(self._render_group(ctx, bi[sel], flat_pix[sel], int(group[-1]), S_all[sel]))
-        else:
-            for S in sizes.tolist():
-                sel = (S_all == S).nonzero().flatten()
-                order.append(sel)
-                outs.append(self._render_group(ctx, bi[sel], flat_pix[sel], int(S)))
+        for sel, S, samples in ray_groups(
+            S_all, self.fast_training and torch.is_grad_enabled() and not self.ray_window
+        ):
+            order.append(sel)
+            outs.append(self._render_group(ctx, bi[sel], flat_pix[sel], S, samples))
         out = torch.cat(outs)[torch.argsort(torch.cat(order))]  # back to (b, r) order
         re, im = out.view(B, R, 2).unbind(-1)
         re = self.base.add(ctx, pix, re)
@@ -410,25 +380,9 @@ class GRaFModule(SpectrumModule):
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         B = batch["tgt_pos"].shape[0]
-        device = batch["tgt_pos"].device
-        pix = random_pixels(B, self.rays_per_step, self.global_step, device)
-        params = [p for p in self.parameters() if p.requires_grad]
-        # not under data-parallel training: DDP reduces the gradients the autograd engine accumulates, and the pieces
-        # write theirs themselves
-        distributed = torch.distributed.is_available() and torch.distributed.is_initialized()
-        if (
-            self.fast_training
-            and params
-            and device.type == "cpu"
-            and not distributed
-            and not torch.is_autocast_enabled("cpu")
-        ):
-            # the encoder on the threads set, whatever the load (a thread count can change the last bits); the pieces
-            # on as many workers as the load leaves cores, which changes no bit (graf.models.graf.pieces)
-            ctx = self.prepare(batch)
-            pieces = self.train_pieces or torch.get_num_threads()
-            pred = PieceStep(self.render, ctx, pix, params, pieces, torch.get_num_threads()).forward()
-        else:
+        pix = random_pixels(B, self.rays_per_step, self.global_step, batch["tgt_pos"].device)
+        pred = piece_prediction(self, batch, pix) if self.fast_training else None  # None: not on the fast path here
+        if pred is None:
             pred = self.render(self.prepare(batch), pix)
         target = batch["tgt_spectrum"].flatten(1).gather(1, pix).float()
         if self.loss_name == "mse":

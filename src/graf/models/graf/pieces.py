@@ -150,3 +150,17 @@ class _Pieces(torch.autograd.Function):
         step, ctx.step = ctx.step, None
         step.backward(grad.contiguous())
         return None, None, None
+
+
+def piece_prediction(model, batch: dict, pix: torch.Tensor) -> torch.Tensor | None:
+    """A GRaF training step's prediction ``[B, R]`` through :class:`PieceStep`, or None where the pieces do not apply:
+    not on a CPU, under autocast, without trainable parameters, or under data-parallel training (DDP reduces the
+    gradients autograd accumulates; the pieces write theirs themselves).  The encoder runs on the threads set,
+    whatever the load (a thread count can change its last bits); the pieces on as many workers as the load leaves."""
+    params = [p for p in model.parameters() if p.requires_grad]
+    distributed = torch.distributed.is_available() and torch.distributed.is_initialized()
+    if not params or pix.device.type != "cpu" or distributed or torch.is_autocast_enabled("cpu"):
+        return None
+    ctx = model.prepare(batch)
+    pieces = model.train_pieces or torch.get_num_threads()
+    return PieceStep(model.render, ctx, pix, params, pieces, torch.get_num_threads()).forward()
