@@ -21,19 +21,10 @@ accumulates; a step there renders its rays in one piece, still through the kerne
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
 import torch
 
 from graf.models.graf.inference import serial_threads
-
-_pools: dict[int, ThreadPoolExecutor] = {}
-
-
-def _pool(workers: int) -> ThreadPoolExecutor:
-    if workers not in _pools:
-        _pools[workers] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="graf-piece")
-    return _pools[workers]
+from graf.models.graf.kernels.train import worker_pool
 
 
 def _detach(value, pairs: list):
@@ -71,7 +62,7 @@ def _map(fn, items: list, threads: int) -> list:
             return fn(item)
 
     try:
-        return list(_pool(workers).map(run, items))
+        return list(worker_pool(workers).map(run, items))
     finally:
         torch.set_num_threads(before)
 

@@ -523,19 +523,6 @@ static inline vf gather_lanes(const float *p, int64_t stride, int64_t nl) {
     return v;
 }
 
-static inline float hsum(vf v) {
-    float tmp[LANES];
-    std::memcpy(tmp, &v, sizeof tmp);
-    float s0 = 0, s1 = 0, s2 = 0, s3 = 0;
-    for (int l = 0; l < LANES; l += 4) {
-        s0 += tmp[l];
-        s1 += tmp[l + 1];
-        s2 += tmp[l + 2];
-        s3 += tmp[l + 3];
-    }
-    return (s0 + s1) + (s2 + s3);
-}
-
 // the scale * q . k of 16 queries (qv [Dh]) with key row kj [Dh]
 static inline vf score(const vf *qv, const float *kj, int64_t Dh, float scale) {
     vf acc = splat(0.0f);

@@ -27,9 +27,10 @@ PIECES_PER_THREAD = 4  # pieces of the groups per worker thread (load balance be
 _pools: dict[int, ThreadPoolExecutor] = {}
 
 
-def _pool(workers: int) -> ThreadPoolExecutor:
+def worker_pool(workers: int) -> ThreadPoolExecutor:
+    """One pool of ``workers`` threads per size, kept for the process (the kernel's groups, GRaF's pieces)."""
     if workers not in _pools:
-        _pools[workers] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="graf-attn")
+        _pools[workers] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="graf-worker")
     return _pools[workers]
 
 
@@ -41,7 +42,7 @@ def _spread(call, groups: int) -> None:
         return
     per = -(-groups // (workers * PIECES_PER_THREAD))
     bounds = list(range(0, groups, per)) + [groups]
-    list(_pool(workers).map(lambda i: call(bounds[i], bounds[i + 1]), range(len(bounds) - 1)))
+    list(worker_pool(workers).map(lambda i: call(bounds[i], bounds[i + 1]), range(len(bounds) - 1)))
 
 
 def supported(q: torch.Tensor, kv: torch.Tensor | None, heads: int, head_dim: int, mask: torch.Tensor | None) -> bool:
