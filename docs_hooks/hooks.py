@@ -178,7 +178,7 @@ def choose(path: str) -> str:
 
 def headline(path: str) -> str:
     """The main job's headline table (:func:`graf.studies.published.headline`), the README's too."""
-    return published.headline(json.loads(_record(ROOT / path).read_text()))
+    return published.headline(json.loads(_record(ROOT / path).read_text()), path)
 
 
 def page_file(path: str) -> str:

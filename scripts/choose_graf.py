@@ -10,6 +10,11 @@ regime (c)'s, ``cross_family_paper``; the main job takes regime (a)'s, ``rfid_sp
 The rule is :func:`graf.studies.published.choose`, applied per regime by ``choose_per_regime`` (the site's
 table of the choice uses it too).
 
+Options: ``--regime R`` only that regime; ``--max-step N`` only the points at or below N steps (the main job's
+choice within its time: ``--regime rfid_sparse --max-step 300``); ``--within-db D`` prints each method's budget,
+the smallest step within D dB of its curve's best validation PSNR, and whether the curve still gains more than
+0.1 dB per doubling of steps (the rule of regime ``cross_family_val``: then it goes on to 30,000).
+
     python scripts/choose_graf.py [sweeps/learning_curves/curves.csv] [--modes pooled ray ray_knn ray_weights]
 """
 
@@ -21,19 +26,28 @@ import sys
 from pathlib import Path
 
 from graf.errors import UserError
-from graf.studies.published import choose_per_regime
+from graf.studies.published import best_step, choose_per_regime, still_gaining
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("curves", nargs="?", default="sweeps/learning_curves/curves.csv")
     ap.add_argument("--modes", nargs="+", default=["pooled", "ray", "ray_knn", "ray_weights"])
+    ap.add_argument("--regime", default=None, help="only this regime")
+    ap.add_argument("--max-step", type=int, default=None, help="only the points at or below this many steps")
+    ap.add_argument("--within-db", type=float, default=None, help="print each method's budget within this many dB")
     args = ap.parse_args()
     path = Path(args.curves)
     if not path.is_file():
         sys.exit(f"error: {path}: no such curves file (run graf-curves first)")
     with path.open() as f:
         rows = list(csv.DictReader(f))
+    rows = [
+        r
+        for r in rows
+        if (args.regime is None or r["regime"] == args.regime)
+        and (args.max_step is None or int(r["step"]) <= args.max_step)
+    ]
     try:
         choices, waiting = choose_per_regime(rows, args.modes)
     except UserError as e:
@@ -51,6 +65,18 @@ def main() -> None:
                 f"{t['val_lpips']:.3f} | {t['reliance']:.2f} | {t['mean_rank']:.2f} |"
             )
         print(f"\nchosen ({regime or 'all regimes together'}): {chosen}")
+    if args.within_db is not None:
+        print(f"\n### budgets: the smallest step within {args.within_db} dB of the curve's best validation PSNR\n")
+        print("| regime | method | budget (steps) | last step | still gaining > 0.1 dB per doubling |")
+        print("|---|---|---|---|---|")
+        for regime in sorted({r["regime"] for r in rows}):
+            for m in sorted({r["method"] for r in rows if r["regime"] == regime and r["val_psnr"] not in ("", None)}):
+                last = max(int(r["step"]) for r in rows if r["regime"] == regime and r["method"] == m)
+                gaining = still_gaining(rows, m, regime)
+                print(
+                    f"| {regime} | {m} | {best_step(rows, m, regime, args.within_db)} | {last} | "
+                    f"{'n/a' if gaining is None else 'yes' if gaining else 'no'} |"
+                )
 
 
 if __name__ == "__main__":

@@ -148,3 +148,18 @@ def test_the_published_ledger_is_what_the_published_records_give():
     with open(root / "sweeps" / "claims" / "claims.csv", newline="") as f:
         published = list(csv.DictReader(f))
     assert published == ledger(_claims(), root)
+
+
+def test_a_target_row_judges_a_ratio_against_its_own_figure_and_says_by_how_much():
+    """An issue's target (``against``) read as the ratio of two figures of a record (``over``): below the target
+    the row says by how much it missed, and a lower-is-better target holds at or below its figure."""
+    from graf.studies.claims import judge_value
+
+    record = {"rows": [{"s": 1.0, "slow": 2.5}, {"s": 1.5}]}
+    faster = {"key": "rows.1.s", "over": "rows.0.s", "paper_value": 3.0, "against": "the target's"}
+    row = judge_value(faster, record)
+    assert row["platform"] == "1.50" and row["verdict"] == "not reproduced"
+    assert row["reason"] == "1.50 against the target's 3.00 (missed by 1.50)"
+    calm = {"key": "rows.0.slow", "paper_value": 2.5, "higher_is_better": False}
+    assert judge_value(calm, record)["verdict"] == "holds"
+    assert judge_value({**calm, "over": "rows.9.s"}, record)["verdict"] == "not reproduced"  # no such row

@@ -17,7 +17,7 @@ from omegaconf import OmegaConf
 from graf.errors import ConfigError
 from graf.run.config import CONF_DIR, study_budget, with_study_budget
 from graf.run.train import warn_other_length
-from graf.studies.published import best_step, choose
+from graf.studies.published import best_step, choose, still_gaining
 
 ROOT = Path(__file__).resolve().parents[1]
 CURVES = ROOT / "sweeps" / "learning_curves" / "curves.csv"
@@ -102,6 +102,24 @@ def test_best_step_takes_the_smaller_step_on_a_tie_and_none_without_points():
     assert best_step(rows, "m", "r") == 300
     assert best_step(rows, "m") == 3000
     assert best_step(rows, "other") is None
+
+
+def test_the_budget_within_a_tolerance_is_the_smallest_step_near_the_best():
+    rows = [
+        {"regime": "r", "method": "m", "step": str(s), "val_psnr": str(p)}
+        for s, p in [(1000, 20.0), (3000, 21.45), (10000, 21.5)]
+    ]
+    assert best_step(rows, "m", "r") == 10000
+    assert best_step(rows, "m", "r", within_db=0.1) == 3000  # 21.45 >= 21.5 - 0.1
+    assert best_step(rows, "m", "r", within_db=0.01) == 10000
+
+
+def test_a_curve_still_gaining_per_doubling_is_extended():
+    pts = [(3000, 21.0), (10000, 21.2)]  # 0.2 dB over log2(10/3) = 1.74 doublings: 0.115 per doubling
+    rows = [{"regime": "r", "method": "m", "step": str(s), "val_psnr": str(p)} for s, p in pts]
+    assert still_gaining(rows, "m", "r") is True
+    assert still_gaining(rows, "m", "r", per_doubling_db=0.12) is False
+    assert still_gaining(rows[:1], "m", "r") is None
 
 
 def test_a_finished_job_of_another_length_is_kept_with_a_warning(tmp_path, caplog):

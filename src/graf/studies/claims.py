@@ -172,19 +172,28 @@ def _reaches(value: float, paper: float, higher: bool) -> bool:
 
 
 def judge_value(claim: dict, data: dict) -> dict:
+    """One figure of a record against the paper's (``paper_value``): ``key``, less ``minus`` or divided by ``over``
+    (a difference or a ratio of two figures of the record) when given; ``against`` names whose figure it is (the
+    paper's by default; a platform target's, an issue's, where the row is one)."""
     try:
         value = float(lookup(data, claim["key"]))
         if claim.get("minus"):
             value -= float(lookup(data, claim["minus"]))
-    except (KeyError, IndexError, TypeError, ValueError) as exc:
+        if claim.get("over"):
+            value /= float(lookup(data, claim["over"]))
+    except (KeyError, IndexError, TypeError, ValueError, ZeroDivisionError) as exc:
         return {"verdict": "not reproduced", "reason": f"the record has no {claim['key']} ({exc})"}
     paper, higher = float(claim["paper_value"]), bool(claim.get("higher_is_better", True))
-    fmt = claim.get("format", ".2f")
+    fmt, whose = claim.get("format", ".2f"), claim.get("against", "the paper's")
     out = {"platform": format(value, fmt)}
     if _reaches(value, paper, higher):
-        out.update(verdict="holds", reason=f"{format(value, fmt)} reaches the paper's {format(paper, fmt)}")
+        out.update(verdict="holds", reason=f"{format(value, fmt)} reaches {whose} {format(paper, fmt)}")
     else:
-        out.update(verdict="not reproduced", reason=f"{format(value, fmt)} against the paper's {format(paper, fmt)}")
+        short = abs(paper - value)
+        out.update(
+            verdict="not reproduced",
+            reason=f"{format(value, fmt)} against {whose} {format(paper, fmt)} (missed by {format(short, fmt)})",
+        )
     return out
 
 

@@ -8,6 +8,7 @@ The site (``docs_hooks/hooks.py``) and the command-line views (``scripts/study_t
 
 from __future__ import annotations
 
+import math
 from collections import defaultdict
 
 from graf.errors import UserError
@@ -268,40 +269,72 @@ def choose(rows: list[dict], modes: list[str]) -> tuple[str, list[dict]]:
     return chosen, table
 
 
-def best_step(rows: list[dict], method: str, regime: str | None = None) -> int | None:
-    """The budget rule of the studies: the step of ``method``'s best validation PSNR on its curve (in ``regime``
-    when given; the smaller step on a tie), or None when it has no point."""
-    pts = [
-        (float(r["val_psnr"]), -int(r["step"]))
+def best_step(rows: list[dict], method: str, regime: str | None = None, within_db: float = 0.0) -> int | None:
+    """The budget rule of the studies: the smallest step of ``method``'s curve (in ``regime`` when given) whose
+    validation PSNR is within ``within_db`` of the curve's best (0: the best point itself, the smaller step on a
+    tie; regime ``cross_family_val`` takes 0.1 dB, its rule in docs/learning-curves.md), or None without points."""
+    pts = curve(rows, method, regime)
+    if not pts:
+        return None
+    top = max(p for _, p in pts)
+    return min(s for s, p in pts if p >= top - within_db)
+
+
+def curve(rows: list[dict], method: str, regime: str | None = None) -> list[tuple[int, float]]:
+    """``method``'s (step, validation PSNR) points, by step, in ``regime`` when given."""
+    return sorted(
+        (int(r["step"]), float(r["val_psnr"]))
         for r in rows
         if r["method"] == method and (regime is None or r["regime"] == regime) and r.get("val_psnr") not in ("", None)
-    ]
-    return -max(pts)[1] if pts else None
+    )
+
+
+def still_gaining(rows: list[dict], method: str, regime: str, per_doubling_db: float = 0.1) -> bool | None:
+    """Whether ``method``'s curve in ``regime`` still gains more than ``per_doubling_db`` per doubling of steps
+    between its last two points (gain / log2(step ratio)): the rule that extends a curve of regime
+    ``cross_family_val`` from 10,000 to 30,000 steps.  None with fewer than two points."""
+    pts = curve(rows, method, regime)
+    if len(pts) < 2:
+        return None
+    (s0, p0), (s1, p1) = pts[-2], pts[-1]
+    return (p1 - p0) / math.log2(s1 / s0) > per_doubling_db
 
 
 HEADLINE = "sweeps/main_job/results.json"  # the main job's published record: the one headline table
-HEADLINE_MARKERS = ("<!-- headline: generated from sweeps/main_job/results.json; do not edit -->", "<!-- /headline -->")
+ACCURATE = "sweeps/main_job_accurate/results.json"  # experiment=graf_rfid_s23_accurate: the accurate variant
 
 
-def headline(record: dict) -> str:
+def markers(source: str = HEADLINE) -> tuple[str, str]:
+    """The README's markers around the table generated from the record ``source``."""
+    return f"<!-- headline: generated from {source}; do not edit -->", "<!-- /headline -->"
+
+
+HEADLINE_MARKERS = markers(HEADLINE)
+
+
+def headline(record: dict, source: str = HEADLINE) -> str:
     """The main job's table (the README's, Home's and Getting started's, so the three cannot disagree): GRaF and
     each baseline tested beside it, test PSNR, SSIM, LPIPS (arrows: which way is better), reliance and validation
-    PSNR, from its ``results.json``."""
+    PSNR, from its ``results.json`` (``source``: the record's path, named under the table)."""
     rows = [(record["method"], record["metrics"])]
     rows += [(name, b["metrics"]) for name, b in (record.get("baselines") or {}).items()]
     head = ["method", "PSNR (dB) ↑", "SSIM ↑", "LPIPS ↓", "reliance (dB)", "val PSNR (dB) ↑"]
     keys = (("test/psnr", "{:.2f}"), ("test/ssim", "{:.3f}"), ("test/lpips", "{:.3f}"),
             ("test/reliance_db", "{:.2f}"), ("val/psnr", "{:.2f}"))  # fmt: skip
     body = [[f"`{name}`", *(fmt(m.get(k), f) for k, f in keys)] for name, m in rows]
-    where = f"{record['scene']}, {record['n_test']} test spectra, {record['global_step']} training steps"
-    return md(head, body) + f"\n\n*{where}; generated from `{HEADLINE}`.*"
+    fit = (record.get("timing") or {}).get("fit_s")
+    took = f", {fit / 60:.1f} min of training" if fit else ""
+    where = f"{record['scene']}, {record['n_test']} test spectra, {record['global_step']:,} training steps{took}"
+    return md(head, body) + f"\n\n*{where}; generated from `{source}`.*"
 
 
-def with_headline(text: str, record: dict) -> str:
-    """``text`` (the README) with the block between :data:`HEADLINE_MARKERS` replaced by :func:`headline`."""
-    start, end = HEADLINE_MARKERS
-    if start not in text or end not in text:
+def with_headline(text: str, record: dict, source: str = HEADLINE) -> str:
+    """``text`` (the README) with the block between :func:`markers` of ``source`` replaced by :func:`headline`."""
+    start, end = markers(source)
+    if start not in text:
         raise UserError(f"no headline block ({start} ... {end}) to fill")
     before, rest = text.split(start, 1)
+    if end not in rest:
+        raise UserError(f"the headline block of {source} has no end marker {end}")
     _, after = rest.split(end, 1)
-    return f"{before}{start}\n{headline(record)}\n{end}{after}"
+    return f"{before}{start}\n{headline(record, source)}\n{end}{after}"
