@@ -20,7 +20,7 @@ def test_curves_run_resume_and_validate_only(tmp_path, make_scene):
         "band=2.4ghz",
         "data.batch_size=2",
         "data.val_fraction=0.2",
-        "trainer.limit_test_batches=1",
+        "data.test_subset=2",
     )
     small = ("model.rays_per_step=32", "model.max_samples=4", "model.encoder_widths=[4,8,8,8]")
     args = [
@@ -196,3 +196,15 @@ def test_nerf2_has_a_curve_only_in_the_single_scene_regime():
         assert {"pooled", "ray", "ray_knn", "ray_weights", "knn_dl"} <= set(regime_methods(cfg, zero_shot))
     cfg.only_methods = ["nerf2", "ray"]
     assert regime_methods(cfg, "cross_family_paper") == ["ray"]
+
+
+def test_a_regime_may_have_its_own_evaluation_points():
+    from omegaconf import OmegaConf
+
+    from graf.studies.curves import points
+
+    cfg = OmegaConf.create({"steps": [100, 300, 1000, 3000], "until": 1000})
+    assert points(cfg, OmegaConf.create({"max_steps": 3000}), until=False) == [100, 300, 1000, 3000]
+    own = OmegaConf.create({"max_steps": 10000, "steps": [1000, 3000]})
+    assert points(cfg, own, until=False) == [1000, 3000, 10000]  # the budget is always a point
+    assert points(cfg, own) == [1000]

@@ -75,8 +75,10 @@ def val_figures(result: dict) -> dict:
 
 
 def points(cfg: DictConfig, regime: DictConfig, until: bool = True) -> list[int]:
-    """The regime's evaluation steps (its budget included); with ``until``, only those at or below ``cfg.until``."""
-    steps = sorted({int(s) for s in cfg.steps if int(s) <= int(regime.max_steps)} | {int(regime.max_steps)})
+    """The regime's evaluation steps (its own ``steps`` where it has them, else ``cfg.steps``; its budget
+    included); with ``until``, only those at or below ``cfg.until``."""
+    own = regime.get("steps") or cfg.steps
+    steps = sorted({int(s) for s in own if int(s) <= int(regime.max_steps)} | {int(regime.max_steps)})
     return [s for s in steps if not until or cfg.get("until") is None or s <= int(cfg.until)]
 
 
