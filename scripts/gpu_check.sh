@@ -63,7 +63,7 @@ if [ $TINY -eq 1 ]; then  # toy sizes, the embedded scene only, on whatever devi
         models.graf.encoder_downsample=4 models.nerf2.max_samples=2 models.nerf2.width=16 models.nerf2.depth=2
         "models.nerf2.skips=[]")
     TRAIN=(experiment=graf_rfid_s23 trainer=cpu trainer.max_steps=2 model.rays_per_step=64 model.max_samples=4
-        data.batch_size=2 "baselines={}" plot_count=1 trainer.limit_test_batches=1 logger=none)
+        data.batch_size=2 "baselines={}" plot_count=1 data.test_subset=2 logger=none)
 fi
 step bench_fp32 "$PY" -m graf.cli.bench "${BENCH[@]}" precision=32 hydra.run.dir="$OUT/bench_fp32"
 step bench_bf16 "$PY" -m graf.cli.bench "${BENCH[@]}" precision=bf16 hydra.run.dir="$OUT/bench_bf16"

@@ -52,7 +52,7 @@ def test_graf_aoa_adds_the_knn_baseline_on_the_runs_own_positions_and_neighbors(
     run = tmp_path / "run"
     p = subprocess.run(
         [sys.executable, "-m", "graf.cli.train", "model=knn", "save_predictions=true", "logger=none", "plot_count=0",
-         "trainer.limit_test_batches=3", f"hydra.run.dir={run}", f"data_root={tmp_path / 'data'}"],
+         "data.test_subset=12", f"hydra.run.dir={run}", f"data_root={tmp_path / 'data'}"],
         capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert p.returncode == 0, p.stderr[-2000:]

@@ -320,7 +320,7 @@ def test_a_sweep_with_a_failing_job_keeps_the_table_of_the_others(tmp_path):
             "model.weighting=idw,no_such_weighting,barycentric",
             "plot_count=0",
             "logger=none",
-            "trainer.limit_test_batches=1",
+            "data.test_subset=2",
             "trainer.enable_progress_bar=false",
             f"hydra.sweep.dir={sweep}",
         ],

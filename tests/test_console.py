@@ -73,7 +73,7 @@ def test_line_progress_is_silent_while_disabled_as_lightning_asks_of_a_progress_
 
 
 def test_the_progress_callback_is_a_bar_on_a_terminal_lines_elsewhere_and_nothing_when_off(monkeypatch):
-    assert progress_bar(enabled=False) is None
+    assert progress_bar(enabled=False, every_n_steps=5) is None
     assert isinstance(progress_bar(every_n_steps=5), LineProgress)  # pytest's captured stdout: no terminal
 
     class Tty(io.StringIO):
@@ -81,7 +81,7 @@ def test_the_progress_callback_is_a_bar_on_a_terminal_lines_elsewhere_and_nothin
             return True
 
     monkeypatch.setattr(sys, "stdout", Tty())
-    assert isinstance(progress_bar(), TQDMProgressBar)
+    assert isinstance(progress_bar(every_n_steps=5), TQDMProgressBar)
 
 
 def test_known_third_party_warnings_are_filtered_with_a_reason_and_others_kept():

@@ -18,7 +18,7 @@ FAST = [
     "data.batch_size=2",
     "baselines={}",
     "plot_count=0",
-    "trainer.limit_test_batches=1",
+    "data.test_subset=2",
     "trainer.enable_progress_bar=false",
     "model=graf_cpu",
     "model.encoder_widths=[4,8,8,8]",
@@ -101,7 +101,7 @@ def test_a_checkpoint_is_tested_zero_shot_on_a_scene_it_was_not_trained_on(compo
             "eval_scene.small_room.num_tx=24",
             f"data_root={data_root}",
             "plot_count=0",
-            "trainer.limit_test_batches=1",
+            "data.test_subset=2",
             f"paths.output_dir={tmp_path / 'e'}",
         ),
     )

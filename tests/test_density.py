@@ -24,7 +24,7 @@ def test_the_density_experiment_trains_from_scratch_on_a_measured_fraction():
     assert OmegaConf.select(cfg, "study_steps") is None and cfg.study_budgets  # each model trains its budget
     assert cfg.baselines.knn
     assert cfg.save_predictions and cfg.callbacks.model_checkpoint  # its jobs feed graf-aoa and graf-localize
-    assert cfg.trainer.limit_test_batches == 8 and cfg.data.batch_size == 4  # 32 test spectra a job
+    assert cfg.data.test_subset == 32 and cfg.data.test_subset_seed is None  # the first 32 test spectra a job
 
 
 def test_spacing_for_a_target_interpolates_where_the_curve_crosses_it():

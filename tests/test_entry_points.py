@@ -124,11 +124,11 @@ def test_a_multirun_prints_one_line_per_failed_job_and_how_many_failed(tmp_path)
     sweep = tmp_path / "sweep"
     env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
     args = ["-m", "model=knn", "neighbors=fixed", "neighbors.L=abc,4", "logger=none", "plot_count=0"]
-    quick = ["trainer.limit_test_batches=1", "trainer.enable_progress_bar=false", f"hydra.sweep.dir={sweep}"]
+    quick = ["data.test_subset=2", "trainer.enable_progress_bar=false", f"hydra.sweep.dir={sweep}"]
     p = subprocess.run([str(BIN / "graf-eval"), *args, *quick], capture_output=True, text=True, env=env, timeout=300)
     lines = [ln for ln in p.stderr.splitlines() if not ln.startswith("[")]  # Hydra's log lines: [time][name]
     assert p.returncode == 2, p.stderr[-3000:]
-    job = "job 0 (model=knn neighbors=fixed neighbors.L=abc logger=none plot_count=0 trainer.limit_test_batches=1"
+    job = "job 0 (model=knn neighbors=fixed neighbors.L=abc logger=none plot_count=0 data.test_subset=2"
     assert lines[0].startswith(job) and lines[0].endswith("failed: neighbors.L=abc: must be an integer"), lines
     assert lines[1:] == [f"1 of 2 jobs failed (listed in {sweep / 'failed.json'})"], lines
     assert "Traceback" not in p.stderr

@@ -112,7 +112,7 @@ GRAF_TINY = [
     "model.max_samples=8",
     "data.batch_size=2",
     "model.encoder_widths=[4,8,8,8]",
-    "trainer.limit_test_batches=1",
+    "data.test_subset=2",
     "callbacks.model_checkpoint.every_n_train_steps=1",
 ]
 

@@ -175,7 +175,7 @@ def test_a_checkpoint_trained_on_the_fast_path_predicts_the_same_on_the_plain_pa
         "train",
         (
             "experiment=graf_rfid_s23", "trainer.max_steps=3", "model.rays_per_step=64", "model.max_samples=8",
-            "data.batch_size=2", "baselines={}", "plot_count=1", "trainer.limit_test_batches=1",
+            "data.batch_size=2", "baselines={}", "plot_count=1", "data.test_subset=2",
             "trainer.enable_progress_bar=false", "model.fast_training=true",
         ),
     )  # fmt: skip

@@ -22,7 +22,7 @@ FAST = [
     "data.batch_size=2",
     "baselines={}",
     "plot_count=1",
-    "trainer.limit_test_batches=1",
+    "data.test_subset=2",
     "trainer.enable_progress_bar=false",
 ]
 
@@ -142,7 +142,7 @@ def test_eval_of_a_checkpoint_applies_inference_settings_and_refuses_the_rest(co
     )
     train(cfg)
     ckpt = Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt"
-    common = ("trainer.limit_test_batches=1", "plot_count=0")
+    common = ("data.test_subset=2", "plot_count=0")
 
     def run(*overrides, out="e", path=ckpt):
         ecfg = compose_cfg("eval", (f"ckpt_path={path}", *common, *overrides, f"paths.output_dir={tmp_path / out}"))

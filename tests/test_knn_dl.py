@@ -29,7 +29,7 @@ def batches(compose_cfg):
 def _randomised(**kwargs) -> KNNDLModule:
     """A model whose maps are not zero (as after training): random last layer."""
     torch.manual_seed(0)
-    m = KNNDLModule(**kwargs)
+    m = KNNDLModule(**{"max_rank": 10, **kwargs})
     nn.init.normal_(m.net.decoder[-1].weight, std=1.0)
     nn.init.normal_(m.net.decoder[-1].bias, std=1.0)
     return m
@@ -38,7 +38,7 @@ def _randomised(**kwargs) -> KNNDLModule:
 def test_initial_model_is_idw_knn(batches):
     for batch in batches:
         with torch.no_grad():
-            pred = KNNDLModule().predict_spectra(batch)
+            pred = KNNDLModule(max_rank=10).predict_spectra(batch)
             knn = KNNModule().predict_spectra(batch)
         assert pred.shape == (4, 90, 360) and torch.isfinite(pred).all()
         assert torch.allclose(pred, knn, atol=1e-5)
@@ -77,7 +77,7 @@ def test_one_neighbor_and_a_co_located_neighbor(batches):
     assert torch.isfinite(pred).all()
     assert all(torch.isfinite(p.grad).all() for p in m.parameters() if p.grad is not None)
     with torch.no_grad():  # at initialisation the co-located neighbor takes all the weight, as IDW
-        assert torch.allclose(KNNDLModule().predict_spectra(same), same["src_spectra"][:, 1], atol=1e-6)
+        assert torch.allclose(KNNDLModule(max_rank=10).predict_spectra(same), same["src_spectra"][:, 1], atol=1e-6)
 
 
 def test_upsampling_is_circular_in_azimuth_and_aligned():
@@ -92,17 +92,17 @@ def test_upsampling_is_circular_in_azimuth_and_aligned():
 
 def test_bad_config_values_name_the_key():
     with pytest.raises(ValueError, match="model.map_size"):
-        KNNDLModule(map_size=(7, 72))
+        KNNDLModule(max_rank=10, map_size=(7, 72))
     with pytest.raises(ValueError, match="model.signed_scale"):
-        KNNDLModule(signed_scale=-1)
+        KNNDLModule(max_rank=10, signed_scale=-1)
     with pytest.raises(ValueError, match="model.lr"):
-        KNNDLModule(lr=0)
+        KNNDLModule(max_rank=10, lr=0)
 
 
 def test_twenty_steps_on_one_batch_lower_the_loss(batches):
     batch = {k: v[:2] for k, v in batches[1].items()}  # two targets, one with padded neighbors
     torch.manual_seed(0)
-    m = KNNDLModule(lr=1e-2)
+    m = KNNDLModule(max_rank=10, lr=1e-2)
     opt = torch.optim.Adam(m.parameters(), lr=m.lr)
     losses = []
     for _ in range(20):
@@ -124,7 +124,7 @@ def test_two_training_steps_through_the_real_configs(compose_cfg):
             "data.batch_size=2",
             "baselines={}",
             "plot_count=1",
-            "trainer.limit_test_batches=1",
+            "data.test_subset=2",
         ),
     )
     metrics, _ = train(cfg)

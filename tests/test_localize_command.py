@@ -76,7 +76,7 @@ def test_graf_localize_quality_on_a_jobs_own_test_budget_equals_its_test_psnr(tm
     their first 32) gets that run's test PSNR as its synthesis quality; the localizers still see all 40."""
     run, out, data = tmp_path / "knn", tmp_path / "loc", tmp_path / "data"
     _run("graf.cli.evaluate", "model=knn", "logger=none", "plot_count=0", "data.batch_size=4",
-         "trainer.limit_test_batches=3", f"hydra.run.dir={run}", f"data_root={data}")  # fmt: skip
+         "data.test_subset=12", f"hydra.run.dir={run}", f"data_root={data}")  # fmt: skip
     res = json.loads((run / "results.json").read_text())
     n = res["n_test"]
     assert n == 12

@@ -217,7 +217,7 @@ def test_two_training_steps_through_the_real_configs_and_checkpoint(compose_cfg)
             "data.batch_size=2",
             "baselines={}",
             "plot_count=1",
-            "trainer.limit_test_batches=1",
+            "data.test_subset=2",
         ),
     )
     metrics, run = train(cfg)

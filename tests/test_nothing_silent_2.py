@@ -91,7 +91,7 @@ def test_one_config_and_seed_give_the_same_predictions_in_a_fresh_process_state_
     def run(name: str) -> str:
         cfg = compose_cfg(
             "train",
-            ("trainer.max_steps=3", "seed=7", "validate=false", "trainer.limit_test_batches=2",
+            ("trainer.max_steps=3", "seed=7", "validate=false", "data.test_subset=4",
              f"paths.output_dir={tmp_path / name}", *TINY_GRAF),
         )  # fmt: skip
         train(cfg)

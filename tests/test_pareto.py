@@ -44,7 +44,7 @@ def test_tiny_sweep_runs_records_failures_and_resumes(tmp_path):
         "model.max_samples=4",
         "model.rays_per_step=64",
         "data.batch_size=2",
-        "trainer.limit_test_batches=2",
+        "data.test_subset=4",
         "baselines={}",
         "callbacks.model_checkpoint.every_n_train_steps=2",
     ]

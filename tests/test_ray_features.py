@@ -164,7 +164,7 @@ def test_ray_options_compose_train_and_round_trip_a_checkpoint(compose_cfg, feat
             "model.rays_per_step=64",
             "model.max_samples=4",
             "data.batch_size=2",
-            "trainer.limit_test_batches=1",
+            "data.test_subset=2",
             "validate=false",
             "baselines=null",
             "reliance=false",

@@ -79,9 +79,7 @@ def test_knn_dl_and_the_baselines_report_reliance_and_nerf2_none(compose_cfg):
     train(cfg)
     res = json.loads((Path(cfg.paths.output_dir) / "results.json").read_text())
     assert res["metrics"]["test/reliance_db"] > 0 and res["baselines"]["knn"]["metrics"]["test/reliance_db"] > 0
-    nerf = compose_cfg(
-        "eval", ("model=nerf2_cpu", "model.chunk_rays=32400", "trainer.limit_test_batches=1", "validate=false")
-    )
+    nerf = compose_cfg("eval", ("model=nerf2_cpu", "model.chunk_rays=32400", "data.test_subset=2", "validate=false"))
     built = build(nerf, trains=False)
     m, _, _ = evaluate_model(nerf, built.model, built.datamodule)
     assert m["test/reliance_db"] is None and m["test/psnr_swapped"] is None

@@ -25,7 +25,7 @@ from graf.run.config import CONF_DIR
 from graf.run.train import train
 from graf.run.writer import REPLACED_RESULTS
 
-KNN_DL = ("model=knn_dl", "data.batch_size=2", "trainer.limit_test_batches=1", "plot_count=0")
+KNN_DL = ("model=knn_dl", "data.batch_size=2", "data.test_subset=2", "plot_count=0")
 
 
 def test_ctrl_c_during_training_says_where_it_stopped_and_how_to_resume(tmp_path):

@@ -118,7 +118,7 @@ class LineProgress(ProgressBar):
         )
 
 
-def progress_bar(enabled: bool = True, every_n_steps: int = 50) -> ProgressBar | None:
+def progress_bar(enabled: bool = True, *, every_n_steps: int) -> ProgressBar | None:
     """The progress callback of a training run: None when ``trainer.enable_progress_bar`` is off (Lightning
     refuses a bar then), Lightning's bar on a terminal, :class:`LineProgress` otherwise."""
     if not enabled:

@@ -43,6 +43,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from graf.bands import Band
+from graf.config_home import defaults_from
 from graf.data.loaders import Positions, StepLoader, TrainBatchStream
 from graf.data.neighbors import NeighborSelector
 from graf.data.scene_rows import SceneRows
@@ -51,6 +52,7 @@ from graf.data.splits import EVAL_SPLITS, TEST_POOLS, derangement, mixed_seed
 from graf.errors import ConfigError
 
 
+@defaults_from("data/default.yaml")
 class SpectrumDataModule(SceneRows, L.LightningDataModule):
     """Args:
     scene: a scene object (``conf/scene``) with ``load(data_root, band)``, or a list of them (trained
@@ -72,7 +74,8 @@ class SpectrumDataModule(SceneRows, L.LightningDataModule):
     simulate_missing: a simulated scene whose dataset file is missing is ray-traced first (studies).
     test_subset / test_subset_seed: test at most ``test_subset`` spectra of each scene's test split, a subset
         drawn by ``test_subset_seed`` (independent of ``seed``: the same subset for every method, training seed
-        and neighbor count of a study); null: the whole test split.
+        and neighbor count of a study; null: the first ``test_subset`` of the split); ``test_subset`` null: the
+        whole test split.  The one setting of how many spectra a run tests.
     """
 
     def __init__(
@@ -81,25 +84,26 @@ class SpectrumDataModule(SceneRows, L.LightningDataModule):
         band: Band | Sequence[Band],
         neighbors: NeighborSelector,
         data_root: str | Path | None = None,
-        batch_size: int = 4,
-        num_workers: int = 0,
-        eval_split: str = "test",
+        *,
+        batch_size: int,
+        num_workers: int,
+        eval_split: str,
         seed: int = 0,
-        val_fraction: float = 0.1,
-        val_seed: int = 0,
+        val_fraction: float,
+        val_seed: int,
         scene_indices: Sequence[int] | None = None,
         measured_fraction: float | None = None,
         measured_seed: int = 0,
         test_pool: str = "measured",
-        simulate_missing: bool = False,
-        test_subset: int | None = None,
-        test_subset_seed: int = 0,
+        simulate_missing: bool,
+        test_subset: int | None,
+        test_subset_seed: int,
     ):
         super().__init__()
         if test_subset is not None and (isinstance(test_subset, bool) or int(test_subset) < 1):
             raise ConfigError(f"data.test_subset must be a positive integer or null, got {test_subset!r}")
         self.test_subset = None if test_subset is None else int(test_subset)
-        self.test_subset_seed = int(test_subset_seed)
+        self.test_subset_seed = None if test_subset_seed is None else int(test_subset_seed)
         if test_pool not in TEST_POOLS:
             raise ConfigError(f"finetune.test_pool must be one of {TEST_POOLS}, got {test_pool!r}")
         if measured_fraction is not None and not 0.0 < float(measured_fraction) <= 1.0:

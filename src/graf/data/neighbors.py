@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import torch
 
+from graf.config_home import defaults_from
 from graf.errors import ConfigError, UserError
 
 log = logging.getLogger(__name__)
@@ -152,6 +153,7 @@ def check_counts(L, L_train) -> None:
         raise TypeError(f"the training range of neighbor counts must be a pair [lo, hi], got {list(pair)}")
 
 
+@defaults_from("neighbors/random_3_10.yaml")
 class NeighborSelector:
     """Configured neighbor selection (``conf/neighbors/*.yaml``).
 
@@ -164,7 +166,7 @@ class NeighborSelector:
         exclude_within: drop candidates closer than this many wavelengths to the target.
     """
 
-    def __init__(self, L: int, L_train: Sequence[int], radius: float | None, exclude_within: float = 0.0):
+    def __init__(self, L: int, L_train: Sequence[int], radius: float | None, *, exclude_within: float):
         check_counts(L, L_train)
         lo, hi = (int(v) for v in L_train)
         if int(L) < 1 or lo < 1 or hi < lo:

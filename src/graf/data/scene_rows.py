@@ -44,12 +44,14 @@ def scene_geometry(d: SpectrumSet) -> tuple[torch.Tensor, torch.Tensor, torch.Te
     return p, rot, b, float((corners - p).norm(dim=1).max())
 
 
-def seeded_subset(test: np.ndarray, size: int | None, seed: int, scene: str) -> np.ndarray:
+def seeded_subset(test: np.ndarray, size: int | None, seed: int | None, scene: str) -> np.ndarray:
     """At most ``size`` of a scene's test rows ``test``, drawn by ``seed`` alone (NumPy's PCG64 from ``[seed,
-    crc32(scene)]``: the same subset whatever else a run sets), in their original order; all of them for
-    ``size`` None or at least ``len(test)``."""
+    crc32(scene)]``: the same subset whatever else a run sets), in their original order; the first ``size`` of
+    them for ``seed`` None; all of them for ``size`` None or at least ``len(test)``."""
     if size is None or size >= len(test):
         return test
+    if seed is None:
+        return test[: int(size)]
     rng = np.random.default_rng([int(seed), zlib.crc32(scene.encode())])
     return test[np.sort(rng.choice(len(test), size=int(size), replace=False))]
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from graf.bands import Band
+from graf.config_home import defaults_from
 from graf.data.nerf2_format import POSITION_ROWS_RULES, read_nerf2_folder
 from graf.data.spectrum_set import DataFormatError, SpectrumSet
 from graf.errors import ConfigError
@@ -39,6 +40,7 @@ def resolve_scene_path(path: str, data_root: str | Path | None) -> Path:
     return p
 
 
+@defaults_from("scene_catalog/nerf2.yaml")
 class NeRF2Scene:
     """A scene stored in NeRF2's spatial-spectrum folder format (real measurements, or a user's own).
 
@@ -59,11 +61,12 @@ class NeRF2Scene:
         self,
         name: str,
         path: str,
-        split_seed: int = 0,
-        train_fraction: float = 0.8,
-        band: str | None = None,
-        fixed_band: bool = False,
-        position_rows: str = "exact",
+        *,
+        split_seed: int,
+        train_fraction: float,
+        band: str | None,
+        fixed_band: bool,
+        position_rows: str,
     ):
         if (
             isinstance(train_fraction, bool)

@@ -161,6 +161,11 @@ def adam_exponential_decay(module, lr: float, lr_decay: float, decay_steps: int 
 
 
 class SpectrumModule(L.LightningModule):
+    """What every method is (GRaF, KNN, KNN-DL, NeRF2): a LightningModule that predicts spectra ``[B, 90, 360]`` in
+    [0, 1] from a batch (:meth:`predict_spectra`), is validated and tested on the registered metrics
+    (:mod:`graf.metrics.names`), records its checkpoint layout (``LAYOUT``, ``LAYOUT_CHANGES``) and says whether it
+    reads the neighbors (``uses_neighbors``: then its test also measures its neighbor reliance)."""
+
     # whether predictions are conditioned on the neighbors' spectra: such a method's test also measures its
     # neighbor reliance (graf.run.evaluation.swapped_psnr); NeRF2 sets False
     uses_neighbors = True

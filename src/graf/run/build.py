@@ -293,12 +293,11 @@ def trainer_args(cfg: DictConfig) -> DictConfig:
 
 
 def evaluation_trainer(cfg: DictConfig, loggers=(), callbacks=()) -> L.Trainer:
-    """The trainer of the final evaluations (validation and test of the final weights).  Both evaluate
-    ``trainer.limit_test_batches`` of their split; validation during training (off by default) is the fit
+    """The trainer of the final evaluations (validation and test of the final weights): each evaluates its whole
+    split (how many test spectra: ``data.test_subset``); validation during training (off by default) is the fit
     trainer's business.  Their bars are drawn on a terminal only: elsewhere the table that ends the command says
     what they found."""
     t = trainer_args(cfg)
-    limit = t.get("limit_test_batches", 1.0)
     return L.Trainer(
         accelerator=t.get("accelerator", "auto"),
         devices=t.get("devices", 1),
@@ -311,7 +310,5 @@ def evaluation_trainer(cfg: DictConfig, loggers=(), callbacks=()) -> L.Trainer:
         enable_progress_bar=bool(t.get("enable_progress_bar", True)) and is_terminal(),
         enable_model_summary=False,
         enable_checkpointing=False,
-        limit_val_batches=limit,
-        limit_test_batches=limit,
         default_root_dir=t.get("default_root_dir"),
     )

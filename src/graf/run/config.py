@@ -268,7 +268,8 @@ SEED_MAX = 2**32 - 1  # numpy's (and so Lightning's seed_everything's) largest s
 
 def check_run_settings(cfg: DictConfig) -> None:
     """Top-level settings that must be integers in a range, checked before anything is built or moved (one clear
-    error): ``seed`` in numpy's range 0..2**32-1, ``torch_threads`` >= 1."""
+    error): ``seed`` in numpy's range 0..2**32-1, ``torch_threads`` >= 1, and no second setting of how many
+    spectra are tested (``trainer.limit_test_batches``: ``data.test_subset`` is the one)."""
     for key, low, high in (("seed", 0, SEED_MAX), ("torch_threads", 1, None)):
         v = cfg.get(key)
         if v is None:
@@ -276,3 +277,9 @@ def check_run_settings(cfg: DictConfig) -> None:
         if isinstance(v, bool) or not isinstance(v, int) or v < low or (high is not None and v > high):
             span = f" >= {low}" if high is None else f" from {low} to {high}"
             raise ConfigError(f"{key} must be an integer{span}, got {v!r}")
+    limit = (cfg.get("trainer") or {}).get("limit_test_batches", 1.0)
+    if limit not in (None, 1.0):
+        raise ConfigError(
+            f"trainer.limit_test_batches={limit}: how many spectra a run tests is data.test_subset=N (N per scene; "
+            "data.test_subset_seed=null for the first N of the split, as the first batches were)"
+        )

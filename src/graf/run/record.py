@@ -154,6 +154,8 @@ class CheckpointInfo(Record):
 
 @dataclass
 class Versions(Record):
+    """The versions a run was made with (results.json ``versions``)."""
+
     graf: str
     torch: str
     python: str

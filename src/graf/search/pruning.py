@@ -32,6 +32,9 @@ log = logging.getLogger("graf")
 
 
 class OptunaPruning(Callback):
+    """Reports ``monitor`` to the Optuna ``trial`` after each validation and stops the run when the trial's pruner
+    says so (validation during training must be on)."""
+
     def __init__(self, trial: optuna.trial.Trial, monitor: str = "val/psnr"):
         self.trial, self.monitor = trial, monitor
         self.reported: list[tuple[int, float]] = []

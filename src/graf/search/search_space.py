@@ -23,6 +23,9 @@ class SearchSpaceError(ValueError):
 
 @dataclass
 class SearchSpace:
+    """A search's parameters: ``distributions`` (name -> Optuna distribution, from the sweeper's ``params``) and
+    ``fixed`` (overrides every trial gets); a space of categorical choices only can be searched as a grid."""
+
     distributions: dict[str, BaseDistribution] = field(default_factory=dict)
     fixed: list[str] = field(default_factory=list)  # overrides every trial gets
 

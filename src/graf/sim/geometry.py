@@ -34,6 +34,8 @@ _QUAD_FACES = np.array([[0, 1, 2], [0, 2, 3]], dtype=np.uint32)
 
 @dataclass
 class Surface:
+    """A triangle mesh of one material (a wall, a floor): ``vertices [V, 3]``, ``faces [F, 3]``, ITU material, m."""
+
     name: str
     vertices: np.ndarray  # [V, 3]
     faces: np.ndarray  # [F, 3] uint32
@@ -43,6 +45,8 @@ class Surface:
 
 @dataclass
 class Box:
+    """A piece of furniture: an axis-aligned box (m) turned by ``yaw_deg`` about the vertical."""
+
     name: str
     center: np.ndarray
     size: np.ndarray
@@ -63,6 +67,8 @@ class Box:
 
 @dataclass
 class SceneGeometry:
+    """A scene's geometry for the ray tracer and the transmitters' placement: its surfaces, its boxes and bounds."""
+
     surfaces: list[Surface] = field(default_factory=list)
     boxes: list[Box] = field(default_factory=list)
     bounds: np.ndarray = field(default_factory=lambda: np.zeros((2, 3)))

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from graf.bands import Band
+from graf.config_home import defaults_from
 from graf.data.spectrum_set import DataFormatError, SpectrumSet
 from graf.sim.array import PATTERNS, Bartlett, array_positions, rotation_from_axes
 from graf.sim.checks import compare_config
@@ -27,6 +28,7 @@ from graf.sim.tracer import SionnaTracer, spectra_from_paths
 log = logging.getLogger(__name__)
 
 
+@defaults_from("scene_catalog/base/tracing.yaml")
 class SimulatedScene:
     """Args:
     name: scene name (also the dataset folder under ``<data_root>/sim``).
@@ -54,10 +56,11 @@ class SimulatedScene:
         room: dict | None = None,
         ground: dict | None = None,
         objects: dict | None = None,
-        description: str = "",
+        *,
+        description: str,
         num_tx: int | None = None,
-        band: str | None = None,
-        fixed_band: bool = False,
+        band: str | None,
+        fixed_band: bool,
         validation_only: bool = False,
     ):
         self.name = name

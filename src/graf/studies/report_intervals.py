@@ -20,11 +20,12 @@ from pathlib import Path
 
 from graf.io import atomic_write_bytes, atomic_write_json
 from graf.run.per_spectrum import read_per_spectrum
+from graf.studies.axes import AXES, AXIS_NAMES
 from graf.studies.intervals import HIGHER_IS_BETTER, paired_difference, summary
-from graf.studies.report_rows import evaluation_bands, job_settings, label_hz, result_files
+from graf.studies.report_rows import evaluations, job_settings, label_hz, result_files
 from graf.studies.table import read_run_result
 
-CELL = ("trained_on", "train_band", "finetune", "L", "eval_scene", "eval_band")
+CELL = AXIS_NAMES  # a cell: one value of every study axis (graf.studies.axes)
 REFERENCES = ("knn", "knn-dl")
 METRICS = tuple(HIGHER_IS_BETTER)
 
@@ -59,9 +60,10 @@ def collect_spectra(runs: Path) -> tuple[dict, list]:
             for m in METRICS:
                 if not math.isnan(row[m]):  # NaN: an empty target, left out of every figure (its id of every method)
                     by_eval[(row["eval_scene"], row["method"])][m][row["id"]] = row[m]
-        test_bands = evaluation_bands(result)  # per evaluation: a cross-band job tests at another band
+        tested = {ev["eval_scene"]: ev for ev in evaluations(result)}  # a cross-band job tests at another band
         for (eval_scene, method), values in by_eval.items():
-            at = {"eval_scene": eval_scene, "eval_band": test_bands.get(eval_scene, "")}
+            ev = tested.get(eval_scene, {"eval_scene": eval_scene})
+            at = {a.name: a.of_evaluation(result, ev) for a in AXES if a.of_evaluation is not None}
             key = tuple(at[c] if c in at else str(settings.get(c)) for c in CELL)
             runs_of = out[key][method]
             if method != trained:  # a baseline: the same in every job of the cell (nothing trained)

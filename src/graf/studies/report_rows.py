@@ -14,23 +14,18 @@ import numpy as np
 from graf.errors import ConfigError
 from graf.metrics.names import REGISTRY
 from graf.run.config import family
+from graf.studies.axes import AXES as AXIS_LIST
+from graf.studies.axes import AXIS_NAMES
 from graf.studies.table import read_run_result
 
 # neighbor reliance (PSNR with true minus with swapped neighbors): a column of the tables, not a figure
 RELIANCE = ("test/reliance_db", "reliance dB", "{:.2f}")
 # every registered metric (graf.metrics.names.REGISTRY): (results.json key, label, number format)
 METRICS = tuple((f"test/{m.name}", m.label, m.fmt) for m in REGISTRY.values())
-# the settings a study may vary, in the order its table blocks are nested
-AXES = ("trained_on", "train_band", "finetune", "L", "eval_scene", "eval_band")
+# the settings a study may vary, in the order its table blocks are nested (declared in graf.studies.axes)
+AXES = AXIS_NAMES
+UNTRAINED = tuple(a.name for a in AXIS_LIST if a.untrained is not None)  # a baseline's row: not trained
 PSNR_TARGETS = (16.0, 18.0, 20.0, 22.0, 25.0)  # dB: "how densely must I measure for X dB?"
-
-
-def band_label(hz) -> str:
-    """``2.412 GHz`` or ``915 MHz`` for a frequency in Hz; "" for None."""
-    if hz is None:
-        return ""
-    hz = float(hz)
-    return f"{hz / 1e9:g} GHz" if hz >= 1e9 else f"{hz / 1e6:g} MHz"
 
 
 def label_hz(label: str) -> float:
@@ -42,19 +37,6 @@ def label_hz(label: str) -> float:
         return float(parts[0]) * (1e9 if parts[1] == "GHz" else 1e6)
     except ValueError:
         return 0.0
-
-
-def _ft_label(ft: dict | None) -> str:
-    if not ft:
-        return "-"
-    if ft.get("mode") == "zero-shot":
-        return "zero-shot"
-    return f"f{round(100 * float(ft.get('fraction') or 1.0)):02d}"
-
-
-def _measured(result: dict) -> float | None:
-    f = (result.get("splits") or {}).get("measured_fraction")
-    return None if f is None else float(f)
 
 
 def ft_fraction(label: str) -> float | None:
@@ -79,38 +61,21 @@ def result_files(runs: Path) -> list[Path]:
     return files
 
 
-def _trained_on(result: dict) -> tuple[list[str], list[float]]:
-    """The scenes a job's model was trained on and their bands (Hz): a fine-tuning run's base model's."""
-    ft = result.get("finetune")
-    if ft and ft.get("base_scenes"):
-        trained = sorted(ft["base_scenes"], key=lambda n: ft["base_scenes"][n]["index"])
-        train_hz = sorted({float(v["band_hz"]) for v in ft["base_scenes"].values() if v.get("band_hz")})
-        return trained, train_hz
-    return (
-        list(result.get("train_scenes") or [result.get("scene")]),
-        sorted(set(result.get("train_bands_hz") or [result.get("band_hz")])),
-    )
-
-
 def job_settings(result: dict, job: str) -> dict:
-    """The settings of a job that every row of it shares."""
-    cfg = result.get("config") or {}
-    ft = result.get("finetune")
-    trained, train_hz = _trained_on(result)
-    return {
-        "job": job,
-        "trained_on": "+".join(trained),
-        "train_band": " + ".join(band_label(h) for h in train_hz),
-        # a fine-tuning run's fraction, or a from-scratch run's on a measured fraction (the density study)
-        "finetune": _ft_label(ft) if ft or _measured(result) is None else f"f{round(100 * _measured(result)):02d}",
-        "test_pool": (ft or {}).get("test_pool", ""),
-        "L": (cfg.get("neighbors") or {}).get("L"),
-        # the survey's density: median nearest-neighbor distance of the measured training positions (m)
-        "spacing_m": (result.get("splits") or {}).get("measured_spacing_m"),
-    }
+    """The settings of a job that every row of it shares: the job axes of :data:`graf.studies.axes.AXES`, the
+    test pool and the survey's spacing."""
+    out = {"job": job}
+    for a in AXIS_LIST:
+        if a.of_evaluation is None:
+            out[a.name] = a.of_job(result)
+        if a.name == "finetune":  # where the fine-tuned model's test neighbors came from, beside its fraction
+            out["test_pool"] = (result.get("finetune") or {}).get("test_pool", "")
+    # the survey's density: median nearest-neighbor distance of the measured training positions (m)
+    out["spacing_m"] = (result.get("splits") or {}).get("measured_spacing_m")
+    return out
 
 
-def _evaluations(result: dict) -> list[dict]:
+def evaluations(result: dict) -> list[dict]:
     """A job's evaluations: a cross-scene run's list, or the one evaluation of a single-scene run."""
     return result.get("evaluations") or [
         {
@@ -128,11 +93,6 @@ def _figures(tested: dict) -> dict:
     return {k: (tested.get("metrics") or {}).get(k) for k, _, _ in (*METRICS, RELIANCE)}
 
 
-def evaluation_bands(result: dict) -> dict[str, str]:
-    """``{test scene: its test band's label}`` of a job's evaluations (``2.412 GHz``; "" where not recorded)."""
-    return {ev["eval_scene"]: band_label(ev.get("band_hz")) for ev in _evaluations(result)}
-
-
 def rows_of(result: dict, job: str) -> list[dict]:
     """One row per (test scene, method) of a job's results.json."""
     ft = result.get("finetune")
@@ -140,18 +100,17 @@ def rows_of(result: dict, job: str) -> list[dict]:
     budget = f"{steps}" if not ft else f"{ft.get('base_steps', '?')}+{ft.get('steps', 0)}"
     common = job_settings(result, job)
     out = []
-    for ev in _evaluations(result):
+    for ev in evaluations(result):
         base = {
             **common,
-            "eval_scene": ev["eval_scene"],
-            "eval_band": band_label(ev.get("band_hz")),
+            **{a.name: a.of_evaluation(result, ev) for a in AXIS_LIST if a.of_evaluation is not None},
             "within_scene": bool(ev.get("within_scene")),
             "n_test": ev.get("n_test"),
         }
         out.append({**base, "method": result.get("method"), "steps": budget, **_figures(ev)})
         for name, b in (ev.get("baselines") or {}).items():
             # a baseline is not trained: it is the same whatever the job trained on
-            untrained = {"trained_on": "-", "train_band": "-", "within_scene": None}
+            untrained = {**{a.name: a.untrained for a in AXIS_LIST if a.untrained is not None}, "within_scene": None}
             out.append({**base, **untrained, "method": name, "steps": "0", **_figures(b)})
     return out
 
@@ -178,11 +137,7 @@ def collect_rows(runs: Path) -> tuple[list[dict], list[Path]]:
 
 def varying_axes(rows: list[dict]) -> list[str]:
     """The settings of :data:`AXES` that take more than one value in the study (baselines' "-" aside)."""
-    return [
-        a
-        for a in AXES
-        if len({str(r.get(a)) for r in rows if r["steps"] != "0" or a not in ("trained_on", "train_band")}) > 1
-    ]
+    return [a for a in AXES if len({str(r.get(a)) for r in rows if r["steps"] != "0" or a not in UNTRAINED}) > 1]
 
 
 def _sort_key(v):

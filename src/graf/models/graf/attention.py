@@ -46,6 +46,11 @@ def math_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, mask: torc
 
 
 class MultiHeadAttention(nn.Module):
+    """Multi-head attention ``[..., Nq, d] x [..., Nk, d] -> [..., Nq, d]`` with a key mask, by ``kernel``: ``sdpa``
+    (torch's fused attention) or ``math`` (explicit matmuls); with ``fused_training`` set by
+    :class:`GRaFModule`, training on a CPU goes through the compiled kernel with its backward
+    (:mod:`graf.models.graf.kernels.train`).  ``head_dim`` defaults to ``d_model // num_heads``."""
+
     def __init__(
         self, d_model: int, num_heads: int = 1, head_dim: int | None = None, dropout: float = 0.0, kernel: str = "sdpa"
     ):

@@ -26,6 +26,9 @@ def group_norm(channels: int) -> nn.GroupNorm:
 
 
 class BasicBlock(nn.Module):
+    """ResNet's basic block (two 3x3 convolutions and a shortcut) with group norm instead of batch norm: a
+    batch of a few targets' neighbors is too small for batch statistics."""
+
     def __init__(self, cin: int, cout: int, stride: int = 1):
         super().__init__()
         self.conv1 = nn.Conv2d(cin, cout, 3, stride, 1, bias=False)

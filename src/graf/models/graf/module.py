@@ -1,10 +1,10 @@
-"""GRaF: geometry-aware radiance field with neural ray tracing (seed section 3, appendix D, figures 2-3).
+"""GRaF: geometry-aware radiance field with neural ray tracing (the paper's section 3, supplement D, figures 2-3).
 
 For a target transmitter at P and its L neighbors (spectra SS_l at positions P_l), every spectrum pixel is
 a ray from the gateway; the predicted value of a ray is
 
 1. **Neighbor features** (``model/features=<mode>``, a component of :mod:`graf.models.graf.features`):
-   ``pooled`` (the seed's, the default) makes one token ``MLP1(ResNet18(SS_l) ⊕ PE(P_l) ⊕ PE(P_l - P))`` ->
+   ``pooled`` (the paper's, the default) makes one token ``MLP1(ResNet18(SS_l) ⊕ PE(P_l) ⊕ PE(P_l - P))`` ->
    ``d_model`` (16) per neighbor spectrum, once per batch, never per ray; ``ray`` makes per-ray tokens from
    each neighbor's feature map and pixel values at the ray's own direction; ``ray_knn`` and ``ray_weights``
    add a per-ray convex combination of the neighbors' values (IDW KNN at initialisation).  Padded
@@ -27,10 +27,9 @@ im|``, and starts as KNN (:mod:`graf.models.graf.residual`).
 ``length_unit`` metres (:func:`graf.geometry.encoding.to_gateway_frame`); ``use_scene_index`` appends the scene
 index as a fourth coordinate of absolute positions.
 
-Training: ``rays_per_step`` random pixels per step (seeded by the step), per-ray L2 loss, Adam with an exponential
-decay by ``lr_decay`` over ``decay_steps``.  Inference (:meth:`GRaFModule.predict_spectra`): all 32400 rays in chunks
-of ``chunk_rays`` through a fused attention kernel (:mod:`graf.models.graf.inference`).
-Checkpoints written before ``model/features`` load through :mod:`graf.models.graf.legacy`.
+Training: ``rays_per_step`` random pixels per step (seeded by the step), per-ray L2 loss, Adam decayed by ``lr_decay``
+over ``decay_steps``.  Inference: all 32400 rays in chunks of ``chunk_rays`` through a fused attention kernel
+(:mod:`graf.models.graf.inference`).  Older checkpoints load through :mod:`graf.models.graf.legacy`.
 """
 
 from __future__ import annotations
@@ -43,6 +42,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from graf.config_home import defaults_from
 from graf.geometry.encoding import PositionalEncoding, sinusoidal_encoding, to_gateway_axes, to_gateway_frame
 from graf.geometry.grid import N_AZIMUTH, N_ELEVATION, local_directions
 from graf.geometry.rays import fp32, random_pixels
@@ -75,13 +75,12 @@ AMPLITUDE_EPS = 1e-12
 SCENE_TABLE_VOXELS = 2_000_000  # scenes with more voxels per spectrum compute them per chunk instead of caching
 
 
+@defaults_from("model/graf.yaml")
 class GRaFModule(SpectrumModule):
-    # how fast, not what: graf-eval and a resumed run may change these on a trained checkpoint
-    INFERENCE_SETTINGS = ("chunk_rays", "fast_inference", "fast_training", "train_pieces")
-    LAYOUT = 3
-    LAYOUT_CHANGES = LAYOUT_CHANGES  # graf.models.graf.legacy: what each layout changed
-    upgrade_hparams = staticmethod(upgrade_hparams)  # a checkpoint's hyperparameters in the current form
-    """Args (all in ``conf/model/graf.yaml``):
+    """GRaF, the generalizable RF radiance field of the paper (its parts: the module's docstring above); ``features``
+    picks how rays read the neighbors (pooled: the paper's; ray, ray_knn, ray_weights).
+
+    Args (their defaults in ``conf/model/graf.yaml``, the one place they are stated: :mod:`graf.config_home`):
         encoder_widths / encoder_downsample: ResNet-18 stage widths; average pooling of the spectra first.
         d_model: token / voxel latent width (16).
         scene_blocks: cross-attention blocks of the scene representation (1 head of width d_model).
@@ -95,62 +94,63 @@ class GRaFModule(SpectrumModule):
         residual / weighting: predict |KNN(weighting) + re + j im| instead of |re + j im| (pooled and ray).
         loss: ``mse`` (per-ray L2) or ``log_mse`` (mean over targets of log(per-target MSE + 1e-6)).
         use_scene_index: 4-D positions (x, y, z, scene index) for cross-scene training.
-        fast_training / train_pieces: training on a CPU through the fast path (compiled attention with a backward,
-            padded groups, the rays in ``train_pieces`` slices on worker threads: graf.models.graf.pieces); the same
-            function within float rounding.
-        fast_inference: CPU fp32 inference through the fused kernel (graf.models.graf.inference); false: plain.
-        features: the neighbor-feature component's config (``conf/model/features/<mode>.yaml``: a mapping with
-            ``_target_`` and the mode's own settings), or a mode name (its default settings).
+        fast_training / train_pieces / fast_inference: a CPU's fast paths (graf.models.graf.pieces, .inference).
+        features: the neighbor-feature component's config (``conf/model/features/<mode>.yaml``) or a mode's name.
     """
+
+    INFERENCE_SETTINGS = ("chunk_rays", "fast_inference", "fast_training", "train_pieces")  # how fast, not what
+    LAYOUT = 3
+    LAYOUT_CHANGES = LAYOUT_CHANGES  # graf.models.graf.legacy: what each layout changed
+    upgrade_hparams = staticmethod(upgrade_hparams)  # a checkpoint's hyperparameters in the current form
 
     def __init__(
         self,
-        encoder_widths: Sequence[int] = (64, 128, 256, 512),
-        encoder_downsample: int = 1,
-        d_model: int = 16,
-        scene_blocks: int = 2,
-        ray_blocks: int = 2,
-        ray_heads: int = 10,
-        ray_head_dim: int = 8,
-        ffn_dim: int = 64,
-        mlp_dim: int = 64,
-        pe_freqs: int = 10,
-        max_samples: int = 128,
-        rays_per_step: int = 5120,
-        chunk_rays: int = 4096,
-        lr: float = 5e-4,
-        lr_decay: float = 0.1,
-        decay_steps: int | None = None,
-        residual: bool = False,
-        weighting: str = "idw",
-        use_scene_index: bool = False,
-        loss: str = "mse",
-        length_unit: float = 4.0,
-        voxel_wavelengths: float = 1.0,
-        ray_window: int = 0,
-        attention: str = "auto",
+        *,
+        encoder_widths: Sequence[int],
+        encoder_downsample: int,
+        d_model: int,
+        scene_blocks: int,
+        ray_blocks: int,
+        ray_heads: int,
+        ray_head_dim: int,
+        ffn_dim: int,
+        mlp_dim: int,
+        pe_freqs: int,
+        max_samples: int,
+        rays_per_step: int,
+        chunk_rays: int,
+        lr: float,
+        lr_decay: float,
+        decay_steps: int | None,
+        residual: bool,
+        weighting: str,
+        use_scene_index: bool,
+        loss: str,
+        length_unit: float,
+        voxel_wavelengths: float,
+        ray_window: int,
+        attention: str,
+        fast_inference: bool,
+        fast_training: bool,
+        train_pieces: int | None,
         features: Mapping | str = "pooled",
-        fast_inference: bool = True,
-        fast_training: bool = True,
-        train_pieces: int | None = None,
         **legacy,
     ):
         super().__init__()
-        # what the checkpoint records: plain ints (not a ListConfig), the component's config as a plain dict
-        # (the deprecated keyword arguments folded into it, so they are no hyperparameters of their own)
+        # the checkpoint records plain ints (not a ListConfig) and the component's config as a plain dict (the
+        # deprecated keyword arguments folded into it)
         encoder_widths = [int(w) for w in encoder_widths]
         features, legacy = upgrade_arguments(features, legacy), {}
         self.save_hyperparameters()
         check_settings(self.hparams)
-        self.d_model, self.max_samples = int(d_model), int(max_samples)
-        self.rays_per_step, self.chunk_rays = int(rays_per_step), int(chunk_rays)
-        self.lr, self.lr_decay = float(lr), float(lr_decay)
+        self.d_model, self.max_samples, self.rays_per_step = int(d_model), int(max_samples), int(rays_per_step)
+        self.chunk_rays, self.lr, self.lr_decay = int(chunk_rays), float(lr), float(lr_decay)
         self.decay_steps = None if decay_steps is None else int(decay_steps)
         self.residual, self.use_scene_index = bool(residual), bool(use_scene_index)
         self.loss_name, self.length_unit = loss, float(length_unit)
         self.sample_spacing, self.ray_window = float(voxel_wavelengths), int(ray_window)
         self.fast_inference, self.fast_training = bool(fast_inference), bool(fast_training)
-        self.train_pieces = None if train_pieces is None else int(train_pieces)
+        self.train_pieces = None if train_pieces is None else int(train_pieces)  # None: torch's threads
         self._ray_tables: dict = {}  # geometry only: per scene geometry and band, never stale
         self.eval_cache = EvalCache()  # weights-dependent tables of evaluation (see _cached)
         self.base = KNNBase(weighting) if self.residual else NoBase()

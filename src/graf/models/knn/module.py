@@ -8,14 +8,26 @@ from __future__ import annotations
 
 import torch
 
+from graf.config_home import defaults_from
 from graf.models.base import SpectrumModule
 from graf.models.knn.weights import barycentric_weights, idw_weights
 
 WEIGHTINGS = ("idw", "barycentric")
 
 
+@defaults_from("model/knn.yaml")
 class KNNModule(SpectrumModule):
-    def __init__(self, weighting: str = "idw", power: float = 1.0, ridge: float = 1e-3):
+    """KNN (the paper's non-learned baseline): the target's spectrum as a convex combination of its L nearest known
+    transmitters' spectra.  Nothing is trained.
+
+    Args (their defaults in ``conf/model/knn.yaml``, the one place they are stated: :mod:`graf.config_home`):
+        weighting: ``idw`` (inverse-distance weights 1/d^power, method ``knn``) or ``barycentric`` (the convex weights
+            of the interpolation theorem, the paper's supplement A.1: :func:`barycentric_weights`, ``knn-barycentric``).
+        power: the inverse distance's exponent (idw).
+        ridge: the weight of the distance penalty in the barycentric least squares.
+    """
+
+    def __init__(self, *, weighting: str, power: float, ridge: float):
         super().__init__()
         if weighting not in WEIGHTINGS:
             raise ValueError(f"model.weighting must be one of {WEIGHTINGS}, got {weighting!r}")

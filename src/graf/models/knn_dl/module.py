@@ -50,6 +50,7 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 
+from graf.config_home import defaults_from
 from graf.geometry.encoding import normalize_offsets
 from graf.geometry.grid import N_AZIMUTH, N_ELEVATION
 from graf.models.base import SpectrumModule, adam_exponential_decay
@@ -58,8 +59,12 @@ from graf.models.knn_dl.weightnet import WeightNet, upsample_maps
 from graf.models.schedule import check_rates, is_number
 
 
+@defaults_from("model/knn_dl.yaml")
 class KNNDLModule(SpectrumModule):
-    """Args (all in ``conf/model/knn_dl.yaml``):
+    """KNN-DL (the learned-weights baseline of the paper's supplement E.2): the neighbors' spectra fused with per-pixel
+    weight maps a small network predicts from the geometry of target and neighbors.
+
+    Args (their defaults in ``conf/model/knn_dl.yaml``, the one place they are stated: :mod:`graf.config_home`):
     map_size: coarse weight-map grid (h, w); h divides 90, w divides 360.
     hidden / decoder_hidden: widths of the per-neighbor MLP and of the per-cell decoder.
     pe_freqs / dir_freqs: positional-encoding bands of the offset and of the ray direction.
@@ -73,17 +78,18 @@ class KNNDLModule(SpectrumModule):
 
     def __init__(
         self,
-        map_size: Sequence[int] = (18, 72),
-        hidden: int = 64,
-        decoder_hidden: int = 32,
-        pe_freqs: int = 6,
-        dir_freqs: int = 3,
-        max_rank: int | None = 10,
-        signed_scale: float = 0.5,
-        idw_power: float = 1.0,
-        lr: float = 1e-3,
-        lr_decay: float = 0.1,
-        decay_steps: int | None = None,
+        *,
+        map_size: Sequence[int],
+        hidden: int,
+        decoder_hidden: int,
+        pe_freqs: int,
+        dir_freqs: int,
+        max_rank: int | None,
+        signed_scale: float,
+        idw_power: float,
+        lr: float,
+        lr_decay: float,
+        decay_steps: int | None,
     ):
         super().__init__()
         if max_rank is None:

@@ -67,16 +67,18 @@ class WeightNet(nn.Module):
         pe_freqs: frequency bands of the offset's positional encoding.
         dir_freqs: frequency bands of the ray direction's positional encoding.
         max_rank: scale of the rank and neighbor-count features (the largest L expected).
+
+    Built by :class:`KNNDLModule` from its settings (their defaults: ``conf/model/knn_dl.yaml``).
     """
 
     def __init__(
         self,
-        map_size: Sequence[int] = (18, 72),
-        hidden: int = 64,
-        decoder_hidden: int = 32,
-        pe_freqs: int = 6,
-        dir_freqs: int = 3,
-        max_rank: int = 10,
+        map_size: Sequence[int],
+        hidden: int,
+        decoder_hidden: int,
+        pe_freqs: int,
+        dir_freqs: int,
+        max_rank: int,
     ):
         super().__init__()
         self.map_size = (int(map_size[0]), int(map_size[1]))

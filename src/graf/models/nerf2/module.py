@@ -39,6 +39,7 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 
+from graf.config_home import defaults_from
 from graf.geometry.grid import local_directions
 from graf.geometry.rays import fp32, num_samples, random_pixels, render_spectra, world_directions
 from graf.models.base import SpectrumModule
@@ -47,10 +48,13 @@ from graf.models.nerf2.renderer import render_rays, sample_distances
 from graf.models.schedule import check_rates, cosine_record, run_steps, schedule_length
 
 
+@defaults_from("model/nerf2.yaml")
 class NeRF2Module(SpectrumModule):
-    INFERENCE_SETTINGS = ("chunk_rays",)  # graf-eval may change these on a trained checkpoint
-    uses_neighbors = False  # one scene's field: no neighbor is read, so no reliance to measure
-    """Args (all in ``conf/model/nerf2.yaml``):
+    """NeRF2 (Zhao et al., MobiCom 2023), the per-scene baseline: an MLP field of attenuation and radiance over one
+    scene, rendered along each ray of the spectrum from the gateway; trained on one scene, it reads no neighbors
+    and refuses a test on another scene.
+
+    Args (their defaults in ``conf/model/nerf2.yaml``, the one place they are stated: :mod:`graf.config_home`):
         depth / width / skips: the attenuation MLP (8 x 256, point encoding re-entered after layer 4).
         pe_freqs: encoding frequencies of points, view directions and transmitter (10: 3 -> 63 dims).
         near: distance (m) of the first sample from the gateway.
@@ -61,22 +65,26 @@ class NeRF2Module(SpectrumModule):
         lr / weight_decay: Adam.  t_max / eta_min: cosine learning-rate schedule (in optimiser steps).
     """
 
+    INFERENCE_SETTINGS = ("chunk_rays",)  # graf-eval may change these on a trained checkpoint
+    uses_neighbors = False  # one scene's field: no neighbor is read, so no reliance to measure
+
     def __init__(
         self,
-        depth: int = 8,
-        width: int = 256,
-        skips: Sequence[int] = (4,),
-        pe_freqs: int = 10,
-        near: float = 0.0,
-        max_samples: int = 64,
-        sample_spacing: float = 0.25,
-        path_loss: float = 0.025,
-        rays_per_step: int = 8192,
-        chunk_rays: int = 4096,
-        lr: float = 8e-4,
-        weight_decay: float = 5e-5,
-        t_max: int | None = None,
-        eta_min: float = 1e-6,
+        *,
+        depth: int,
+        width: int,
+        skips: Sequence[int],
+        pe_freqs: int,
+        near: float,
+        max_samples: int,
+        sample_spacing: float,
+        path_loss: float,
+        rays_per_step: int,
+        chunk_rays: int,
+        lr: float,
+        weight_decay: float,
+        t_max: int | None,
+        eta_min: float,
     ):
         super().__init__()
         positive = {

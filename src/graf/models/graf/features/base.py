@@ -11,7 +11,6 @@ A component owns the parameters that differ between modes and the three steps of
 
 from __future__ import annotations
 
-import inspect
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import ClassVar
@@ -19,6 +18,8 @@ from typing import ClassVar
 import torch
 from hydra.utils import get_class
 from torch import nn
+
+from graf.config_home import class_defaults
 
 # mode name (model/features=<name>) -> component class
 MODES = {
@@ -122,8 +123,7 @@ def features_config(features: Mapping | str) -> dict:
         features = {"_target_": MODES[features]}
     if not isinstance(features, Mapping) or "_target_" not in features:
         raise ValueError(f"model.features must be a mode name or a config with _target_, got {features!r}")
-    params = inspect.signature(component_class(features["_target_"]).__init__).parameters
-    defaults = {k: p.default for k, p in params.items() if k not in ("self", "dims", "residual", "defer_output")}
+    defaults = class_defaults(component_class(features["_target_"]), skip=("self", "dims", "residual", "defer_output"))
     return {
         "_target_": str(features["_target_"]),
         **defaults,

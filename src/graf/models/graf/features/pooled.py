@@ -13,6 +13,10 @@ from graf.models.graf.ray_features import rows
 
 
 class PooledFeatures(NeighborFeatures):
+    """The paper's neighbor features (supplement D): one token per neighbor spectrum, its pooled encoder features
+    with the neighbor's position and offset to the voxel (MLP1), read by every voxel's cross-attention; method
+    ``graf``."""
+
     name = "pooled"
     method_suffix = ""
 

@@ -14,12 +14,14 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from graf.config_home import defaults_from
 from graf.models.graf.features.base import Dims, NeighborFeatures, complex_head
 from graf.models.graf.inference import split_batch
 from graf.models.graf.ray_features import RayNeighborTokens, all_pixel_inputs, pad_wrap, pixel_window, rows, sample_wrap
 from graf.models.knn.weights import idw_weights
 
 
+@defaults_from("model/features/ray.yaml")
 class RayFeatures(NeighborFeatures):
     """Args (``conf/model/features/ray.yaml``):
     ray_feature_dim: channels of the projected feature map read per ray.
@@ -34,8 +36,9 @@ class RayFeatures(NeighborFeatures):
         dims: Dims,
         residual: bool = False,
         defer_output: bool = False,
-        ray_feature_dim: int = 8,
-        pixel_window: int = 1,
+        *,
+        ray_feature_dim: int,
+        pixel_window: int,
     ):
         super().__init__(dims, residual, defer_output)
         if ray_feature_dim < 1 or pixel_window < 0:

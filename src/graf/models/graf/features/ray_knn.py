@@ -12,6 +12,9 @@ from graf.models.graf.features.ray import RayFeatures, centre_values, idw_logits
 
 
 class RayKNNFeatures(RayFeatures):
+    """:class:`RayFeatures` plus a per-ray base: a convex combination of the neighbors' pixel values (IDW KNN at
+    step 0, its weights then learned), which the ray tracer corrects; method ``graf-ray-knn``."""
+
     name = "ray_knn"
     method_suffix = "-ray-knn"
     knn_based = True

@@ -16,6 +16,10 @@ from graf.models.graf.features.ray import RayFeatures, centre_values, idw_logits
 
 
 class RayWeightsFeatures(RayFeatures):
+    """Only the per-ray convex combination of the neighbors' pixel values (IDW KNN at step 0), its weights
+    corrected by the per-ray tokens and the ray tracer's state: it re-weights what the neighbors measured and
+    cannot predict a value none of them measured; method ``graf-ray-weights``."""
+
     name = "ray_weights"
     method_suffix = "-ray-weights"
     knn_based = True

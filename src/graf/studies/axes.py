@@ -1,0 +1,87 @@
+"""The settings a study may vary (its axes), declared once: graf-report's tables nest their blocks in this order, its
+intervals pair the spectra of one cell (one value of every axis), the claims ledger reads the cells by these names.
+
+An axis reads its value from a job's ``results.json`` (:attr:`Axis.of_job`) or from one of the job's evaluations
+(:attr:`Axis.of_evaluation`: a test scene, a test band).  Adding a study axis is one entry of :data:`AXES`
+(docs/extending.md, "Add a study axis"); the report, the intervals and the figures follow.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+
+def band_label(hz) -> str:
+    """``2.412 GHz`` or ``915 MHz`` for a frequency in Hz; "" for None."""
+    if hz is None:
+        return ""
+    hz = float(hz)
+    return f"{hz / 1e9:g} GHz" if hz >= 1e9 else f"{hz / 1e6:g} MHz"
+
+
+@dataclass(frozen=True)
+class Axis:
+    """One setting a study may vary.
+
+    name: the column's name in the tables, intervals and ledger.
+    of_job: ``results.json -> value`` shared by every row of a job; or
+    of_evaluation: ``(results.json, evaluation) -> value`` per test scene (an evaluation of the job).
+    untrained: the value a baseline's row takes when the axis describes training (a baseline is not trained:
+        ``-``); None when a baseline shares the job's value.
+    """
+
+    name: str
+    of_job: Callable[[dict], Any] | None = None
+    of_evaluation: Callable[[dict, dict], Any] | None = None
+    untrained: str | None = None
+
+    def value(self, result: dict, evaluation: dict) -> Any:
+        return self.of_evaluation(result, evaluation) if self.of_evaluation else self.of_job(result)
+
+
+def trained_on(result: dict) -> tuple[list[str], list[float]]:
+    """The scenes a job's model was trained on and their bands (Hz): a fine-tuning run's base model's."""
+    ft = result.get("finetune")
+    if ft and ft.get("base_scenes"):
+        trained = sorted(ft["base_scenes"], key=lambda n: ft["base_scenes"][n]["index"])
+        train_hz = sorted({float(v["band_hz"]) for v in ft["base_scenes"].values() if v.get("band_hz")})
+        return trained, train_hz
+    return (
+        list(result.get("train_scenes") or [result.get("scene")]),
+        sorted(set(result.get("train_bands_hz") or [result.get("band_hz")])),
+    )
+
+
+def _ft_label(ft: dict | None) -> str:
+    if not ft:
+        return "-"
+    if ft.get("mode") == "zero-shot":
+        return "zero-shot"
+    return f"f{round(100 * float(ft.get('fraction') or 1.0)):02d}"
+
+
+def measured_fraction(result: dict) -> float | None:
+    f = (result.get("splits") or {}).get("measured_fraction")
+    return None if f is None else float(f)
+
+
+def finetune_label(result: dict) -> str:
+    """A fine-tuning run's fraction (``f20``, ``zero-shot``), or a from-scratch run's measured fraction (the
+    density study's survey), or ``-``."""
+    ft = result.get("finetune")
+    if ft or measured_fraction(result) is None:
+        return _ft_label(ft)
+    return f"f{round(100 * measured_fraction(result)):02d}"
+
+
+AXES: tuple[Axis, ...] = (
+    Axis("trained_on", of_job=lambda r: "+".join(trained_on(r)[0]), untrained="-"),
+    Axis("train_band", of_job=lambda r: " + ".join(band_label(h) for h in trained_on(r)[1]), untrained="-"),
+    Axis("finetune", of_job=finetune_label),
+    Axis("L", of_job=lambda r: ((r.get("config") or {}).get("neighbors") or {}).get("L")),
+    Axis("eval_scene", of_evaluation=lambda r, ev: ev["eval_scene"]),
+    Axis("eval_band", of_evaluation=lambda r, ev: band_label(ev.get("band_hz"))),
+)
+AXIS_NAMES = tuple(a.name for a in AXES)
