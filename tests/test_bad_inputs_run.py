@@ -215,10 +215,19 @@ def test_a_run_resuming_the_interrupted_run_in_its_folder_is_let_in(tmp_path, ca
     (run / "checkpoints").mkdir(parents=True)
     last = run / "checkpoints" / "last.ckpt"
     last.write_bytes(b"state")
-    config = OmegaConf.create({"hydra": {"run": {"dir": str(run)}}, "task_name": "train", "ckpt_path": str(last)})
-    OutputFolderCheck().on_run_start(config=config)  # no exit
+    for task_name in ("train", "graf_rfid_s23"):  # graf-train of an experiment that names its task (graf-curves)
+        config = OmegaConf.create(
+            {
+                "hydra": {"run": {"dir": str(run)}, "job": {"name": "train"}},
+                "task_name": task_name,
+                "ckpt_path": str(last),
+            }
+        )
+        OutputFolderCheck().on_run_start(config=config)  # no exit
     line = _check(tmp_path, run, capsys, ckpt_path=str(tmp_path / "other.ckpt"))
     assert "interrupted training run" in line
     # graf-eval writing its results.json beside the interrupted checkpoint, even one testing it: refused
-    line = _check(tmp_path, run, capsys, task_name="eval", ckpt_path=str(last))
+    line = _check(
+        tmp_path, run, capsys, hydra={"run": {"dir": str(run)}, "job": {"name": "evaluate"}}, ckpt_path=str(last)
+    )
     assert "interrupted training run" in line

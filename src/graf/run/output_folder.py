@@ -73,7 +73,8 @@ def interrupted_run(config: DictConfig, folder: Path) -> str | None:
     if not last.is_file() or (folder / "results.json").is_file():
         return None
     ckpt = OmegaConf.select(config, "ckpt_path", default=None, throw_on_resolution_failure=False)
-    if OmegaConf.select(config, "task_name", default=None) == "train" and is_inside(ckpt, folder):
+    # graf-train (Hydra's job name, whatever task_name an experiment sets) resuming a checkpoint of this folder
+    if OmegaConf.select(config, "hydra.job.name", default=None) == "train" and is_inside(ckpt, folder):
         return None
     return (
         f"it holds an interrupted training run ({last}, no results.json) that this run would overwrite: resume it "
