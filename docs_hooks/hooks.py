@@ -15,6 +15,7 @@ A page asks for a generated block with a directive on a line of its own:
   ``sweeps/compare_rfid_s23/table.md``, ...), included as it is;
 - ``<!-- gen: choose PATH -->``: GRaF's modes ranked on validation from a ``curves.csv``
   (:func:`graf.studies.published.choose`, as ``scripts/choose_graf.py``);
+- ``<!-- gen: code PATH -->``: a source file of the repository as a code block (the worked examples' plugin);
 - ``<!-- gen: page PATH -->``: a markdown file of the repository (``CONTRIBUTING.md``) as the page's text;
 - ``<!-- gen: layout src -->``: the map of the package (floors, rooms, modules, commands, scripts);
 - ``<!-- gen: headline PATH -->``: the main job's table from its record (``sweeps/main_job/results.json``), the
@@ -46,7 +47,7 @@ from graf.studies import published
 ROOT = Path(__file__).resolve().parents[1]
 SWEEPS = ROOT / "sweeps"
 API_NAV = "API reference"
-DIRECTIVE = re.compile(r"^<!-- gen: (study|search|include|page|choose|layout|headline) (\S+) -->$", re.M)
+DIRECTIVE = re.compile(r"^<!-- gen: (study|search|include|code|page|choose|layout|headline) (\S+) -->$", re.M)
 
 
 def _record(path: Path) -> Path:
@@ -152,6 +153,12 @@ def include(path: str) -> str:
     return _record(ROOT / path).read_text().strip() + f"\n\n*Generated from `{path}`.*"
 
 
+def code(path: str) -> str:
+    """A source file of the repository as a fenced block (``tests/plugins/toy_plugin.py``: the worked examples)."""
+    lang = {".py": "python", ".yaml": "yaml", ".sh": "bash"}.get(Path(path).suffix, "")
+    return f"```{lang}\n{_record(ROOT / path).read_text().rstrip()}\n```\n\n*The file `{path}`, as the tests run it.*"
+
+
 def choose(path: str) -> str:
     """GRaF's neighbor-feature mode ranked on validation (:func:`graf.studies.published.choose`), per regime and
     over all."""
@@ -232,8 +239,8 @@ def on_page_markdown(markdown: str, page, config, files) -> str:
 
     def expand(m: re.Match) -> str:
         kind, arg = m.group(1), m.group(2)
-        makers = {"study": study, "search": search, "include": include, "page": page_file, "choose": choose,
-                  "layout": layout, "headline": headline}  # fmt: skip
+        makers = {"study": study, "search": search, "include": include, "code": code, "page": page_file,
+                  "choose": choose, "layout": layout, "headline": headline}  # fmt: skip
         return makers[kind](arg)
 
     return DIRECTIVE.sub(expand, markdown)

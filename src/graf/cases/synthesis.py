@@ -66,7 +66,7 @@ def load_model(model_cfg: DictConfig, ckpt_path: str | None, what: str | None = 
         with safe_loading():
             return model_cls.load_from_checkpoint(ckpt_path, map_location="cpu", weights_only=True)
     model = hydra.utils.instantiate(model_cfg)
-    if getattr(model, "has_trainable_parameters", False):
+    if model.has_trainable_parameters:
         raise ConfigError(
             f"{model_cls.__name__} ({what or f'model={_model_choice()}'}) is a trained model: give its checkpoint "
             "with ckpt_path=<run>/checkpoints/last.ckpt (only a method with nothing to train, model=knn, "
@@ -83,7 +83,6 @@ def run(cfg: DictConfig) -> dict:
     bands, _, neighbors, dm = build_datamodule(cfg)
     band = bands[0]
     model = load_model(model_config_for_neighbors(cfg.model, neighbors), cfg.get("ckpt_path"))
-    model_cls = type(model)
     t0 = time.perf_counter()
     spectra = synthesize(model, dm, positions)
     t_pred = time.perf_counter() - t0
@@ -91,7 +90,7 @@ def run(cfg: DictConfig) -> dict:
     ids = list(range(1, len(positions) + 1))
     write_nerf2_folder(out, spectra, positions, ids, dm.data.gateway_position, dm.data.gateway_orientation)
     result = {
-        "method": getattr(model, "method", model_cls.__name__),
+        "method": model.method,
         "scene": dm.data.name,
         "band_hz": band.frequency_hz,
         "n": len(ids),

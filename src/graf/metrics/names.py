@@ -9,19 +9,37 @@ figure a run computes reaches ``results.json``, the per-spectrum records and the
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+
+AGGREGATES = ("mean",)  # how a split's figure comes from the per-spectrum values (empty targets left out)
 
 
 @dataclass(frozen=True)
 class Metric:
     """A per-spectrum figure: ``name`` (``test/<name>``), its ``label`` in tables and figures, ``unit`` (or ""),
-    whether higher is better, and its number format."""
+    whether higher is better, its number format, how it is computed per spectrum and how a split's figure
+    aggregates those values.
+
+    per_spectrum: ``(pred [N, H, W], target [N, H, W]) -> [N]`` (values in [0, 1]); or
+    factory: a dotted path to the torchmetrics class that computes it (the built-in four, with their own
+        settings: PSNR's data range, LPIPS's weights); one of the two.
+    aggregate: ``mean`` over the split's non-empty spectra (the only one so far)."""
 
     name: str
     label: str
     unit: str
     higher_is_better: bool
     fmt: str
+    per_spectrum: Callable | None = None
+    factory: str | None = None
+    aggregate: str = "mean"
+
+    def __post_init__(self):
+        if (self.per_spectrum is None) == (self.factory is None):
+            raise ValueError(f"metric {self.name!r}: give per_spectrum or factory (one of the two)")
+        if self.aggregate not in AGGREGATES:
+            raise ValueError(f"metric {self.name!r}: aggregate must be one of {AGGREGATES}, got {self.aggregate!r}")
 
     def axis_label(self, split: str = "test") -> str:
         """``test PSNR (dB), higher is better``."""
@@ -29,25 +47,47 @@ class Metric:
         return f"{split} {self.label}{unit}, {'higher' if self.higher_is_better else 'lower'} is better"
 
 
+_CLASSES = "graf.metrics.spectrum_metrics"
 REGISTRY: dict[str, Metric] = {
     m.name: m
     for m in (
-        Metric("mse", "MSE", "", False, "{:.4f}"),
-        Metric("psnr", "PSNR", "dB", True, "{:.2f}"),
-        Metric("ssim", "SSIM", "", True, "{:.3f}"),
-        Metric("lpips", "LPIPS", "", False, "{:.3f}"),
+        Metric("mse", "MSE", "", False, "{:.4f}", factory=f"{_CLASSES}.SpectrumMSE"),
+        Metric("psnr", "PSNR", "dB", True, "{:.2f}", factory=f"{_CLASSES}.SpectrumPSNR"),
+        Metric("ssim", "SSIM", "", True, "{:.3f}", factory=f"{_CLASSES}.SpectrumSSIM"),
+        Metric("lpips", "LPIPS", "", False, "{:.3f}", factory=f"{_CLASSES}.SpectrumLPIPS"),
     )
 }
-METRIC_NAMES = tuple(REGISTRY)
 # <split>/n_empty: how many targets were empty (no path: every pixel 0), left out of every mean above
 # (graf.metrics.spectrum_metrics.empty_targets)
 COUNT_NAMES = ("n_empty",)
 # <split>/psnr_swapped: PSNR with every target's neighbors replaced by another target's; <split>/reliance_db:
 # <split>/psnr minus it (how much a method reads its neighbors; None for a method that takes none)
 RELIANCE_NAMES = ("psnr_swapped", "reliance_db")
-EVAL_METRICS = tuple(f"{s}/{m}" for s in ("val", "test") for m in (*METRIC_NAMES, *COUNT_NAMES)) + tuple(
-    f"{s}/{m}" for s in ("val", "test") for m in RELIANCE_NAMES
-)
+
+
+def _derived() -> None:
+    """The names every reader takes from :data:`REGISTRY` (module attributes, kept in step by :func:`register`)."""
+    global METRIC_NAMES, EVAL_METRICS
+    METRIC_NAMES = tuple(REGISTRY)
+    EVAL_METRICS = tuple(f"{s}/{m}" for s in ("val", "test") for m in (*METRIC_NAMES, *COUNT_NAMES)) + tuple(
+        f"{s}/{m}" for s in ("val", "test") for m in RELIANCE_NAMES
+    )
+
+
+METRIC_NAMES: tuple[str, ...] = ()
+EVAL_METRICS: tuple[str, ...] = ()
+_derived()
+
+
+def register(metric: Metric) -> Metric:
+    """Add a metric to :data:`REGISTRY` (docs/extending.md, "Add a metric"): every evaluation computes it from then
+    on, and it reaches ``results.json``, the per-spectrum records, graf-report's tables, intervals and figures.
+    Call it where graf is imported before any run starts: in a plugin (``GRAF_PLUGINS``, :mod:`graf.plugins`)."""
+    if metric.name in REGISTRY or metric.name in COUNT_NAMES + RELIANCE_NAMES:
+        raise ValueError(f"metric {metric.name!r} is registered already")
+    REGISTRY[metric.name] = metric
+    _derived()
+    return metric
 
 
 def check_metric_names(names) -> None:

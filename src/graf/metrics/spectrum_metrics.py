@@ -8,6 +8,8 @@ reduced with ``sum`` across processes; ``compute()`` returns ``total / count``
 
 from __future__ import annotations
 
+import importlib
+import inspect
 import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -19,7 +21,8 @@ from torchmetrics import Metric, MetricCollection
 
 from .functional import mse_per_sample, psnr_per_sample, ssim_per_sample
 from .lpips import get_lpips_model, lpips_distance
-from .names import check_metric_names
+from .names import REGISTRY, check_metric_names
+from .names import Metric as RegisteredMetric
 
 __all__ = [
     "EmptyTargets",
@@ -188,22 +191,39 @@ class SpectrumLPIPS(_SpectrumMean):
         return lpips_distance(pred, target, weights_path=self.weights_path)
 
 
-def spectrum_metrics(prefix: str = "", *, lpips: bool = True, data_range: float = 1.0) -> MetricCollection:
-    """MetricCollection with keys ``mse``, ``psnr``, ``ssim`` (and ``lpips`` unless ``lpips=False``).
+class RegisteredMean(_SpectrumMean):
+    """The mean of a registered metric's per-spectrum function (:class:`graf.metrics.names.Metric`
+    ``per_spectrum``) over the non-empty spectra seen."""
 
-    With ``prefix="test/"``, ``compute()`` returns ``{"test/mse", "test/psnr", "test/ssim", "test/lpips"}``.
-    Compute groups are disabled on purpose: the four metrics have identically named states,
-    and torchmetrics would otherwise merge metrics whose states happen to coincide after
-    the first batch (e.g. MSE and LPIPS both 0 on identical spectra) and then report one
-    metric's value under the other's name.
+    def __init__(self, metric: RegisteredMetric, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.fn = metric.per_spectrum  # (its direction: the registry's, read by the reports)
+
+    def _per_sample(self, pred: Tensor, target: Tensor) -> Tensor:
+        if pred.ndim == 4:
+            pred, target = pred[:, 0], target[:, 0]
+        return self.fn(pred, target)
+
+
+def _build(metric: RegisteredMetric, data_range: float) -> Metric:
+    if metric.per_spectrum is not None:
+        return RegisteredMean(metric)
+    cls = getattr(importlib.import_module(metric.factory.rpartition(".")[0]), metric.factory.rpartition(".")[2])
+    return cls(data_range=data_range) if "data_range" in inspect.signature(cls).parameters else cls()
+
+
+def spectrum_metrics(prefix: str = "", *, lpips: bool = True, data_range: float = 1.0) -> MetricCollection:
+    """MetricCollection of every registered metric (:data:`graf.metrics.names.REGISTRY`: ``mse``, ``psnr``,
+    ``ssim``, ``lpips`` and any registered since; ``lpips=False`` leaves LPIPS out) and ``n_empty``.
+
+    With ``prefix="test/"``, ``compute()`` returns ``{"test/mse", "test/psnr", "test/ssim", "test/lpips", ...}``.
+    Compute groups are disabled on purpose: the metrics have identically named states, and torchmetrics would
+    otherwise merge metrics whose states happen to coincide after the first batch (e.g. MSE and LPIPS both 0 on
+    identical spectra) and then report one metric's value under the other's name.
     """
     metrics: dict[str, Metric] = {
-        "mse": SpectrumMSE(),
-        "psnr": SpectrumPSNR(data_range=data_range),
-        "ssim": SpectrumSSIM(data_range=data_range),
+        name: _build(m, data_range) for name, m in REGISTRY.items() if lpips or name != "lpips"
     }
-    if lpips:
-        metrics["lpips"] = SpectrumLPIPS()
     metrics["n_empty"] = EmptyTargets()
     check_metric_names(metrics)
     return MetricCollection(metrics, prefix=prefix, compute_groups=False)

@@ -28,6 +28,7 @@ import re
 import typing
 import warnings
 from pathlib import Path
+from typing import Protocol, runtime_checkable
 
 import lightning as L
 import torch
@@ -160,17 +161,50 @@ def adam_exponential_decay(module, lr: float, lr_decay: float, decay_steps: int 
     return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step", "frequency": 1}}
 
 
+@runtime_checkable
+class Method(Protocol):
+    """What the platform asks of a method, and all it reads of one (graf-train, graf-eval, the records, the
+    studies): docs/extending.md, "Add a method".  :class:`SpectrumModule` gives every member a default but
+    :meth:`predict_spectra`.
+
+    method: its name in ``results.json``, the tables and the intervals (``graf-ray-weights``, ``knn``).
+    uses_neighbors: whether a prediction reads the neighbors' spectra (then its test also measures its neighbor
+        reliance); False: a per-scene field (NeRF2), trained on one scene and refused on another.
+    has_trainable_parameters: False: nothing is trained (KNN), ``graf-train`` only tests it.
+    INFERENCE_SETTINGS: settings that change how fast it predicts, not what: graf-eval may change them on a
+        trained checkpoint.
+    schedule_record: the learning-rate schedule that ran (``results.json`` ``schedule``), or None.
+    predict_spectra: a batch (``tgt_pos [B, 3]``, ``src_pos [B, L, 3]``, ``src_spectra [B, L, 90, 360]``,
+        ``src_mask [B, L]``, the scene's geometry) -> spectra ``[B, 90, 360]`` in [0, 1].
+    """
+
+    method: str
+    uses_neighbors: bool
+    has_trainable_parameters: bool
+    INFERENCE_SETTINGS: tuple[str, ...]
+    schedule_record: dict | None
+
+    def predict_spectra(self, batch: dict) -> torch.Tensor: ...
+
+
 class SpectrumModule(L.LightningModule):
     """What every method is (GRaF, KNN, KNN-DL, NeRF2): a LightningModule that predicts spectra ``[B, 90, 360]`` in
     [0, 1] from a batch (:meth:`predict_spectra`), is validated and tested on the registered metrics
-    (:mod:`graf.metrics.names`), records its checkpoint layout (``LAYOUT``, ``LAYOUT_CHANGES``) and says whether it
-    reads the neighbors (``uses_neighbors``: then its test also measures its neighbor reliance)."""
+    (:mod:`graf.metrics.names`) and records its checkpoint layout (``LAYOUT``, ``LAYOUT_CHANGES``); the
+    :class:`Method` interface, with a default for every member but :meth:`predict_spectra`."""
 
-    # whether predictions are conditioned on the neighbors' spectra: such a method's test also measures its
-    # neighbor reliance (graf.run.evaluation.swapped_psnr); NeRF2 sets False
-    uses_neighbors = True
+    uses_neighbors = True  # NeRF2 sets False: a per-scene field (its test measures no neighbor reliance)
+    INFERENCE_SETTINGS: tuple[str, ...] = ()
+    schedule_record: dict | None = None  # set by the optimiser's schedule (graf.models.schedule)
     LAYOUT = 1
     LAYOUT_CHANGES: dict[int, str] = {}
+
+    @property
+    def method(self) -> str:
+        """Its name in the records: the class name in kebab case without ``Module`` (``NeighborMean``:
+        ``neighbor-mean``) unless the method says otherwise."""
+        name = type(self).__name__.removesuffix("Module")
+        return "".join(f"-{c.lower()}" if c.isupper() and i else c.lower() for i, c in enumerate(name))
 
     def __init__(self):
         super().__init__()
@@ -229,7 +263,7 @@ class SpectrumModule(L.LightningModule):
         return any(p.requires_grad for p in self.parameters())
 
     def predict_spectra(self, batch: dict) -> torch.Tensor:  # pragma: no cover - abstract
-        raise NotImplementedError
+        raise NotImplementedError(f"{type(self).__name__} must define predict_spectra (graf.models.base.Method)")
 
     def _eval_step(self, batch: dict, metrics) -> dict:
         pred = self.predict_spectra(batch).float().clamp(0.0, 1.0)

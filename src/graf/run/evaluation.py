@@ -60,7 +60,7 @@ def evaluate_model(cfg: DictConfig, model, dm, loggers=()) -> ModelEvaluation:
         interruptible(trainer, trainer.test, model=model, datamodule=dm, verbose=False)
         metrics.update({k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")})
     t2 = time.perf_counter()
-    if cfg.get("reliance", True) and getattr(model, "uses_neighbors", True):
+    if cfg.get("reliance", True) and model.uses_neighbors:
         metrics.update(reliance_figures(cfg, model, dm, metrics, trainer))
     timing = Timing(val_s=round(t1 - t0, 3), test_s=round(t2 - t1, 3), reliance_s=round(time.perf_counter() - t2, 3))
     return ModelEvaluation(record_order(metrics), collector.arrays(), timing)
@@ -145,7 +145,7 @@ def test_baseline(cfg: DictConfig, name: str, bcfg: DictConfig, dm) -> BaselineR
     model = hydra.utils.instantiate(bcfg)
     metrics, arrays, _ = evaluate_model(cfg, model, dm)
     return BaselineResult(
-        method=getattr(model, "method", name),
+        method=model.method,
         scene=dm.scene_name,
         n_test=int(len(arrays["ids"])),
         trainable_parameters=int(sum(p.numel() for p in model.parameters() if p.requires_grad)),

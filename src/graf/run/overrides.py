@@ -81,15 +81,29 @@ def group_values(override) -> list[str]:
     return out
 
 
+def searchpath_dirs(overrides) -> list[Path]:
+    """The config folders a ``hydra.searchpath=[file://DIR, ...]`` override adds (a plugin's configs: a method's
+    ``model/<name>.yaml``, docs/extending.md); ``pkg://`` entries are left to Hydra."""
+    dirs = []
+    for o in overrides:
+        if o.key_or_group == "hydra.searchpath" and not o.is_delete():
+            for value in (v.replace("\\:", ":").strip("'\"") for v in group_values(o)):  # file\:// as Hydra quotes it
+                if value.startswith("file://"):
+                    dirs.append(Path(value[len("file://") :]))
+    return dirs
+
+
 def check_group_values(overrides) -> None:
-    """Every value of a graf config group given on the command line (each value of a sweep) is one of its files."""
+    """Every value of a graf config group given on the command line (each value of a sweep) is one of its files,
+    in graf's config folder or one a ``hydra.searchpath`` override adds."""
+    dirs = [CONF_DIR, *searchpath_dirs(overrides)]
     for o in overrides:
         group = o.key_or_group
         if o.is_delete() or group.startswith("hydra/") or not is_group(group):
             continue
         for value in group_values(o):  # an option in a subfolder of the group (experiment=base/x) is a file too
-            if value != "null" and not (CONF_DIR / group / f"{value}.yaml").is_file():
-                raise unknown_option(group, value, options(group))
+            if value != "null" and not any((d / group / f"{value}.yaml").is_file() for d in dirs):
+                raise unknown_option(group, value, sorted({o for d in dirs for o in options(group, d)}))
 
 
 def first_job(overrides) -> list[str]:
@@ -156,6 +170,8 @@ def check_overrides(config_name: str, args: list[str]) -> None:
     except OverrideParseException as exc:
         raise parse_error(exc) from exc
     check_group_values(overrides)
+    if searchpath_dirs(overrides):  # configs of the user's own folder: Hydra composes them itself
+        return
     try:
         first = first_job(overrides)
     except Exception:  # a sweep that needs Hydra's config loader (glob): Hydra checks it itself

@@ -153,7 +153,7 @@ def fit(built: BuiltRun, step0: int) -> tuple[Timing, Training | None]:
     the fit's timing and the training record.  A SIGTERM or Ctrl+C during the fit stops the command with its
     state saved and the way to resume it."""
     model, trainer, cfg = built.model, built.trainer, built.cfg
-    if not getattr(model, "has_trainable_parameters", True):
+    if not model.has_trainable_parameters:
         log.info("%s has no trainable parameters: nothing to fit, testing directly", type(model).__name__)
         return Timing(), None
     if cfg.get("seed") is not None:  # the fit's global random stream (dropout, ...) from the seed alone, not from

@@ -62,7 +62,7 @@ def run_record(cfg: DictConfig, built: BuiltRun, scenes: list[SceneTest], facts:
     timing = first.model.timing
     if n_test:  # the whole test loop (prediction and the four metrics) per spectrum
         timing = dataclasses.replace(timing, test_s_per_spectrum=round(timing.test_s / n_test, 4))
-    method = getattr(model, "method", type(model).__name__)
+    method = model.method
     train_scenes = trained_scenes(train_dm, facts.finetune)
     return RunRecord(
         method=method,
@@ -99,7 +99,7 @@ def run_record(cfg: DictConfig, built: BuiltRun, scenes: list[SceneTest], facts:
         scene_table=built.scene_table or None,
         regime=str(cfg.regime) if cfg.get("regime") else None,
         per_spectrum=PER_SPECTRUM_FILE if per_spectrum_rows(method, scenes) else None,
-        schedule=getattr(model, "schedule_record", None),
+        schedule=model.schedule_record,
         scene_indices={
             s.scene.eval_scene: {
                 "index": int(s.scene.datamodule.scene_index[0]),

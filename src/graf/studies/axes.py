@@ -85,3 +85,20 @@ AXES: tuple[Axis, ...] = (
     Axis("eval_band", of_evaluation=lambda r, ev: band_label(ev.get("band_hz"))),
 )
 AXIS_NAMES = tuple(a.name for a in AXES)
+
+
+def register(axis: Axis, after: str | None = None) -> Axis:
+    """Add a study axis (docs/extending.md, "Add a study axis"), nested after the axis ``after`` in the tables
+    (default: after the job axes, before the test scene); graf-report's tables, its intervals' cells and the
+    claims ledger read it from then on.  Call it in a plugin (``GRAF_PLUGINS``, :mod:`graf.plugins`), before any
+    report module is imported."""
+    global AXES, AXIS_NAMES
+    if axis.name in AXIS_NAMES:
+        raise ValueError(f"study axis {axis.name!r} is declared already")
+    if (axis.of_job is None) == (axis.of_evaluation is None):
+        raise ValueError(f"study axis {axis.name!r}: give of_job or of_evaluation (one of the two)")
+    names = list(AXIS_NAMES)
+    at = names.index(after) + 1 if after else names.index("eval_scene")
+    AXES = (*AXES[:at], axis, *AXES[at:])
+    AXIS_NAMES = tuple(a.name for a in AXES)
+    return axis

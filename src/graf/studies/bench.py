@@ -320,7 +320,7 @@ def _bench_model(cfg: DictConfig, m: str, scene_name: str, infer: list, train: l
         if cfg.get("seed") is not None:
             L.seed_everything(int(cfg.seed), verbose=False)
         model = hydra.utils.instantiate(mcfg)
-        row["method"] = getattr(model, "method", m)
+        row["method"] = model.method
         row["parameters"] = int(sum(p.numel() for p in model.parameters()))
         row["trainable_parameters"] = int(sum(p.numel() for p in model.parameters() if p.requires_grad))
         row["checkpoint_mb"] = round(checkpoint_mb(model), 3)

@@ -1,0 +1,105 @@
+"""The worked examples of docs/extending.md: a metric, a study axis and a method added by a plugin
+(tests/plugins/toy_plugin.py) through graf's interface only, and seen to reach results.json, the per-spectrum
+records, graf-report's tables, its intervals and a figure."""
+
+from __future__ import annotations
+
+import csv
+import gzip
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PLUGINS = ROOT / "tests" / "plugins"
+
+
+def _run(module: str, *args: str, env: dict) -> None:
+    p = subprocess.run([sys.executable, "-m", module, *args], env=env, capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory) -> Path:
+    """Four jobs of the toy method (L 2 and 4, neighbors dense and sparse), KNN tested beside each, and their report."""
+    sweep = tmp_path_factory.mktemp("extending") / "study"
+    env = {
+        **os.environ,
+        "GRAF_PLUGINS": "toy_plugin",
+        "PYTHONPATH": os.pathsep.join([str(PLUGINS), os.environ.get("PYTHONPATH", "")]),
+        "OMP_NUM_THREADS": "1",
+    }
+    _run(
+        "graf.cli.train",
+        "-m",
+        "model=neighbor_mean",
+        f"hydra.searchpath=[file://{PLUGINS / 'conf'}]",
+        "neighbors.L=2,4",
+        "neighbors.exclude_within=0.0,0.25",
+        "data.test_subset=8",
+        "logger=none",
+        "plot_count=0",
+        "trainer.enable_progress_bar=false",
+        f"hydra.sweep.dir={sweep}",
+        env=env,
+    )
+    _run("graf.cli.report", f"runs={sweep}", f"hydra.run.dir={sweep}/report_logs", env=env)
+    return sweep
+
+
+def test_a_registered_metric_reaches_the_records_the_report_and_a_figure(study):
+    jobs = sorted(study.glob("*/results.json"))
+    assert len(jobs) == 4
+    result = json.loads(jobs[0].read_text())
+    assert result["method"] == "neighbor-mean"  # the method's default name, from its class
+    assert "test/peak_error" in result["metrics"] and "test/peak_error" in result["baselines"]["knn"]["metrics"]
+    with gzip.open(jobs[0].parent / result["per_spectrum"], "rt") as f:
+        rows = list(csv.DictReader(f))
+    assert {r["method"] for r in rows} == {"neighbor-mean", "knn"} and all(float(r["peak_error"]) >= 0 for r in rows)
+    table = (study / "report.md").read_text()
+    assert "peak error" in table
+    intervals = json.loads((study / "intervals.json").read_text())["rows"]
+    paired = [r for r in intervals if r["metric"] == "peak_error" and r["method"] == "neighbor-mean"]
+    assert paired and all(r["vs_knn"]["n_spectra"] == 8 for r in paired)  # paired with KNN over the same spectra
+    report = json.loads((study / "report.json").read_text())
+    assert "vs_L.png" in report["figures"] and "peak error" in report["vs_L"]["neighbor-mean"]["2"]  # a panel of it
+
+
+def test_a_registered_axis_splits_the_tables_and_the_intervals_cells(study):
+    table = (study / "report.md").read_text()
+    assert "exclude_within" in table
+    rows = json.loads((study / "intervals.json").read_text())["rows"]
+    assert {r["exclude_within"] for r in rows} == {"0.0", "0.25"}  # one cell per value, each paired on its own
+    assert json.loads((study / "report.json").read_text())["axes"] == ["L", "exclude_within"]
+
+
+def test_a_method_of_a_plugin_runs_through_the_configs_and_reaches_the_report(study):
+    rows = json.loads((study / "rows.json").read_text())["rows"]
+    assert {r["method"] for r in rows} == {"neighbor-mean", "knn"}
+    mean = [r for r in rows if r["method"] == "neighbor-mean"]
+    assert len(mean) == 4 and all(r["steps"] == "0" for r in mean)  # nothing to train: tested only
+
+
+def test_every_method_of_the_platform_is_a_method():
+    from graf.models.base import Method
+    from graf.models.graf import GRaFModule
+    from graf.models.knn import KNNModule
+    from graf.models.knn_dl import KNNDLModule
+    from graf.models.nerf2 import NeRF2Module
+
+    for model in (
+        GRaFModule(d_model=8),
+        KNNModule(),
+        KNNDLModule(max_rank=4),
+        NeRF2Module(depth=2, width=16, skips=[]),
+    ):
+        assert isinstance(model, Method), type(model).__name__
+        assert model.method and isinstance(model.INFERENCE_SETTINGS, tuple)
+    assert (
+        KNNModule().has_trainable_parameters is False
+        and NeRF2Module(depth=2, width=16, skips=[]).uses_neighbors is False
+    )
