@@ -8,13 +8,13 @@ entry is replaced by them.
 A page asks for a generated block with a directive on a line of its own:
 
 - ``<!-- gen: study NAME -->``: the tables of study ``sweeps/NAME`` (its ``report.json`` and ``rows.json``,
-  written by graf-report), by :func:`graf.studies.published.study_tables` (as ``scripts/study_tables.py``);
+  written by graf-report), by :func:`graf.reports.published.study_tables` (as ``scripts/study_tables.py``);
 - ``<!-- gen: search NAME -->``: the trials of search ``sweeps/NAME`` (``trials.csv``) and the chosen
   configuration's test beside its baselines (``best/best.json``, ``best/results.json``);
 - ``<!-- gen: include PATH -->``: a markdown table a command wrote (``sweeps/learning_curves/curves.md``,
   ``sweeps/compare_rfid_s23/table.md``, ...), included as it is;
 - ``<!-- gen: choose PATH -->``: GRaF's modes ranked on validation from a ``curves.csv``
-  (:func:`graf.studies.published.choose`, as ``scripts/choose_graf.py``);
+  (:func:`graf.reports.published.choose`, as ``scripts/choose_graf.py``);
 - ``<!-- gen: code PATH -->``: a source file of the repository as a code block (the worked examples' plugin);
 - ``<!-- gen: page PATH -->``: a markdown file of the repository (``CONTRIBUTING.md``) as the page's text;
 - ``<!-- gen: layout src -->``: the map of the package (floors, rooms, modules, commands, scripts);
@@ -42,7 +42,7 @@ from mkdocs.exceptions import PluginError
 from mkdocs.structure.files import File
 
 from graf.errors import UserError
-from graf.studies import published
+from graf.reports import published
 
 ROOT = Path(__file__).resolve().parents[1]
 SWEEPS = ROOT / "sweeps"
@@ -160,7 +160,7 @@ def code(path: str) -> str:
 
 
 def choose(path: str) -> str:
-    """GRaF's neighbor-feature mode ranked on validation (:func:`graf.studies.published.choose`), per regime and
+    """GRaF's neighbor-feature mode ranked on validation (:func:`graf.reports.published.choose`), per regime and
     over all."""
     with open(_record(ROOT / path), newline="") as fh:
         rows = list(csv.DictReader(fh))
@@ -184,7 +184,7 @@ def choose(path: str) -> str:
 
 
 def headline(path: str) -> str:
-    """The main job's headline table (:func:`graf.studies.published.headline`), the README's too."""
+    """The main job's headline table (:func:`graf.reports.published.headline`), the README's too."""
     return published.headline(json.loads(_record(ROOT / path).read_text()), path)
 
 

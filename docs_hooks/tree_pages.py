@@ -68,7 +68,7 @@ def summary(path: Path) -> str:
 
 
 def room(mod: str) -> str:
-    """``graf.studies`` for ``graf.studies.report``; a top-level module is its own room."""
+    """``graf.reports`` for ``graf.reports.study``; a top-level module is its own room."""
     return ".".join(mod.split(".")[:2])
 
 

@@ -7,7 +7,7 @@ the best mean rank over the figures of the regimes considered, ties broken by th
 the choice per regime and over all regimes together (a regime where some mode has no point yet is named and
 left out).  The 150-position studies took regime (b)'s choice, ``cross_family``; the paper-density studies take
 regime (c)'s, ``cross_family_paper``; the main job takes regime (a)'s, ``rfid_sparse``.
-The rule is :func:`graf.studies.published.choose`, applied per regime by ``choose_per_regime`` (the site's
+The rule is :func:`graf.reports.published.choose`, applied per regime by ``choose_per_regime`` (the site's
 table of the choice uses it too).
 
 Options: ``--regime R`` only that regime; ``--max-step N`` only the points at or below N steps (the main job's
@@ -26,7 +26,7 @@ import sys
 from pathlib import Path
 
 from graf.errors import UserError
-from graf.studies.published import best_step, choose_per_regime, still_gaining
+from graf.reports.published import best_step, choose_per_regime, still_gaining
 
 
 def main() -> None:

@@ -65,8 +65,8 @@ if [ $TINY -eq 1 ]; then  # toy sizes, the embedded scene only, on whatever devi
     TRAIN=(experiment=graf_rfid_s23 trainer=cpu trainer.max_steps=2 model.rays_per_step=64 model.max_samples=4
         data.batch_size=2 "baselines={}" plot_count=1 data.test_subset=2 logger=none)
 fi
-step bench_fp32 "$PY" -m graf.cli.bench "${BENCH[@]}" precision=32 hydra.run.dir="$OUT/bench_fp32"
-step bench_bf16 "$PY" -m graf.cli.bench "${BENCH[@]}" precision=bf16 hydra.run.dir="$OUT/bench_bf16"
+step bench_fp32 "$PY" -m graf.cli.studies.bench "${BENCH[@]}" precision=32 hydra.run.dir="$OUT/bench_fp32"
+step bench_bf16 "$PY" -m graf.cli.studies.bench "${BENCH[@]}" precision=bf16 hydra.run.dir="$OUT/bench_bf16"
 step main_job "$PY" -m graf.cli.train "${TRAIN[@]}" hydra.run.dir="$OUT/main_job"
 
 "$PY" - "$OUT" "$DEVICE" "$TINY" "${STEPS[@]}" <<'EOF'

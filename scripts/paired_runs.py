@@ -1,5 +1,5 @@
 """Two runs of one method on the same test spectra, paired: run A minus run B per metric (95% interval, bootstrap over
-spectra: graf.studies.intervals.paired_difference), from their per_spectrum.csv.gz.
+spectra: graf.reports.statistics.paired_difference), from their per_spectrum.csv.gz.
 
 python scripts/paired_runs.py RUN_A RUN_B [method]
 
@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 from graf.metrics.names import REGISTRY
-from graf.studies.intervals import paired_difference
+from graf.reports.statistics import paired_difference
 
 
 def rows(folder: Path) -> list[dict]:

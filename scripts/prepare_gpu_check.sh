@@ -27,7 +27,7 @@ rm -rf "$DIR.tmp" && mkdir -p "$DIR.tmp/wheels" "$DIR.tmp/data/sim/conference_v1
 cp "$("$PY" -c 'from graf.metrics.lpips_weights import find_weights; print(find_weights())')" "$DIR.tmp/lpips.ckpt"
 ROOM=data/sim/conference_v1/2.4ghz-n64.h5
 if [ ! -f "$ROOM" ]; then
-    "$PY" -m graf.cli.simulate scene=conference_v1 band=2.4ghz sim.num_tx=64 data_root=data \
+    "$PY" -m graf.cli.sim.simulate scene=conference_v1 band=2.4ghz sim.num_tx=64 data_root=data \
         hydra.run.dir="$DIR.tmp/simulate"
 fi
 cp "$ROOM" "$DIR.tmp/$ROOM"

@@ -20,7 +20,7 @@ cp -r "$DIR.base/wheels" "$DIR.base/lpips.ckpt" "$DIR.tmp/"
 rm -rf "$DIR.base"
 for s in $SCENES; do
     f=data/sim/$s/2.4ghz.h5
-    [ -f "$f" ] || "$PY" -m graf.cli.simulate scene="$s" band=2.4ghz data_root=data hydra.run.dir="$DIR.tmp/simulate_$s"
+    [ -f "$f" ] || "$PY" -m graf.cli.sim.simulate scene="$s" band=2.4ghz data_root=data hydra.run.dir="$DIR.tmp/simulate_$s"
     "$PY" -m graf.sim.slim slim "$f" "$DIR.tmp/catalog/${s}__2.4ghz.slim.h5"
 done
 (cd "$DIR.tmp" && find . -type f ! -name MANIFEST.txt | sort | xargs sha256sum > MANIFEST.txt)

@@ -10,8 +10,8 @@ import hydra
 import torch
 from hydra import compose, initialize_config_dir
 
+from graf.app.config import CONF_DIR
 from graf.run.build import build_datamodule
-from graf.run.config import CONF_DIR
 
 torch.set_num_threads(2)
 scene = sys.argv[1] if len(sys.argv) > 1 else "rfid_s23"

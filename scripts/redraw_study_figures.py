@@ -15,7 +15,7 @@ import json
 import sys
 from pathlib import Path
 
-from graf.studies.report_figures import band_figure, curve_figure, matrix_figures
+from graf.reports.figures import band_figure, curve_figure, matrix_figures
 
 CURVES = {  # report.json key -> (x label, file name prefix)
     "vs_L": ("neighbors L at test", "vs_L"),

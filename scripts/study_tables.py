@@ -1,5 +1,5 @@
 """Compact markdown views of a published study, for its README section: read from the study's report.json and
-rows.json (written by graf-report), nothing recomputed (the tables are :func:`graf.studies.published.study_tables`,
+rows.json (written by graf-report), nothing recomputed (the tables are :func:`graf.reports.published.study_tables`,
 the same the site shows).
 
     python scripts/study_tables.py sweeps/cross_scene_matrix      # train x test matrix per metric
@@ -15,7 +15,7 @@ import json
 import sys
 from pathlib import Path
 
-from graf.studies.published import study_tables
+from graf.reports.published import study_tables
 
 
 def main() -> None:

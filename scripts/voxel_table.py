@@ -16,7 +16,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from graf.run.config import CONF_DIR, scene_band_config, single_scene_config
+from graf.app.config import CONF_DIR, scene_band_config, single_scene_config
 from graf.sim.array import rotation_from_axes
 
 SCENES = ["rfid_s23", "small_room", "bedroom", "conference_v1", "office_v1", "outdoor"]

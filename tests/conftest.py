@@ -8,8 +8,8 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 
+from graf.app.config import CONF_DIR
 from graf.data.nerf2_format import write_nerf2_folder
-from graf.run.config import CONF_DIR
 
 os.environ.setdefault("WANDB_MODE", "offline")
 os.environ.setdefault("WANDB_SILENT", "true")
@@ -86,7 +86,7 @@ def compose_cfg(tmp_path):
 def small_room_root(tmp_path_factory):
     """A data_root holding 24 ray-traced positions of small_room at 2.4 GHz (graf-simulate's code):
     ``scene.small_room.num_tx=24`` (or ``sim_num_tx=24``) reads them."""
-    from graf.sim_commands.simulate import simulate
+    from graf.sim.simulate import simulate
 
     root = tmp_path_factory.mktemp("data")
     GlobalHydra.instance().clear()

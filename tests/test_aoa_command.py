@@ -22,7 +22,10 @@ def test_graf_aoa_reads_a_saved_run_and_reports_the_three_errors(tmp_path):
     assert p.returncode == 0, p.stderr[-2000:]
     out = tmp_path / "aoa"
     p = subprocess.run(
-        [py, "-m", "graf.cli.aoa", f"runs=[{run}]", f"hydra.run.dir={out}"], capture_output=True, text=True, timeout=600
+        [py, "-m", "graf.cli.case_studies.aoa", f"runs=[{run}]", f"hydra.run.dir={out}"],
+        capture_output=True,
+        text=True,
+        timeout=600,
     )
     assert p.returncode == 0, p.stderr[-2000:]
     r = json.loads((out / "results.json").read_text())["runs"][0]
@@ -35,7 +38,7 @@ def test_graf_aoa_reads_a_saved_run_and_reports_the_three_errors(tmp_path):
 
 
 def test_graf_aoa_names_a_folder_without_predictions(tmp_path):
-    from graf.cases.aoa import run_errors
+    from graf.case_studies.aoa import run_errors
     from graf.errors import ConfigError
 
     (tmp_path / "results.json").write_text("{}")
@@ -47,7 +50,7 @@ def test_graf_aoa_names_a_folder_without_predictions(tmp_path):
 def test_graf_aoa_adds_the_knn_baseline_on_the_runs_own_positions_and_neighbors(tmp_path):
     """A study job keeps only its model's predictions; graf-aoa re-evaluates the KNN it was tested beside
     (``baselines.knn``) on the same test positions and neighbors: its PSNR is the run's own KNN figure."""
-    from graf.cases.aoa import knn_errors
+    from graf.case_studies.aoa import knn_errors
 
     run = tmp_path / "run"
     p = subprocess.run(

@@ -17,11 +17,11 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
+from graf.app.output_folder import OutputFolderCheck
 from graf.errors import WriteError
 from graf.io import atomic_write_json
 from graf.models.base import CheckpointError, read_checkpoint
 from graf.run.evaluate import load_checkpoint_model
-from graf.run.output_folder import OutputFolderCheck
 from graf.run.train import train
 
 BIN = Path(sys.executable).parent

@@ -58,7 +58,7 @@ def test_a_seed_numpy_refuses_is_one_line_and_a_finished_run_stays(monkeypatch, 
 
 
 def test_graf_bench_refuses_such_a_seed_before_it_runs(monkeypatch, capsys, tmp_path):
-    from graf.cli import bench as graf_bench
+    from graf.cli.studies import bench as graf_bench
 
     code, err = _main(monkeypatch, capsys, graf_bench.main, "seed=-1", "quick=true", f"hydra.run.dir={tmp_path}")
     assert code == 2

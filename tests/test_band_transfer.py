@@ -9,8 +9,8 @@ import json
 import numpy as np
 import pytest
 
+from graf.reports.intervals import write_intervals
 from graf.run.per_spectrum import write_per_spectrum
-from graf.studies.report_intervals import write_intervals
 
 BANDS = {"1.8ghz": 1.8e9, "2.4ghz": 2.412e9}
 IDS = list(range(300, 420))
@@ -85,8 +85,8 @@ def test_the_ledger_judges_the_band_claim_from_the_transfers(tmp_path, loss, ver
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    from graf.run.config import CONF_DIR
-    from graf.studies.claims import judge
+    from graf.app.config import CONF_DIR
+    from graf.reports.claims import judge
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         claims = OmegaConf.to_container(compose("claims").claims, resolve=True)
@@ -103,7 +103,7 @@ def test_the_ledger_judges_the_band_claim_from_the_transfers(tmp_path, loss, ver
 
 def test_a_band_claim_with_an_unknown_direction_is_a_clear_error(tmp_path):
     from graf.errors import ConfigError
-    from graf.studies.claims import judge
+    from graf.reports.claims import judge
 
     _bands_study(tmp_path / "runs", cross_band_loss=1.0)
     write_intervals(tmp_path / "runs", tmp_path)

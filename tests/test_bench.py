@@ -14,8 +14,8 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.errors import HydraException
 
 import graf.studies.bench as bench_cli
+from graf.app.config import CONF_DIR
 from graf.errors import ConfigError
-from graf.run.config import CONF_DIR
 from graf.studies.bench import bench, ensure_simulated, scene_and_band
 from graf.studies.bench_load import Competitor, LoadMeter, disturbances, spread
 from graf.studies.bench_report import add_ratios

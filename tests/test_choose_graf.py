@@ -1,4 +1,4 @@
-"""graf.studies.published.choose (scripts/choose_graf.py, the site): the studies' GRaF is chosen from validation
+"""graf.reports.published.choose (scripts/choose_graf.py, the site): the studies' GRaF is chosen from validation
 curves by a fixed rule."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from graf.errors import UserError
-from graf.studies import published as choose_graf
+from graf.reports import published as choose_graf
 
 
 def _row(regime, method, step, psnr, ssim, lpips):

@@ -11,10 +11,10 @@ import numpy as np
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from graf.run.config import CONF_DIR
+from graf.app.config import CONF_DIR
+from graf.reports.claims import ledger, write_ledger
+from graf.reports.intervals import write_intervals
 from graf.run.per_spectrum import write_per_spectrum
-from graf.studies.claims import ledger, write_ledger
-from graf.studies.report_intervals import write_intervals
 
 SCENES = {"conference_v1": ["conference_v2", "conference_v3"], "office_v1": ["office_v2", "office_v3"]}
 
@@ -153,7 +153,7 @@ def test_the_published_ledger_is_what_the_published_records_give():
 def test_a_target_row_judges_a_ratio_against_its_own_figure_and_says_by_how_much():
     """An issue's target (``against``) read as the ratio of two figures of a record (``over``): below the target
     the row says by how much it missed, and a lower-is-better target holds at or below its figure."""
-    from graf.studies.claims import judge_value
+    from graf.reports.claims import judge_value
 
     record = {"rows": [{"s": 1.0, "slow": 2.5}, {"s": 1.5}]}
     faster = {"key": "rows.1.s", "over": "rows.0.s", "paper_value": 3.0, "against": "the target's"}

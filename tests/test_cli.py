@@ -15,13 +15,13 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
+from graf.app.config import CONF_DIR, CONF_PATH, scene_band_config, scene_configs
 from graf.data.spectrum_set import DataFormatError
 from graf.errors import ConfigError
+from graf.reports.table import make_table
 from graf.run.build import model_config_for_neighbors
-from graf.run.config import CONF_DIR, CONF_PATH, scene_band_config, scene_configs
 from graf.run.evaluate import evaluate
 from graf.run.train import train
-from graf.studies.table import make_table
 
 RESULT_KEYS = {"method", "scene", "band_hz", "n_train", "n_test", "metrics", "seconds", "config", "splits"}
 TEST_KEYS = {"test/mse", "test/psnr", "test/ssim", "test/lpips"}
@@ -235,7 +235,7 @@ def test_table_collects_runs(compose_cfg, tmp_path):
 
 
 def test_table_of_cross_scene_runs_has_a_row_per_test_scene_and_no_scene_config_columns():
-    from graf.studies.table import build_table
+    from graf.reports.table import build_table
 
     def run(trained, tested, psnrs, L):
         scenes = {n: {"name": n, "room": {"size": [i + 5.0, 4.0, 3.0]}} for i, n in enumerate(trained)}

@@ -139,9 +139,9 @@ def test_how_many_spectra_are_tested_has_one_setting():
     second way to say it that also cut validation, is refused in one line naming the first."""
     import numpy as np
 
+    from graf.app.config import check_run_settings
     from graf.data.scene_rows import seeded_subset
     from graf.errors import ConfigError
-    from graf.run.config import check_run_settings
 
     test = np.arange(10, 20)
     assert seeded_subset(test, 3, None, "s").tolist() == [10, 11, 12]

@@ -133,7 +133,7 @@ def test_true_and_predicted_spectra_share_one_scale_with_a_colour_bar(monkeypatc
 
 
 def test_a_studys_matrices_share_one_scale_across_methods(tmp_path, monkeypatch):
-    from graf.studies import report_figures
+    from graf.reports import figures as report_figures
 
     figs = []
     real_plt = report_figures.plt

@@ -26,7 +26,7 @@ def test_curves_run_resume_and_validate_only(tmp_path, make_scene):
     args = [
         sys.executable,
         "-m",
-        "graf.cli.curves",
+        "graf.cli.studies.curves",
         f"out={out}",
         "threads=1",
         "steps=[1,2]",
@@ -159,7 +159,7 @@ def test_a_checkpoint_interval_under_one_step_stops_with_one_line(tmp_path):
         [
             sys.executable,
             "-m",
-            "graf.cli.curves",
+            "graf.cli.studies.curves",
             f"out={tmp_path}",
             "checkpoint_every=0",
             f"hydra.run.dir={tmp_path / 'h'}",
@@ -183,7 +183,7 @@ def test_nerf2_has_a_curve_only_in_the_single_scene_regime():
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    from graf.run.config import CONF_DIR
+    from graf.app.config import CONF_DIR
     from graf.studies.curves import regime_methods
 
     GlobalHydra.instance().clear()

@@ -10,9 +10,9 @@ from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
-from graf.run.config import CONF_DIR
-from graf.studies.report import make_report
-from graf.studies.report_rows import spacing_for
+from graf.app.config import CONF_DIR
+from graf.reports.rows import spacing_for
+from graf.reports.study import make_report
 
 
 def test_the_density_experiment_trains_from_scratch_on_a_measured_fraction():

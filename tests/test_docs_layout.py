@@ -93,7 +93,7 @@ def test_the_hooks_are_outside_the_published_folder_and_load_no_script_by_path()
         used = {n.attr for n in ast.walk(tree) if isinstance(n, ast.Attribute)}
         used |= {n.id for n in ast.walk(tree) if isinstance(n, ast.Name)}
         assert not {"spec_from_file_location", "exec_module", "run_path", "exec"} & used, path.name
-    assert "from graf.studies import published" in (ROOT / "docs_hooks" / "hooks.py").read_text()
+    assert "from graf.reports import published" in (ROOT / "docs_hooks" / "hooks.py").read_text()
 
 
 def top_level_names(path: Path) -> set[str]:
@@ -278,7 +278,7 @@ def test_the_readme_headline_is_the_published_main_job_record():
     table Home and Getting started include: the three cannot disagree."""
     import json
 
-    from graf.studies.published import HEADLINE, HEADLINE_MARKERS, headline, with_headline
+    from graf.reports.published import HEADLINE, HEADLINE_MARKERS, headline, with_headline
 
     record = json.loads((ROOT / HEADLINE).read_text())
     readme = (ROOT / "README.md").read_text()

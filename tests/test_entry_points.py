@@ -17,11 +17,11 @@ from hydra import compose, initialize_config_dir
 from hydra.errors import MissingConfigException
 from omegaconf import OmegaConf
 
+from graf.app.config import CONF_DIR
+from graf.app.overrides import RENAMED_KEYS, modernize
 from graf.cli import evaluate as graf_eval
 from graf.cli import train as graf_train
 from graf.errors import user_message
-from graf.run.config import CONF_DIR
-from graf.run.overrides import RENAMED_KEYS, modernize
 
 BIN = Path(sys.executable).parent
 HINT = "(HYDRA_FULL_ERROR=1 shows the full traceback)"

@@ -14,6 +14,7 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from graf.app.config import CONF_DIR
 from graf.bands import Band
 from graf.data.datamodule import SpectrumDataModule
 from graf.data.neighbors import NeighborSelector
@@ -22,7 +23,6 @@ from graf.geometry.encoding import PositionalEncoding, normalize_positions
 from graf.geometry.rays import num_samples, random_pixels
 from graf.models.graf import CrossAttentionBlock, GRaFModule, ResNetEncoder, SelfAttentionBlock
 from graf.models.knn import KNNModule
-from graf.run.config import CONF_DIR
 
 UHF = Band(name="915mhz", frequency_hz=915e6)
 

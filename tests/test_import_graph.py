@@ -6,15 +6,21 @@ a lazy import is still a dependency), so it needs no heavy import and sees modul
 Floors, top to bottom (a module may import its own floor and those below, never one above; the rooms of one
 floor do not import each other):
 
-- ``graf.cli``: the commands, thin Hydra entry points;
-- ``graf.studies`` (tools over many runs: tables, reports, curves, Pareto fronts, benchmarks) and ``graf.cases``
-  (the case studies: AoA, localization, interpolation, the oracle, synthesis);
-- ``graf.sim_commands``: the simulator's commands (simulate, benchmark it, show the scenes);
-- ``graf.run``: one run (its config, building, training, evaluation, record);
-- ``graf.search``: the hyperparameter searches' machinery (the Optuna sweeper, objectives, pruning);
-- everything else (data, models, metrics, geometry, simulation, plotting, callbacks, errors, io).
+- ``graf.cli``: the commands, thin Hydra entry points (``cli.studies``, ``cli.case_studies``, ``cli.sim`` by kind);
+- ``graf.studies`` (tools that run many runs: learning curves, Pareto fronts, benchmarks) and
+  ``graf.case_studies`` (AoA, localization, interpolation, the oracle, synthesis);
+- ``graf.reports``: reports over the records of many runs (graf-report, graf-table, graf-claims, the axes);
+- ``graf.sweeper``: the Optuna sweeper, above the runs it drives;
+- ``graf.run``: one run (building, training, evaluation, record);
+- ``graf.search``: what a run of a search needs (objectives, pruning);
+- everything else, the ground floor: the command framework (``graf.app``), data, models, metrics, geometry, the
+  simulator and its tasks, plotting, callbacks, errors, io.
 
 ``hydra_plugins`` sits beside ``graf.cli`` (it only registers the sweeper with Hydra).
+
+A study starts commands as a user would, in a subprocess, never by importing them: every such launch goes through
+:func:`graf.app.launch.command` with the command's name (``command("graf-train", ...)``), which the graph reads as
+an edge of its own kind (:func:`launches`); no other module names a command's module in a string.
 """
 
 from __future__ import annotations
@@ -25,7 +31,14 @@ from pathlib import Path
 import pytest
 
 SRC = Path(__file__).resolve().parents[1] / "src"
-FLOORS = (("graf.cli",), ("graf.studies", "graf.cases"), ("graf.sim_commands",), ("graf.run",), ("graf.search",))
+FLOORS = (
+    ("graf.cli",),
+    ("graf.studies", "graf.case_studies"),
+    ("graf.reports",),
+    ("graf.sweeper",),
+    ("graf.run",),
+    ("graf.search",),
+)
 # top first; anything else in graf is the ground floor
 CLI_MAX_LINES = 110
 
@@ -84,7 +97,7 @@ def floor(mod: str) -> int:
 
 def room(mod: str) -> str:
     """The room (top-level package of graf, or module) a module lives in: ``graf.studies`` for
-    ``graf.studies.report``."""
+    ``graf.reports.study``."""
     return ".".join(mod.split(".")[:2])
 
 
@@ -126,7 +139,7 @@ def test_the_graph_reader_sees_lazy_and_relative_imports():
     assert "graf.run.train" in graph["graf.cli.train"]
     assert (
         floor("graf.cli.train")
-        < floor("graf.studies.report")
+        < floor("graf.reports.study")
         < floor("graf.run.build")
         < floor("graf.search.objectives")
     )
@@ -154,7 +167,7 @@ def test_rooms_of_one_floor_do_not_import_each_other():
     assert sideways == []
 
 
-@pytest.mark.parametrize("path", sorted((SRC / "graf" / "cli").glob("*.py")), ids=lambda p: p.name)
+@pytest.mark.parametrize("path", sorted((SRC / "graf" / "cli").rglob("*.py")), ids=lambda p: p.name)
 def test_every_command_file_is_thin(path):
     n = len(path.read_text().splitlines())
     assert n <= CLI_MAX_LINES, f"{path.name}: {n} lines; its logic belongs in graf.run"
@@ -165,7 +178,7 @@ MODULE_MAX_LINES = 400
 FUNCTION_MAX_LINES = 60
 # the Hydra sweeper implements Hydra's Sweeper interface for Optuna in one place: launch, tell, resume, heartbeat
 # and the study's files belong together, and splitting the class would scatter one protocol over several files
-LONG_MODULES = {"graf.search.optuna_sweeper"}
+LONG_MODULES = {"graf.sweeper.optuna_sweeper"}
 
 
 def test_no_module_is_over_the_size_limit():
@@ -204,3 +217,74 @@ def test_no_private_name_is_imported_from_another_module():
                     if a.name.startswith("_") and not a.name.startswith("__")
                 ]
     assert private == []
+
+
+# --- launches: a study starts commands in a subprocess (graf.app.launch.command), never by importing them
+LAUNCHERS = ("graf.studies", "graf.case_studies", "graf.reports")  # the rooms that may start commands
+
+
+def launches() -> dict[str, set[str]]:
+    """``{module: {command module}}``: every ``command("graf-...", ...)`` call of the package, read from the source
+    and resolved through graf's console scripts (:func:`graf.app.launch.commands`)."""
+    from graf.app.launch import module
+
+    out: dict[str, set[str]] = {}
+    for mod, path in _modules().items():
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if not isinstance(node, ast.Call) or not node.args:
+                continue
+            name = node.func.id if isinstance(node.func, ast.Name) else getattr(node.func, "attr", None)
+            first = node.args[0]
+            if name == "command" and isinstance(first, ast.Constant) and str(first.value).startswith("graf-"):
+                out.setdefault(mod, set()).add(module(first.value))
+    return out
+
+
+def test_the_graph_reader_sees_launches():
+    found = launches()
+    assert "graf.cli.train" in found["graf.studies.curves"]
+    assert {"graf.cli.train", "graf.cli.evaluate", "graf.cli.sim.simulate"} <= found["graf.studies.pareto"]
+
+
+def test_every_launch_goes_from_a_study_down_to_a_command():
+    wrong = sorted(
+        f"{m} -> {c}" for m, cs in launches().items() for c in cs if room(m) not in LAUNCHERS or room(c) != "graf.cli"
+    )
+    assert wrong == []
+
+
+def test_no_module_starts_a_command_but_through_the_launcher():
+    """A command's module named in a string (``"-m", "graf.cli.train"``) is a launch the graph cannot see."""
+    import re
+
+    named = []
+    for mod, path in _modules().items():
+        if mod == "graf.app.launch":
+            continue
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if isinstance(node, ast.Constant) and isinstance(node.value, str):
+                if re.fullmatch(r"graf\.cli(\.\w+)+", node.value):
+                    named.append(f"{mod}: {node.value}")
+    assert named == []
+
+
+def test_the_launcher_knows_every_console_script():
+    import re
+
+    from graf.app.launch import commands
+
+    section = (SRC.parent / "pyproject.toml").read_text().split("[project.scripts]", 1)[1].split("\n[", 1)[0]
+    scripts = dict(re.findall(r'^(graf-[\w-]+)\s*=\s*"([\w.]+):\w+"', section, re.M))
+    assert commands() == scripts
+
+
+ROOM_MAX_MODULES = 12  # modules of one folder of the package, its __init__ counted
+
+
+def test_no_room_holds_more_than_twelve_modules():
+    big = {
+        str(d.relative_to(SRC)): n
+        for d in sorted(p for p in (SRC / "graf").rglob("*") if p.is_dir() and "conf" not in p.parts)
+        if (n := len(list(d.glob("*.py")))) > ROOM_MAX_MODULES
+    }
+    assert big == {}, f"folders of more than {ROOM_MAX_MODULES} modules: {big}"

@@ -10,8 +10,8 @@ import numpy as np
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 
-from graf.cases.interp import run
-from graf.run.config import CONF_DIR
+from graf.app.config import CONF_DIR
+from graf.case_studies.interpolation import run
 
 
 def _cfg(tmp_path: Path, *overrides: str):
@@ -60,7 +60,7 @@ def test_interp_on_a_traced_room_measures_fine_scales_and_the_curvature(tmp_path
     nf = s["kmap_near_far"]
     assert nf["near"]["n"] + nf["open"]["n"] + nf["inside_objects"] <= np.array(s["kmap"]["K"]).size
     # resumable per scene: a second invocation into the same folder keeps the finished scene, tracing nothing
-    import graf.cases.interp as interp
+    import graf.case_studies.interpolation as interp
 
     def no_trace(*a, **k):
         raise AssertionError("a finished scene was traced again")
@@ -74,7 +74,7 @@ def test_a_layout_variants_removed_objects_are_left_out_of_the_map():
     """conference_v2 removes chairs by setting them to null (graf-interp once failed on it)."""
     from types import SimpleNamespace
 
-    from graf.cases.interp import footprints
+    from graf.case_studies.interpolation import footprints
 
     room = SimpleNamespace(objects={"chair": None, "table": {"center": [1, 2, 0.7], "size": [1, 1, 0.1]}})
     assert footprints(room) == [{"center": [1, 2, 0.7], "size": [1, 1, 0.1]}]
@@ -84,8 +84,8 @@ def test_a_layout_variants_removed_objects_are_left_out_of_the_map():
 def test_the_k_map_is_split_into_points_near_walls_or_objects_and_open_space():
     from types import SimpleNamespace
 
-    from graf.cases.interp import near_far
-    from graf.sim.geometry import Box, SceneGeometry
+    from graf.case_studies.interpolation import near_far
+    from graf.geometry.shapes import Box, SceneGeometry
 
     xs = ys = [0.5, 1.5, 2.5, 3.5]  # a 4 x 4 m room, 1 m grid at z = 1
     K = [[10.0 if (x in (0.5, 3.5) or y in (0.5, 3.5)) else 1.0 for x in xs] for y in ys]  # high along the walls

@@ -1,4 +1,4 @@
-"""Paired intervals (graf.studies.intervals) and per-spectrum records (graf.run.per_spectrum): the bootstrap
+"""Paired intervals (graf.reports.statistics) and per-spectrum records (graf.run.per_spectrum): the bootstrap
 interval of a known paired difference covers it, the seed spread widens it, the verdicts follow the interval and
 the metric's direction, mismatched test subsets are refused, and the records round-trip."""
 
@@ -9,8 +9,8 @@ import gzip
 import numpy as np
 import pytest
 
+from graf.reports.statistics import PairingError, paired_difference, summary, verdict
 from graf.run.per_spectrum import predictions_sha256, read_per_spectrum, write_per_spectrum
-from graf.studies.intervals import PairingError, paired_difference, summary, verdict
 
 
 def _runs(values: np.ndarray, ids) -> list[dict]:
@@ -104,7 +104,7 @@ def test_per_spectrum_records_round_trip_and_predictions_hash_by_content(tmp_pat
 
 
 def test_a_baseline_tested_in_two_jobs_may_differ_by_float_rounding_only():
-    from graf.studies.report_intervals import same_baseline
+    from graf.reports.intervals import same_baseline
 
     ids = ["1", "2", "3"]
     a = {"psnr": dict(zip(ids, (22.5, 23.1, 21.0))), "ssim": dict(zip(ids, (0.8, 0.81, 0.79)))}

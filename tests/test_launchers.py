@@ -66,7 +66,7 @@ def test_the_slurm_preset_composes_with_the_cluster_settings():
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    from graf.run.config import CONF_DIR
+    from graf.app.config import CONF_DIR
 
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):

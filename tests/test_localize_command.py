@@ -33,7 +33,7 @@ def _check_group(g: dict, inits: set[str]) -> None:
 def test_graf_localize_on_a_knn_run_resumes_and_reports_each_initialisation(tmp_path):
     run, out, data = tmp_path / "knn", tmp_path / "loc", tmp_path / "data"
     _run("graf.cli.evaluate", "model=knn", "logger=none", "plot_count=0", f"hydra.run.dir={run}", f"data_root={data}")
-    p = _run("graf.cli.localize", f"runs=[{run}]", *SMALL, f"hydra.run.dir={out}", f"data_root={data}")
+    p = _run("graf.cli.case_studies.localization", f"runs=[{run}]", *SMALL, f"hydra.run.dir={out}", f"data_root={data}")
     res = json.loads((out / "results.json").read_text())
     (g,) = res["groups"]
     _check_group(g, {"random", "knn"})
@@ -44,7 +44,7 @@ def test_graf_localize_on_a_knn_run_resumes_and_reports_each_initialisation(tmp_
     assert g["inits"]["knn"]["quality_n_test"] == 40
     assert 0 < g["seconds"] <= res["seconds"]  # the group's wall time, and the command's over its invocations
     # a second invocation finds the group done and trains nothing again
-    p = _run("graf.cli.localize", f"runs=[{run}]", *SMALL, f"hydra.run.dir={out}", f"data_root={data}")
+    p = _run("graf.cli.case_studies.localization", f"runs=[{run}]", *SMALL, f"hydra.run.dir={out}", f"data_root={data}")
     assert "already in" in p.stderr + p.stdout
     assert json.loads((out / "results.json").read_text())["groups"] == res["groups"]
 
@@ -55,7 +55,7 @@ def test_graf_localize_loads_a_trained_run_from_its_checkpoint(tmp_path):
     _run("graf.cli.train", "model=knn_dl", "trainer.max_steps=2", "logger=none", "plot_count=0", "reliance=false",
          f"hydra.run.dir={run}", f"data_root={data}")  # fmt: skip
     assert (run / "checkpoints" / "last.ckpt").is_file()
-    _run("graf.cli.localize", f"runs=[{run}]", *SMALL, f"hydra.run.dir={out}", f"data_root={data}")
+    _run("graf.cli.case_studies.localization", f"runs=[{run}]", *SMALL, f"hydra.run.dir={out}", f"data_root={data}")
     (g,) = json.loads((out / "results.json").read_text())["groups"]
     _check_group(g, {"random", "knn-dl", "knn"})  # KNN on the same pool joins the trained run's group
     assert np.isfinite(g["inits"]["knn-dl"]["quality_psnr"])
@@ -80,15 +80,15 @@ def test_graf_localize_quality_on_a_jobs_own_test_budget_equals_its_test_psnr(tm
     res = json.loads((run / "results.json").read_text())
     n = res["n_test"]
     assert n == 12
-    _run("graf.cli.localize", f"runs=[{run}]", *SMALL, f"quality_test_count={n}", f"hydra.run.dir={out}",
-         f"data_root={data}")  # fmt: skip
+    _run("graf.cli.case_studies.localization", f"runs=[{run}]", *SMALL, f"quality_test_count={n}",
+         f"hydra.run.dir={out}", f"data_root={data}")  # fmt: skip
     (g,) = json.loads((out / "results.json").read_text())["groups"]
     assert g["n_test"] == 40 and g["inits"]["knn"]["quality_n_test"] == n
     assert g["inits"]["knn"]["quality_psnr"] == pytest.approx(res["metrics"]["test/psnr"], abs=1e-3)
     # the same folder with another setting, or more quality spectra than the test split holds: one line each
     for bad in ("quality_test_count=5", "quality_test_count=41"):
         out2 = out if bad.endswith("5") else tmp_path / "loc2"
-        p = subprocess.run([sys.executable, "-m", "graf.cli.localize", f"runs=[{run}]", *SMALL, bad,
+        p = subprocess.run([sys.executable, "-m", "graf.cli.case_studies.localization", f"runs=[{run}]", *SMALL, bad,
                             f"hydra.run.dir={out2}", f"data_root={data}"], capture_output=True, text=True)  # fmt: skip
         assert p.returncode != 0
         assert ("other quality_test_count" if bad.endswith("5") else "test split holds 40") in p.stderr + p.stdout

@@ -461,7 +461,7 @@ def test_a_preempted_job_stops_a_studys_multirun_and_is_recorded(tmp_path):
     from omegaconf import OmegaConf
 
     from graf.errors import Preempted
-    from graf.studies.table import SweepTable
+    from graf.reports.table import SweepTable
 
     def job(exc, num, **extra):
         cfg = OmegaConf.create(

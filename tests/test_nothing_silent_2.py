@@ -181,7 +181,7 @@ def test_an_undeclared_metric_is_refused_and_every_computed_figure_is_recorded(m
 def test_a_fifth_registered_metric_reaches_the_curve_figures(monkeypatch, tmp_path):
     import matplotlib.pyplot as plt
 
-    from graf.studies import report_figures
+    from graf.reports import figures as report_figures
 
     metrics = (*report_figures.METRICS, ("test/fid", "FID", "{:.1f}"))
     monkeypatch.setattr(report_figures, "METRICS", metrics)

@@ -250,8 +250,8 @@ def test_search_space_grammar():
 def test_samplers_follow_the_space_and_the_objectives():
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    from graf.search.optuna_sweeper import make_sampler
     from graf.search.search_space import SearchSpaceError, parse_search_space
+    from graf.sweeper.optuna_sweeper import make_sampler
 
     parser = OverridesParser.create()
     cat = parse_search_space({"a": "choice(1,2)", "b": "choice(3,4,5)"}, [], parser)
@@ -289,8 +289,8 @@ def test_best_json_means_are_the_means_over_the_evaluated_scenes():
 
 
 def test_heldout_scenes_are_the_other_layouts_of_the_training_families():
+    from graf.app.config import heldout_scenes
     from graf.errors import ConfigError
-    from graf.run.config import heldout_scenes
 
     assert heldout_scenes(["conference_v1"], "auto") == ["conference_v2", "conference_v3"]
     assert heldout_scenes(["conference_v1", "office_v2"], "auto") == [
@@ -359,7 +359,7 @@ def test_heartbeat_settings_on_sqlite_are_said_to_be_unused(caplog):
     one log line says it is unused and what finds dead workers there instead."""
     import logging
 
-    from graf.search.optuna_sweeper import make_storage
+    from graf.sweeper.optuna_sweeper import make_storage
 
     with caplog.at_level(logging.INFO, logger="graf"):
         url = make_storage("sqlite:///x.db", {"interval": 10, "grace_period": 60, "max_retry": 3})

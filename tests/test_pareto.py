@@ -10,7 +10,7 @@ import sys
 import pytest
 from hydra import compose, initialize_config_dir
 
-from graf.run.config import CONF_DIR
+from graf.app.config import CONF_DIR
 from graf.studies.pareto import pareto_front
 
 
@@ -52,7 +52,7 @@ def test_tiny_sweep_runs_records_failures_and_resumes(tmp_path):
     args = [
         sys.executable,
         "-m",
-        "graf.cli.pareto",
+        "graf.cli.studies.pareto",
         f"out={out}",
         f"hydra.run.dir={tmp_path / 'h'}",
         "threads=1",

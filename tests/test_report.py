@@ -11,11 +11,11 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
+from graf.app.config import CONF_DIR
 from graf.errors import ConfigError
 from graf.io import atomic_write_json
-from graf.run.config import CONF_DIR
-from graf.studies.report import make_report, report
-from graf.studies.report_rows import short_scenes
+from graf.reports.rows import short_scenes
+from graf.reports.study import make_report, report
 
 GHZ24, MHZ915 = 2.412e9, 915e6
 REFERENCE = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "report.yaml").reference)  # the spectra grids' jobs
@@ -199,7 +199,7 @@ def test_a_spectra_panel_names_a_many_scene_training_set_by_count():
 
 
 def test_interval_tables_list_l_fractions_and_bands_in_numeric_order():
-    from graf.studies.report_intervals import natural
+    from graf.reports.intervals import natural
 
     assert sorted(["10", "2", "4"], key=natural) == ["2", "4", "10"]
     fractions = ["f100", "f05", "zero-shot", "f50", "f20", "f10"]

@@ -19,9 +19,9 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import open_dict
 
+from graf.app.config import CONF_DIR
 from graf.run import train as train_module
 from graf.run.build import build
-from graf.run.config import CONF_DIR
 from graf.run.train import train
 from graf.run.writer import REPLACED_RESULTS
 

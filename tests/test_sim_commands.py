@@ -6,10 +6,10 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 
+from graf.app.config import CONF_DIR
 from graf.data.spectrum_set import DataFormatError
 from graf.errors import is_user_error
-from graf.run.config import CONF_DIR
-from graf.sim_commands.show_scenes import show
+from graf.sim.show import show
 
 
 def test_show_scenes_without_a_dataset_says_how_to_make_it(tmp_path):

@@ -17,9 +17,9 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 
 import graf.sim  # noqa: F401  (configures Sionna RT's CPU backend)
+from graf.app.config import CONF_DIR
 from graf.bands import Band
 from graf.data.nerf2_format import DataFormatError, read_nerf2_folder
-from graf.run.config import CONF_DIR
 from graf.run.evaluate import evaluate
 from graf.sim.dataset import generate, read_dataset
 

@@ -9,10 +9,10 @@ from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 
+from graf.app.config import CONF_DIR
 from graf.bands import Band
 from graf.metrics import psnr_per_sample
 from graf.models.knn.weights import barycentric_weights
-from graf.run.config import CONF_DIR
 from graf.sim.scene import SimulatedScene
 
 pytest.importorskip("sionna.rt")  # graf.sim (imported above) has configured the LLVM backend

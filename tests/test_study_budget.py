@@ -14,10 +14,10 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf
 
+from graf.app.config import CONF_DIR, study_budget, with_study_budget
 from graf.errors import ConfigError
-from graf.run.config import CONF_DIR, study_budget, with_study_budget
+from graf.reports.published import best_step, choose, still_gaining
 from graf.run.train import warn_other_length
-from graf.studies.published import best_step, choose, still_gaining
 
 ROOT = Path(__file__).resolve().parents[1]
 CURVES = ROOT / "sweeps" / "learning_curves" / "curves.csv"

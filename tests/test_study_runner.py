@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 
+from graf.app.config import CONF_DIR
 from graf.errors import PREEMPTED_EXIT_CODE, Preempted
-from graf.run.config import CONF_DIR
 from graf.studies import pareto
 from graf.studies.runner import run_command
 

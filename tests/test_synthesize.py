@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from graf.bands import Band
-from graf.cases.synthesis import synthesize
+from graf.case_studies.synthesis import synthesize
 from graf.data.datamodule import SpectrumDataModule
 from graf.data.neighbors import NeighborSelector
 from graf.data.nerf2_format import read_nerf2_folder

@@ -11,7 +11,7 @@ import sys
 import pytest
 
 from graf.errors import ConfigError
-from graf.studies.table import collect, read_run_result
+from graf.reports.table import collect, read_run_result
 
 RUN = {"method": "knn", "scene": "rfid_s23", "metrics": {"test/psnr": 20.0}, "config": {"task_name": "eval"}}
 

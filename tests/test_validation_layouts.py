@@ -8,9 +8,9 @@ import hydra
 import pytest
 from hydra import compose, initialize_config_dir
 
+from graf.app.config import CONF_DIR, scene_configs
 from graf.cli import train as graf_train
 from graf.run.build import check_not_validation_only
-from graf.run.config import CONF_DIR, scene_configs
 from tests.test_bad_values import QUICK, _main, _one_line
 
 LAYOUTS = {"conference_v4": "conference_v1", "office_v4": "office_v1"}

@@ -4,7 +4,7 @@
 when it is first imported, before any command reads its registries.  A plugin module registers what it adds:
 
 - a metric: :func:`graf.metrics.names.register` (name, label, unit, direction, per-spectrum function);
-- a study axis: :func:`graf.studies.axes.register` (name, how it is read from a job's ``results.json``);
+- a study axis: :func:`graf.reports.axes.register` (name, how it is read from a job's ``results.json``);
 - a method: a :class:`graf.models.base.SpectrumModule` subclass (the :class:`graf.models.base.Method` interface)
   with a config file in a folder given to Hydra (``hydra.searchpath=[file://DIR]``) as ``model/<name>.yaml``.
 

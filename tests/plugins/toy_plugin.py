@@ -10,8 +10,8 @@ import torch
 from graf.metrics.names import Metric
 from graf.metrics.names import register as register_metric
 from graf.models.base import SpectrumModule
-from graf.studies.axes import Axis
-from graf.studies.axes import register as register_axis
+from graf.reports.axes import Axis
+from graf.reports.axes import register as register_axis
 
 
 # --- a metric: the angle between the strongest pixel of the prediction and of the measurement (the direction of

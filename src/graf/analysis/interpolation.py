@@ -1,4 +1,4 @@
-"""The interpolation theorem measured (seed appendix A.1): the error of a convex combination of neighbors'
+"""The interpolation theorem measured (supplement A.1): the error of a convex combination of neighbors'
 spectra against the largest neighbor distance dP, and the local curvature constant K that bounds it
 (``error <= K dP**2`` where the field is smooth).
 

@@ -1,4 +1,4 @@
-"""Localization from spectra (the seed's claim that synthesized spectra initialise a localization model better than
+"""Localization from spectra (the paper's claim that synthesized spectra initialise a localization model better than
 random initialisation): a small CNN from a spectrum to the transmitter's position, and the splits that keep the
 test positions out of everything it trains on.
 

@@ -1,4 +1,4 @@
-"""The per-pixel linear-fusion oracle of seed appendix A.2 ("Observation #2", Fig 1b).
+"""The per-pixel linear-fusion oracle of supplement A.2 ("Observation #2", Fig 1b).
 
 For every target spectrum, its L (6) nearest other transmitters are taken as neighbors and a free
 weight matrix ``W_l [90, 360]`` per neighbor (initialised to 1/L, i.e. the plain mean) is fitted with
@@ -15,7 +15,7 @@ likeliest unstated choice; the command reports every lr in ``oracle.lrs``.
 
 All targets' weights are one tensor ``[T, L, 90, 360]`` (in chunks of ``chunk_targets`` targets, which
 changes nothing: the loss is the sum of the per-target mean squared errors, so each target's weights get
-exactly the gradient of its own problem, as in the seed's per-target fits).  Padded neighbors (fewer
+exactly the gradient of its own problem, as in the paper's per-target fits).  Padded neighbors (fewer
 than L candidates) keep weight 0.  PSNRs are taken after clamping predictions to [0, 1], as in the test
 protocol of every method.
 """
@@ -37,7 +37,7 @@ from graf.plotting import save_figure  # noqa: E402
 
 SPLITS = ("test", "train", "all")
 # Seed appendix A.2, Fig 1b: RFID dataset, 6 neighbors, 200 iterations.
-PAPER_REFERENCE = {"psnr_mean": 20.5, "psnr_std": 4.1, "source": "seed appendix A.2, Fig 1b"}
+PAPER_REFERENCE = {"psnr_mean": 20.5, "psnr_std": 4.1, "source": "supplement A.2, Fig 1b"}
 HIST_BINS = 40  # bins of the normalised-weight histogram over [-1, 1]
 
 
@@ -46,7 +46,7 @@ def select_targets(dm, split: str) -> tuple[torch.Tensor, torch.Tensor, torch.Te
 
     ``test``: the test spectra with neighbors from the training split (as every method is tested);
     ``train``: the training spectra with their other training neighbors; ``all``: every spectrum with
-    neighbors among all the others, train and test alike (the seed's protocol).  The selection is the
+    neighbors among all the others, train and test alike (the paper's protocol).  The selection is the
     datamodule's :class:`graf.data.neighbors.NeighborSelector` (L nearest, matched by id so a target is never
     its own neighbor)."""
     if split not in SPLITS:
@@ -85,7 +85,7 @@ def fit_weights(
 class WeightStats:
     """Running statistics of fitted weights over the real neighbors: raw mean / std / min / max and the
     fraction below 0; normalised (each target's weights divided by their largest magnitude, so in
-    [-1, 1], as the seed's Fig 1b) mean / std overall and per neighbor rank, and a histogram."""
+    [-1, 1], as the paper's Fig 1b) mean / std overall and per neighbor rank, and a histogram."""
 
     def __init__(self, L: int):
         self.n = 0

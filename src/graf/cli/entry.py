@@ -9,12 +9,12 @@ import sys
 import hydra
 from omegaconf import DictConfig
 
+from graf.app.command import fail, full_error, in_multirun, record_job, run_multirun, users_environment
+from graf.app.config import CONF_PATH, output_dir
+from graf.app.overrides import check_overrides, modernize
 from graf.console import filter_known_warnings
 from graf.errors import ConfigError, is_user_error, user_message
 from graf.interrupts import INTERRUPTED_EXIT_CODE, ignore_further, interrupted_line, stage
-from graf.run.command import fail, full_error, in_multirun, record_job, run_multirun, users_environment
-from graf.run.config import CONF_PATH, output_dir
-from graf.run.overrides import check_overrides, modernize
 
 __all__ = ["CONF_PATH", "cli_errors", "graf_command"]
 
@@ -22,7 +22,7 @@ __all__ = ["CONF_PATH", "cli_errors", "graf_command"]
 def cli_errors(main):
     """For a command's ``main`` (beneath ``@hydra.main``): a user error (:func:`is_user_error`) ends the command
     with its message alone on stderr and exit code 2, instead of a page of traceback; ``HYDRA_FULL_ERROR=1``
-    shows the full traceback.  In a multirun each job's end is recorded (:func:`graf.run.command.record_job`)
+    shows the full traceback.  In a multirun each job's end is recorded (:func:`graf.app.command.record_job`)
     and its error raised as usual, so the sweep records the failed job and goes on with the others.  The
     understood third-party warnings are filtered first (:func:`graf.console.filter_known_warnings`)."""
 
@@ -60,9 +60,9 @@ def cli_errors(main):
 def graf_command(config_name: str):
     """The decorator of every command's ``main``: Hydra's ``@hydra.main`` on the config ``config_name`` over
     :func:`cli_errors`.  Before Hydra reads the command line, old spellings are brought up to date with a warning
-    (:func:`graf.run.overrides.modernize`) and the overrides Hydra would refuse with a page are refused with one
-    line and exit code 2 (:func:`graf.run.overrides.check_overrides`); a multirun ends with its failed jobs
-    counted (:func:`graf.run.command.run_multirun`); a Ctrl+C at any stage ends it with the line of that stage
+    (:func:`graf.app.overrides.modernize`) and the overrides Hydra would refuse with a page are refused with one
+    line and exit code 2 (:func:`graf.app.overrides.check_overrides`); a multirun ends with its failed jobs
+    counted (:func:`graf.app.command.run_multirun`); a Ctrl+C at any stage ends it with the line of that stage
     (:mod:`graf.interrupts`) and exit code 130.  ``HYDRA_FULL_ERROR=1`` leaves every error to Hydra, in full.
     Called with a composed config, ``main`` runs on it directly."""
 

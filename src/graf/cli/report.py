@@ -1,13 +1,13 @@
 """graf-report: the tables and figures of a study folder.
 
-The work is :func:`graf.studies.report.report`, callable from Python with a composed config."""
+The work is :func:`graf.reports.study.report`, callable from Python with a composed config."""
 
 from __future__ import annotations
 
 from omegaconf import DictConfig
 
 from graf.cli.entry import graf_command
-from graf.studies.report import report
+from graf.reports.study import report
 
 
 @graf_command("report")

@@ -1,12 +1,12 @@
 """graf-synthesize: spectra at new transmitter positions from a checkpoint, as a NeRF2-format folder.
 
-The work is :func:`graf.cases.synthesis.run`, callable from Python with a composed config."""
+The work is :func:`graf.case_studies.synthesis.run`, callable from Python with a composed config."""
 
 from __future__ import annotations
 
 from omegaconf import DictConfig
 
-from graf.cases.synthesis import run
+from graf.case_studies.synthesis import run
 from graf.cli.entry import graf_command
 
 

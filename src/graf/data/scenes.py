@@ -52,7 +52,7 @@ class NeRF2Scene:
             ``"at_least"`` (a slice whose tx_pos.csv holds a larger dataset's rows: more rows are accepted with a
             warning); see :func:`graf.data.nerf2_format.read_nerf2_folder`.
         band / fixed_band: the band name a run uses for this scene (fixed: whatever the run's band= says, as
-            for measured data); read by the run, see :func:`graf.run.config.scene_band_config`.
+            for measured data); read by the run, see :func:`graf.app.config.scene_band_config`.
     """
 
     kind = "nerf2_folder"

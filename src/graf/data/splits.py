@@ -15,7 +15,7 @@ The validation and test splits never share a spectrum; nothing is ever chosen on
 **Measured fraction** (fine-tuning, ``conf/finetune``).  With ``measured_fraction`` (e.g. 0.2), only a seeded
 part of each scene's training split counts as measured (``measured_seed``; at least 2 spectra, else an error):
 the validation and fit parts are cut from it, and it is the pool test neighbors come from.  With
-``test_pool="train_split"`` test neighbors come from the whole training split instead (the seed's zero-shot
+``test_pool="train_split"`` test neighbors come from the whole training split instead (the paper's zero-shot
 protocol), while fitting still sees the measured part only.  The test split is never touched.
 """
 

@@ -1,4 +1,4 @@
-"""Positional encodings (NeRF style, seed appendix D; sinusoidal for distances) and coordinate frames.
+"""Positional encodings (NeRF style, supplement D; sinusoidal for distances) and coordinate frames.
 
 :class:`PositionalEncoding` maps ``x [..., D]`` to ``[x, sin(2^k pi x), cos(2^k pi x)]_{k < F}``, i.e.
 ``D + 2 * D * F`` dims: 63 for 3-D coordinates and 84 for 4-D ones (3-D + scene index) with F = 10.

@@ -1,4 +1,4 @@
-"""Rays of the spectrum grid and the samples along them (seed appendix D, "Voxel Size").
+"""Rays of the spectrum grid and the samples along them (supplement D, "Voxel Size").
 
 Pixel ``p = r * 360 + c`` of a 90 x 360 spectrum is the ray leaving the gateway at elevation ``r + 1`` deg
 and azimuth ``c + 1`` deg: local direction ``(cos e cos a, cos e sin a, sin e)``

@@ -1,18 +1,16 @@
 """One run, as plain functions of a composed config: what graf-train and graf-eval do, callable from Python or a
 notebook without a Hydra app.
 
-- :mod:`.config`: where the configs are, the scenes and bands a config selects, held-out layouts, the task wrapper;
 - :mod:`.build`: bands, scenes, neighbor selector, datamodules, model, loggers, callbacks and trainer from a config;
 - :mod:`.evaluation`: validation, test, neighbor reliance and baselines of a built run;
 - :mod:`.record`: the run record (``results.json``) and what a task returns; :mod:`.writer`: the record made,
   written and printed;
 - :mod:`.finetune`, :mod:`.resume`: starting from a checkpoint's weights, resuming or stopping a training run;
 - :mod:`.train` (graf-train), :mod:`.evaluate` (graf-eval): ``train(cfg) -> Results``, ``evaluate(cfg) -> Results``.
-- :mod:`.overrides`, :mod:`.command`: a command line brought up to date and checked before Hydra composes, and
-  how a command ends (a user error on one line, a multirun's failed jobs counted).
 
-The tools over many runs are in :mod:`graf.studies`, the case studies in :mod:`graf.cases` and the simulator's
-commands in :mod:`graf.sim_commands`.
+Where the configs are, what a config selects, the task wrapper and how a command ends are the command framework's
+(:mod:`graf.app`); the tools that run many runs are in :mod:`graf.studies`, the reports over their records in
+:mod:`graf.reports`, the case studies in :mod:`graf.case_studies` and the simulator's tasks in :mod:`graf.sim`.
 
 Compose a config with Hydra's compose API and call a task::
 

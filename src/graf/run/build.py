@@ -16,13 +16,7 @@ import lightning as L
 import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from graf.console import is_terminal
-from graf.data.datamodule import SpectrumDataModule
-from graf.data.fingerprint import eval_scene_index, find_scene, next_index, register_scene
-from graf.data.neighbors import NeighborSelector
-from graf.errors import ConfigError
-from graf.models.base import read_checkpoint
-from graf.run.config import (
+from graf.app.config import (
     check_run_settings,
     hz,
     load_band_config,
@@ -31,6 +25,12 @@ from graf.run.config import (
     scene_band_config,
     scene_configs,
 )
+from graf.console import is_terminal
+from graf.data.datamodule import SpectrumDataModule
+from graf.data.fingerprint import eval_scene_index, find_scene, next_index, register_scene
+from graf.data.neighbors import NeighborSelector
+from graf.errors import ConfigError
+from graf.models.base import read_checkpoint
 
 log = logging.getLogger("graf")
 

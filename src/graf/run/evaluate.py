@@ -18,10 +18,10 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from graf.app.config import CONF_DIR, check_run_settings, output_dir, override_key, task_wrapper, with_baselines_switch
 from graf.interrupts import stage
 from graf.models.base import CheckpointError, check_checkpoint, checkpoint_class, read_checkpoint, safe_loading
 from graf.run.build import build
-from graf.run.config import CONF_DIR, check_run_settings, output_dir, override_key, task_wrapper, with_baselines_switch
 from graf.run.record import CheckpointInfo, Results, RunFacts
 from graf.run.resume import not_done
 from graf.run.writer import set_aside_finished, test_and_report

@@ -216,7 +216,7 @@ def ray_sampling(model, dm) -> dict | None:
 
 def selected_baselines(cfg: DictConfig) -> dict:
     """The baselines to test beside the model (``{name: model config}``); ``baselines=null`` and ``baselines={}``
-    switch them off (on the command line, :func:`graf.run.config.with_baselines_switch` puts that in the config)."""
+    switch them off (on the command line, :func:`graf.app.config.with_baselines_switch` puts that in the config)."""
     return {
         name: bcfg
         for name, bcfg in (cfg.get("baselines") or {}).items()

@@ -13,9 +13,9 @@ from pathlib import Path
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from graf.app.config import override_key, scene_configs
 from graf.errors import ConfigError
 from graf.models.base import CheckpointError, check_checkpoint, read_checkpoint
-from graf.run.config import override_key, scene_configs
 from graf.run.record import Finetune
 
 log = logging.getLogger("graf")

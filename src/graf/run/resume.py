@@ -15,13 +15,13 @@ from pathlib import Path
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
+from graf.app.config import output_dir, override_key, run_settings
 from graf.callbacks import Preemption
 from graf.data.fingerprint import find_scene
 from graf.errors import Preempted
 from graf.interrupts import INTERRUPTED_EXIT_CODE
 from graf.io import atomic_write_json, is_rank_zero
 from graf.models.base import CheckpointError, check_checkpoint, read_checkpoint
-from graf.run.config import output_dir, override_key, run_settings
 from graf.run.record import Resumed
 
 log = logging.getLogger("graf")

@@ -23,14 +23,7 @@ from lightning.pytorch.callbacks import Timer
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig
 
-from graf.callbacks import Preemption, TargetCount, TrainingInterrupted
-from graf.data.splits import mixed_seed
-from graf.errors import ConfigError
-from graf.interrupts import stage
-from graf.io import atomic_write_json
-from graf.models.base import CheckpointError, read_checkpoint, safe_loading
-from graf.run.build import BuiltRun, build
-from graf.run.config import (
+from graf.app.config import (
     check_run_settings,
     expand_heldout,
     family,
@@ -40,6 +33,13 @@ from graf.run.config import (
     with_baselines_switch,
     with_study_budget,
 )
+from graf.callbacks import Preemption, TargetCount, TrainingInterrupted
+from graf.data.splits import mixed_seed
+from graf.errors import ConfigError
+from graf.interrupts import stage
+from graf.io import atomic_write_json
+from graf.models.base import CheckpointError, read_checkpoint, safe_loading
+from graf.run.build import BuiltRun, build
 from graf.run.finetune import (
     check_finetune,
     finetune_config,

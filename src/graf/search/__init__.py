@@ -1,3 +1,3 @@
-"""Hyperparameter searches: the objectives a search may optimise (validation data only), the Optuna
-sweeper's machinery (:mod:`graf.search.optuna_sweeper`, plugged into Hydra by
-``hydra_plugins.graf_optuna_sweeper``), pruning during training, and the study's output files."""
+"""What a run of a hyperparameter search needs: the objectives a search may optimise (validation data only), the
+search space, pruning during training and the pruners.  The Optuna sweeper that drives the runs is above them,
+in :mod:`graf.sweeper`."""

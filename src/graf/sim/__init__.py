@@ -1,4 +1,6 @@
-"""Ray-traced scenes: geometry from configs, Sionna RT tracing, Bartlett spectra, resumable datasets."""
+"""Ray-traced scenes: geometry from configs, Sionna RT tracing, Bartlett spectra, resumable datasets, and the
+simulator's tasks (graf-simulate: :mod:`.simulate`, graf-bench-sim: :mod:`.benchmark`, graf-show-scenes:
+:mod:`.show`)."""
 
 from graf.sim.backend import configure_llvm
 

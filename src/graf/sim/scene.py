@@ -19,10 +19,10 @@ import torch
 from graf.bands import Band
 from graf.config_home import defaults_from
 from graf.data.spectrum_set import DataFormatError, SpectrumSet
+from graf.geometry.shapes import SceneGeometry, build_geometry, sample_positions
 from graf.sim.array import PATTERNS, Bartlett, array_positions, rotation_from_axes
 from graf.sim.checks import compare_config
 from graf.sim.dataset import generate, read_dataset, scene_config
-from graf.sim.geometry import SceneGeometry, build_geometry, sample_positions
 from graf.sim.tracer import SionnaTracer, spectra_from_paths
 
 log = logging.getLogger(__name__)
@@ -32,7 +32,7 @@ log = logging.getLogger(__name__)
 class SimulatedScene:
     """Args:
     name: scene name (also the dataset folder under ``<data_root>/sim``).
-    room / ground: the enclosure (see :func:`graf.sim.geometry.build_geometry`).
+    room / ground: the enclosure (see :func:`graf.geometry.shapes.build_geometry`).
     objects: name -> {material, center, size, yaw, thickness}; null removes an inherited object.
     gateway: {position, normal (the array faces it), x_axis (azimuth 0)}.
     transmitters: {count, min, max, clearance, seed, train_fraction, split_seed}.
@@ -70,7 +70,7 @@ class SimulatedScene:
         self.band, self.fixed_band = (
             band,
             bool(fixed_band),
-        )  # the run's band choice (graf.run.config.scene_band_config)
+        )  # the run's band choice (graf.app.config.scene_band_config)
         self.num_tx = None if num_tx is None else int(num_tx)
         self.room, self.ground, self.objects = room, ground, objects or {}
         self.gateway, self.transmitters = dict(gateway), dict(transmitters)

@@ -13,9 +13,9 @@ import logging
 import numpy as np
 import torch
 
+from graf.geometry.shapes import SceneGeometry
 from graf.sim.array import Bartlett
 from graf.sim.backend import import_sionna_rt
-from graf.sim.geometry import SceneGeometry
 from graf.sim.materials import itu_parameters
 
 log = logging.getLogger(__name__)

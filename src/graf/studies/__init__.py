@@ -1,2 +1,3 @@
-"""Tools over many runs: tables (graf-table), study reports (graf-report), learning curves (graf-curves),
-Pareto fronts (graf-pareto) and the model benchmark (graf-bench)."""
+"""Tools that run many runs, each a command in a subprocess (:func:`graf.app.launch.command`): learning curves
+(graf-curves), Pareto fronts (graf-pareto) and the model benchmark (graf-bench).  The reports over their records
+are in :mod:`graf.reports`."""

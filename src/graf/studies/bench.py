@@ -83,10 +83,10 @@ import lightning as L
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from graf.app.config import CONF_DIR, band_choices, check_run_settings, output_dir, task_wrapper
 from graf.errors import ConfigError
 from graf.run.build import build_datamodule, model_config_for_neighbors
-from graf.run.config import CONF_DIR, band_choices, check_run_settings, output_dir, task_wrapper
-from graf.sim_commands.simulate import simulate
+from graf.sim.simulate import simulate
 from graf.studies.bench_load import LOAD_LIMIT, SPREAD_LIMIT, disturbances
 from graf.studies.bench_measure import (
     checkpoint_mb,

@@ -30,17 +30,17 @@ import json
 import logging
 import os
 import shutil
-import sys
 from pathlib import Path
 
 import numpy as np
 from omegaconf import DictConfig
 
+from graf.app.config import output_dir, task_wrapper
+from graf.app.launch import command
 from graf.errors import ConfigError, Preempted
 from graf.io import atomic_write_json, atomic_write_text
-from graf.run.config import output_dir, task_wrapper
+from graf.reports.table import to_csv
 from graf.studies.runner import run_command
-from graf.studies.table import to_csv
 
 log = logging.getLogger("graf")
 
@@ -49,7 +49,7 @@ COLUMNS = (
 )  # fmt: skip
 FIGURES = (("val/psnr", "val_psnr", "PSNR (dB)"), ("val/ssim", "val_ssim", "SSIM"), ("val/lpips", "val_lpips", "LPIPS"))
 PREEMPTED_RUNS = "preempted_runs.json"  # a point's pre-empted attempts (their preempted.json records)
-TRAIN = [sys.executable, "-m", "graf.cli.train"]
+TRAIN = command("graf-train")  # graf-train in a subprocess (graf.app.launch)
 QUIET = ["logger=none", "plot_count=0", "baselines=null", "test=false", "trainer.enable_progress_bar=false"]
 
 

@@ -26,14 +26,14 @@ import io
 import json
 import logging
 import os
-import sys
 import time
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from graf.app.config import output_dir, task_wrapper
+from graf.app.launch import command
 from graf.io import atomic_write_json, atomic_write_text
-from graf.run.config import output_dir, task_wrapper
 from graf.studies.runner import run_command
 
 log = logging.getLogger("graf")
@@ -256,7 +256,7 @@ def _simulated(cfg: DictConfig, scene: str, sc: DictConfig, out: Path, env: dict
         return True
     log.info("%s: dataset missing under %s, simulating it first", scene, cfg.data_root)
     folder = out / scene / "_simulate"
-    cmd = [sys.executable, "-m", "graf.cli.simulate", *sim, f"data_root={env['GRAF_DATA_ROOT']}"]
+    cmd = command("graf-simulate", *sim, f"data_root={env['GRAF_DATA_ROOT']}")
     ok, tail = run_command([*cmd, f"hydra.run.dir={folder}"], folder, env, cfg.run_timeout_s)
     if ok and not _dataset_missing(cfg, sim):
         return True
@@ -265,17 +265,19 @@ def _simulated(cfg: DictConfig, scene: str, sc: DictConfig, out: Path, env: dict
     return False
 
 
-def _jobs(cfg: DictConfig, sc: DictConfig, ckpt: Path) -> list[tuple[str, list[str]]]:
-    """``(point, command)`` of a scene: a graf-train per training point, then a graf-eval of the base checkpoint
-    ``ckpt`` per evaluation point."""
-    py = sys.executable
+def _jobs(cfg: DictConfig, sc: DictConfig, ckpt: Path) -> list[tuple[str, str, list[str]]]:
+    """``(point, command name, command)`` of a scene: a graf-train per training point, then a graf-eval of the
+    base checkpoint ``ckpt`` per evaluation point."""
     common = list(sc.get("common") or [])
     jobs = [
-        (name, [py, "-m", "graf.cli.train", *sc.get("train", []), *common, *cfg.base, *p.overrides])
+        (name, "graf-train", command("graf-train", *sc.get("train", []), *common, *cfg.base, *p.overrides))
         for name, p in _selected(cfg, "points", "only_points").items()
     ]
-    evaluate = [py, "-m", "graf.cli.evaluate", f"ckpt_path={ckpt}", *common, "logger=none", "plot_count=0"]
-    jobs += [(name, [*evaluate, *p.overrides]) for name, p in _selected(cfg, "eval_points", "only_points").items()]
+    evaluate = [f"ckpt_path={ckpt}", *common, "logger=none", "plot_count=0"]
+    jobs += [
+        (name, "graf-eval", command("graf-eval", *evaluate, *p.overrides))
+        for name, p in _selected(cfg, "eval_points", "only_points").items()
+    ]
     return jobs
 
 
@@ -286,7 +288,7 @@ def _run_scene(
     checkpoint; tables rewritten after each); the failures, updated."""
     skip = set(sc.get("skip_points") or [])
     ckpt = out / scene / "base" / "checkpoints" / "last.ckpt"
-    for name, cmd in _jobs(cfg, sc, ckpt):
+    for name, kind, cmd in _jobs(cfg, sc, ckpt):
         folder = out / scene / name
         if name in skip:
             log.info("%s / %s: skipped (scenes.%s.skip_points)", scene, name, scene)
@@ -294,12 +296,12 @@ def _run_scene(
         if (folder / "results.json").exists():
             log.info("%s / %s: done before, skipped", scene, name)
             continue
-        if "graf.cli.evaluate" in cmd and not ckpt.exists():
+        if kind == "graf-eval" and not ckpt.exists():
             failed.append({"scene": scene, "point": name, "log": f"no base checkpoint {ckpt}"})
             atomic_write_json(out / "failed.json", failed)
             continue
         killed = folder / "checkpoints" / "last.ckpt"
-        if "graf.cli.train" in cmd and killed.is_file():  # an attempt killed before its results.json: resumed
+        if kind == "graf-train" and killed.is_file():  # an attempt killed before its results.json: resumed
             cmd = [*cmd, f"ckpt_path={killed}"]
         log.info("%s / %s: %s", scene, name, " ".join(cmd[3:]))
         t0 = time.perf_counter()

@@ -2,7 +2,7 @@
 
     graf-train -m hparams_search=neighbor_count            # conf/hparams_search/*.yaml select this sweeper
 
-Settings (``hydra.sweeper.*``): see :class:`GrafOptunaSweeperConf`; behaviour: :mod:`graf.search.optuna_sweeper`.
+Settings (``hydra.sweeper.*``): see :class:`GrafOptunaSweeperConf`; behaviour: :mod:`graf.sweeper.optuna_sweeper`.
 """
 
 from dataclasses import dataclass, field
@@ -64,7 +64,7 @@ ConfigStore.instance().store(group="hydra/sweeper", name="graf_optuna", node=Gra
 class GrafOptunaSweeper(Sweeper):
     def __init__(self, **kwargs: Any) -> None:
         # lazy: Hydra imports every plugin module when any graf command starts; Optuna is imported only by a search
-        from graf.search.optuna_sweeper import OptunaSweep
+        from graf.sweeper.optuna_sweeper import OptunaSweep
 
         kwargs = {
             k: OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else v for k, v in kwargs.items()

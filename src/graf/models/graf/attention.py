@@ -1,4 +1,4 @@
-"""Post-norm Transformer blocks (seed appendix D) on ``F.scaled_dot_product_attention``.
+"""Post-norm Transformer blocks (supplement D) on ``F.scaled_dot_product_attention``.
 
 One block: ``x = LayerNorm(x + Attention(x, context))``, then ``x = LayerNorm(x + FFN(x))`` with
 ``FFN = Linear(d, ffn_dim) -> ReLU -> Linear(ffn_dim, d)``.  Attention has ``num_heads`` heads of

@@ -1,4 +1,4 @@
-"""ResNet-18 feature extractor of a neighbor's spatial spectrum (seed appendix D), in plain torch.
+"""ResNet-18 feature extractor of a neighbor's spatial spectrum (supplement D), in plain torch.
 
 ``[N, 1, 90, 360]`` (or ``[N, 90, 360]``) -> ``[N, widths[-1]]``: optional ``downsample`` x
 ``downsample`` average pooling, stem conv 7x7 stride 2 + max-pool 3x3 stride 2, four stages of two

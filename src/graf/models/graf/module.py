@@ -21,7 +21,7 @@ a ray from the gateway; the predicted value of a ray is
    ``sqrt(re^2 + im^2 + eps)``.
 
 ``residual=True`` (with ``pooled`` or ``ray``) adds the KNN interpolation to the real part, ``|base + re + j
-im|``, and starts as KNN (:mod:`graf.models.graf.residual`).
+im|``, and starts as KNN (:mod:`graf.models.graf.features.residual`).
 
 **Geometry, the same in every scene**: positions and directions in the item's gateway frame in units of
 ``length_unit`` metres (:func:`graf.geometry.encoding.to_gateway_frame`); ``use_scene_index`` appends the scene
@@ -53,6 +53,7 @@ from graf.models.graf.cache import EvalCache, weights_stamp
 from graf.models.graf.encoder import ResNetEncoder
 from graf.models.graf.features import Dims, build_features
 from graf.models.graf.features.base import mlp
+from graf.models.graf.features.residual import KNNBase, NoBase
 from graf.models.graf.inference import SerialThreads, fast_path, ray_pass, rays_in_chunks, split_batch
 from graf.models.graf.legacy import (
     LAYOUT_CHANGES,
@@ -63,7 +64,6 @@ from graf.models.graf.legacy import (
 )
 from graf.models.graf.pieces import piece_prediction
 from graf.models.graf.ray_features import rows
-from graf.models.graf.residual import KNNBase, NoBase
 from graf.models.graf.settings import check_settings
 from graf.models.graf.tables import flat_scene_voxels, ray_sampling_summary, scene_ray_table
 
@@ -220,7 +220,7 @@ class GRaFModule(SpectrumModule):
         """Voxels of every pixel's ray in item ``b``'s scene: ``t_in [P]`` (m, where the ray enters the scene
         box), ``step [P]`` (m, the voxel length), ``samples [P]`` (long) and the pixel order by sample count
         (``order [P]``); voxel ``s`` of a ray lies ``t_in + (s + 0.5) * step`` from the gateway.  Voxels are
-        ``voxel_wavelengths`` long (1: the seed's wavelength voxel) unless ``max_samples`` caps a ray.  Computed
+        ``voxel_wavelengths`` long (1: the paper's wavelength voxel) unless ``max_samples`` caps a ray.  Computed
         once per scene geometry and band (cached; the key is the geometry itself, not a scene number)."""
         geo = (batch["gw_pos"][b], batch["gw_rot"][b], batch["bounds"][b])
         wl = float(batch["wavelength"][b])

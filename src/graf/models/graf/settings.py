@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from graf.models.graf.residual import WEIGHTINGS
+from graf.models.graf.features.residual import WEIGHTINGS
 from graf.models.schedule import check_rates
 
 LOSSES = ("mse", "log_mse")

@@ -1,7 +1,7 @@
 """KNN: a weighted mean of the L neighbors' spectra, with nothing to train.
 
 ``weighting: idw`` uses inverse-distance weights 1/d^power; ``weighting: barycentric`` uses the convex
-weights of the interpolation theorem (seed appendix A, see :func:`barycentric_weights`).
+weights of the interpolation theorem (supplement A, see :func:`barycentric_weights`).
 """
 
 from __future__ import annotations

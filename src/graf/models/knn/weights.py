@@ -1,4 +1,4 @@
-"""Neighbor weights for linear spectrum interpolation (seed appendix A).
+"""Neighbor weights for linear spectrum interpolation (supplement A).
 
 Both functions take the target positions ``[T, 3]``, the neighbors' positions ``[T, L, 3]`` and their
 mask ``[T, L]`` and return weights ``[T, L]`` that are >= 0, zero where masked, and sum to 1.
@@ -29,7 +29,7 @@ def idw_weights(
 def barycentric_weights(
     target: torch.Tensor, nbr: torch.Tensor, mask: torch.Tensor, ridge: float = 1e-3, sum_weight: float = 1e3
 ) -> torch.Tensor:
-    """Barycentric weights of the interpolation theorem (seed A.1, ASSUMPTION 2).
+    """Barycentric weights of the interpolation theorem (supplement A.1, ASSUMPTION 2).
 
     Solves, per target, the non-negative least-squares problem
 

@@ -1,5 +1,5 @@
 """KNN-DL: the L neighbors' spectra fused with per-pixel weight maps that a small network predicts from
-the geometry of target and neighbors (the learned-weights baseline of seed E.2, built on the linear
+the geometry of target and neighbors (the learned-weights baseline of supplement E.2, built on the linear
 fusion of appendix A.2).
 
     pred[b, p] = sum_l w[b, l, p] * SS_l[p]
@@ -14,10 +14,10 @@ mean over the target's neighbors) and each ray direction to two coarse maps (``m
 - The **convex part** is a per-pixel softmax over the real neighbors with the log of the IDW weights
   (1/d, :func:`graf.models.knn.idw_weights`) as a fixed bias.  The decoder's last layer is
   zero-initialised, so at step 0 the model *is* IDW KNN and training starts from it.  A convex
-  combination keeps the interpolation theorem's guarantee (seed A.1): the error is bounded by the
+  combination keeps the interpolation theorem's guarantee (supplement A.1): the error is bounded by the
   neighbors' spread, whatever the network outputs.
 - The **signed correction** (bound ``signed_scale`` = s) lets a weight go negative or above 1, as the
-  per-target weight matrices of seed A.2 do (their normalised values span -1..1, Fig 1b), i.e. it allows
+  per-target weight matrices of supplement A.2 do (their normalised values span -1..1, Fig 1b), i.e. it allows
   extrapolation beyond the neighbors' hull along a pixel's dominant trend.  It is centred over the real
   neighbors, so the weights still sum to 1 (an affine combination: a spectrum common to all neighbors
   is reproduced exactly), and bounded, so a badly predicted correction cannot blow a pixel up.

@@ -1,6 +1,6 @@
 """GRaF's neighbor-feature components: how the rays read the neighbors (``model/features=<mode>``).
 
-- ``pooled`` (:class:`PooledFeatures`, the seed's): one token per neighbor spectrum;
+- ``pooled`` (:class:`PooledFeatures`, the paper's): one token per neighbor spectrum;
 - ``ray`` (:class:`RayFeatures`): per-ray tokens from each neighbor's feature map and pixel values at the
   ray's own direction;
 - ``ray_knn`` (:class:`RayKNNFeatures`): ``ray`` plus a per-ray convex combination of the neighbors' values

@@ -1,4 +1,4 @@
-"""``model/features=pooled`` (the seed's, section 3 / appendix D): one token per neighbor spectrum,
+"""``model/features=pooled`` (the paper's, section 3 / appendix D): one token per neighbor spectrum,
 ``MLP1(ResNet18(SS_l) ⊕ PE(P_l) ⊕ PE(P_l - P))`` -> ``d_model``, computed once per batch (never per ray);
 padded neighbors are masked out.  Every voxel of every ray attends to its target's L tokens, and
 ``Linear(d, 2)`` turns the ray tracer's state into ``(re, im)``."""

@@ -1,0 +1,1 @@
+"""Commands of the case studies: graf-aoa, graf-interp, graf-localize, graf-oracle."""

@@ -1,0 +1,1 @@
+"""Commands of the simulator: graf-simulate, graf-bench-sim, graf-show-scenes."""

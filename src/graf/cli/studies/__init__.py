@@ -1,0 +1,1 @@
+"""Commands over many runs: graf-curves, graf-pareto, graf-bench."""

@@ -1,0 +1,276 @@
+"""graf-claims: the ledger of the paper's quantitative claims against the platform's records.
+
+Each claim of ``conf/claims.yaml`` names what the paper's supplement says, the platform record that answers it and
+how (``kind``):
+
+- ``paired``: rows of a study's ``intervals.json`` (:mod:`graf.reports.intervals`) selected by their cell
+  settings; the paper says ``method`` is ahead of ``reference`` on ``metric``.  Holds when every selected cell's
+  interval says ahead, refuted when one says behind, not reproduced when an interval includes 0.
+- ``value``: one figure of a JSON record (``key``: a dotted path, ``/`` kept inside names) against the paper's
+  ``paper_value``; holds when it reaches it in the better direction (``higher_is_better``), else not reproduced.
+- ``difference``: two figures of a record (``key`` minus ``minus``) against the paper's difference, the same rule.
+- ``change``: a change with L of the neighbor-count study (``intervals.json`` ``L_changes``: ``method``,
+  ``L_from``, ``L_to``, ``metric``).  With ``tolerance``: holds when the whole interval lies within it (a plateau);
+  else holds when the interval excludes 0 on the paper's side (the sign of ``paper_value``), refuted when it
+  excludes 0 on the other, not reproduced when it includes 0.
+- ``transfer``: the bands study's ``band_transfers`` (a model trained at another band minus the one trained at the
+  test band, on the same spectra; ``method``, ``metric``); the paper says the transfer is ``expect`` (``behind``).
+  Holds when every pair's interval says so, refuted when one says the other way, not reproduced when one includes 0.
+- ``note``: a claim the platform cannot check on its own terms (another GPU, another unit): not comparable, with
+  the platform's figure where it has one.
+
+Every claim may require the paper's density (``paper_density: true``): a record made on scenes cut below it (its
+``sim_num_tx``, or ``config.sim_num_tx``, set) makes the verdict "not comparable" with the count.  A claim whose
+record is missing is "not reproduced (no record)".  The ledger is ``claims.csv``, ``claims.md`` (the docs page
+includes it) and ``results.json`` in ``out``; its inputs are the records alone, so it is rebuilt from them.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from graf.app.config import task_wrapper
+from graf.errors import ConfigError
+from graf.io import atomic_write_bytes, atomic_write_json
+from graf.reports.rows import short_scenes
+
+log = logging.getLogger("graf")
+
+VERDICTS = ("holds", "refuted", "not reproduced", "not comparable")
+COLUMNS = ("id", "source", "claim", "paper", "platform", "interval", "verdict", "reason", "record", "command")
+
+
+def lookup(record: dict, key: str):
+    """``record`` at the dotted ``key`` (a part may hold ``/``: ``metrics.test/psnr``); KeyError naming the part."""
+    node = record
+    for part in key.split("."):
+        if isinstance(node, list):
+            node = node[int(part)]
+        elif isinstance(node, dict) and part in node:
+            node = node[part]
+        else:
+            raise KeyError(part)
+    return node
+
+
+def _density_reason(record: dict) -> str | None:
+    """Why a record is not at the paper's density (its scenes cut to ``sim_num_tx`` positions), or None."""
+    n = record["sim_num_tx"] if "sim_num_tx" in record else (record.get("config") or {}).get("sim_num_tx")
+    counts = [c for c in (n if isinstance(n, list) else [n]) if c is not None]
+    if not counts:
+        return None
+    return f"made on {', '.join(map(str, counts))} positions per simulated layout (the paper: about 5,400)"
+
+
+def _load(root: Path, rel: str) -> dict | None:
+    path = root / rel
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"{path}: not readable JSON ({exc})") from None
+
+
+def _match(row: dict, cell: dict | list) -> bool:
+    """A row of the record is in the claim's ``cell``: every key's value (one, or any of a list); a list of such
+    dicts is any of them (pairs: ``[{trained_on: a, eval_scene: [b, c]}, ...]``)."""
+    if isinstance(cell, list):
+        return any(_match(row, c) for c in cell)
+    for k, want in cell.items():
+        have = row.get(k)
+        if isinstance(want, list):
+            if str(have) not in {str(w) for w in want}:
+                return False
+        elif str(have) != str(want):
+            return False
+    return True
+
+
+def judge_paired(claim: dict, data: dict) -> dict:
+    rows = [
+        r for r in data.get("rows", []) if r.get("method") == claim["method"] and r.get("metric") == claim["metric"]
+    ]
+    rows = [r for r in rows if _match(r, claim.get("cell") or {})]
+    comps = [(r, r.get(f"vs_{claim['reference']}")) for r in rows]
+    comps = [(r, c) for r, c in comps if c]
+    if not comps:
+        return {"verdict": "not reproduced", "reason": "no such comparison in the record"}
+    name = lambda r: f"{short_scenes(r['trained_on'])} -> {r['eval_scene']}" if r.get("trained_on") else r["eval_scene"]  # noqa: E731
+    parts = [f"{name(r)}: {c['diff']:+.2f}" for r, c in comps]
+    intervals = [f"{name(r)}: [{c['low']:+.2f}, {c['high']:+.2f}]" for r, c in comps]
+    verdict, reason = _direction([c["verdict"] for _, c in comps], "ahead")
+    return {"platform": "; ".join(parts), "interval": "; ".join(intervals), "verdict": verdict, "reason": reason}
+
+
+def _direction(verdicts: list[str], want: str) -> tuple[str, str]:
+    """The ledger's verdict and reason from the cells' verdicts, the paper saying each is ``want`` (ahead/behind)."""
+    other = "behind" if want == "ahead" else "ahead"
+    n = len(verdicts)
+    if all(v == want for v in verdicts):
+        return "holds", f"{want} in {'its one cell' if n == 1 else f'all {n} cells'} (interval excludes 0)"
+    if any(v == other for v in verdicts):
+        return "refuted", f"{other} in {sum(v == other for v in verdicts)} of {n} cells"
+    n_level, n_want = sum(v.startswith("level") for v in verdicts), sum(v == want for v in verdicts)
+    also = f"{want} in {n_want}, " if n_want else ""
+    return "not reproduced", f"{also}interval includes 0 in {n_level} of {n} cells"
+
+
+def judge_transfer(claim: dict, data: dict) -> dict:
+    expect = str(claim.get("expect", "behind"))
+    if expect not in ("ahead", "behind"):
+        raise ConfigError(f"claim {claim.get('id')!r}: expect must be 'ahead' or 'behind', got {expect!r}")
+    want = {"method": claim["method"], "metric": claim["metric"], **(claim.get("cell") or {})}
+    found = [c for c in data.get("band_transfers", []) if _match(c, want)]
+    if not found:
+        return {"verdict": "not reproduced", "reason": "no band transfer in the record"}
+    name = lambda c: f"{c['train_band']} -> {c['eval_band']}"  # noqa: E731
+    verdict, reason = _direction([c["verdict"] for c in found], expect)
+    return {
+        "platform": "; ".join(f"{name(c)}: {c['diff']:+.2f}" for c in found),
+        "interval": "; ".join(f"{name(c)}: [{c['low']:+.2f}, {c['high']:+.2f}]" for c in found),
+        "verdict": verdict,
+        "reason": reason,
+    }
+
+
+def judge_change(claim: dict, data: dict) -> dict:
+    want = {k: claim[k] for k in ("method", "L_from", "L_to", "metric")}
+    found = [c for c in data.get("L_changes", []) if all(str(c.get(k)) == str(v) for k, v in want.items())]
+    if not found:
+        return {"verdict": "not reproduced", "reason": f"no L change {want} in the record"}
+    c = found[0]
+    out = {"platform": f"{c['diff']:+.2f}", "interval": f"[{c['low']:+.2f}, {c['high']:+.2f}]"}
+    if claim.get("tolerance") is not None:
+        tol = float(claim["tolerance"])
+        inside = -tol <= c["low"] and c["high"] <= tol
+        out.update(
+            verdict="holds" if inside else "not reproduced",
+            reason=f"the interval {'lies' if inside else 'does not lie'} within +-{tol:g}",
+        )
+        return out
+    sign = 1.0 if float(claim["paper_value"]) >= 0 else -1.0
+    if sign * c["low"] > 0 or sign * c["high"] < 0:
+        same = sign * c["diff"] > 0
+        out.update(
+            verdict="holds" if same else "refuted",
+            reason=f"the interval excludes 0 ({'the paper' if same else 'against the paper'}'s direction)",
+        )
+    else:
+        out.update(verdict="not reproduced", reason="the interval includes 0")
+    return out
+
+
+def _reaches(value: float, paper: float, higher: bool) -> bool:
+    return value >= paper if higher else value <= paper
+
+
+def judge_value(claim: dict, data: dict) -> dict:
+    """One figure of a record against the paper's (``paper_value``): ``key``, less ``minus`` or divided by ``over``
+    (a difference or a ratio of two figures of the record) when given; ``against`` names whose figure it is (the
+    paper's by default; a platform target's, an issue's, where the row is one)."""
+    try:
+        value = float(lookup(data, claim["key"]))
+        if claim.get("minus"):
+            value -= float(lookup(data, claim["minus"]))
+        if claim.get("over"):
+            value /= float(lookup(data, claim["over"]))
+    except (KeyError, IndexError, TypeError, ValueError, ZeroDivisionError) as exc:
+        return {"verdict": "not reproduced", "reason": f"the record has no {claim['key']} ({exc})"}
+    paper, higher = float(claim["paper_value"]), bool(claim.get("higher_is_better", True))
+    fmt, whose = claim.get("format", ".2f"), claim.get("against", "the paper's")
+    out = {"platform": format(value, fmt)}
+    if _reaches(value, paper, higher):
+        out.update(verdict="holds", reason=f"{format(value, fmt)} reaches {whose} {format(paper, fmt)}")
+    else:
+        short = abs(paper - value)
+        out.update(
+            verdict="not reproduced",
+            reason=f"{format(value, fmt)} against {whose} {format(paper, fmt)} (missed by {format(short, fmt)})",
+        )
+    return out
+
+
+def judge(claim: dict, root: Path) -> dict:
+    """One ledger row of ``claim`` from the records under ``root``."""
+    row = {c: "" for c in COLUMNS}
+    row.update({k: str(claim.get(k, "")) for k in ("id", "source", "claim", "paper", "record", "command")})
+    kind = claim.get("kind")
+    if kind == "note":
+        row.update(platform=str(claim.get("platform", "")), verdict="not comparable", reason=str(claim["reason"]))
+        return row
+    judges = {
+        "paired": judge_paired,
+        "value": judge_value,
+        "difference": judge_value,
+        "change": judge_change,
+        "transfer": judge_transfer,
+    }
+    if kind not in judges:
+        raise ConfigError(f"claim {claim.get('id')!r}: kind must be one of {[*judges, 'note']}, got {kind!r}")
+    data = _load(root, claim["record"])
+    if data is None:
+        row.update(verdict="not reproduced", reason=f"no record yet: {claim['record']}")
+        return row
+    if claim.get("paper_density"):
+        why = _density_reason(data)
+        if why:
+            judged = judges[kind](claim, data)
+            row.update(platform=judged.get("platform", ""), interval=judged.get("interval", ""))
+            row.update(verdict="not comparable", reason=why)
+            return row
+    judged = judges[kind](claim, data)
+    row.update({k: v for k, v in judged.items() if k in COLUMNS})
+    if claim.get("reason"):
+        row["reason"] = f"{row['reason']}; {claim['reason']}" if row["reason"] else str(claim["reason"])
+    return row
+
+
+def ledger(claims: list[dict], root: Path) -> list[dict]:
+    ids = [c.get("id") for c in claims]
+    dup = sorted({i for i in ids if ids.count(i) > 1})
+    if dup:
+        raise ConfigError(f"claims: ids used twice: {dup}")
+    return [judge(c, root) for c in claims]
+
+
+def to_markdown(rows: list[dict]) -> str:
+    cols = ("source", "claim", "paper", "platform", "interval", "verdict", "reason", "command")
+    esc = lambda s: str(s).replace("|", "\\|").replace("\n", " ")  # noqa: E731
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for r in rows:
+        cells = [esc(r[c]) if c != "command" or not r[c] else f"`{esc(r[c])}`" for c in cols]
+        cells[cols.index("verdict")] = f"**{cells[cols.index('verdict')]}**"
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_ledger(rows: list[dict], out: Path) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    text = io.StringIO()
+    w = csv.DictWriter(text, fieldnames=COLUMNS, lineterminator="\n")
+    w.writeheader()
+    w.writerows(rows)
+    atomic_write_bytes(out / "claims.csv", text.getvalue().encode())
+    atomic_write_bytes(out / "claims.md", to_markdown(rows).encode())
+    counts = {v: sum(r["verdict"] == v for r in rows) for v in VERDICTS}
+    atomic_write_json(out / "results.json", {"task": "claims", "counts": counts, "rows": rows})
+
+
+@task_wrapper
+def claims(cfg: DictConfig) -> dict:
+    """graf-claims: the ledger of ``cfg.claims`` from the records under ``cfg.records``, written into ``cfg.out``."""
+    root = Path(str(cfg.records))
+    rows = ledger(OmegaConf.to_container(cfg.claims, resolve=True), root)
+    out = Path(str(cfg.out))
+    write_ledger(rows, out)
+    for r in rows:
+        log.info("%-28s %-15s %s", r["id"], r["verdict"], r["platform"])
+    log.info("ledger: %s", out / "claims.csv")
+    return {"counts": {v: sum(r["verdict"] == v for r in rows) for v in VERDICTS}}

@@ -1,0 +1,211 @@
+"""graf-report's rows: one per (job, test scene, method) of a study's ``results.json`` files, the settings a
+study varies, its method x metric table and its curves (a metric against L, the fine-tuned fraction or the
+survey's spacing)."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from graf.app.config import family
+from graf.errors import ConfigError
+from graf.metrics.names import REGISTRY
+from graf.reports.axes import AXES as AXIS_LIST
+from graf.reports.axes import AXIS_NAMES
+from graf.reports.table import read_run_result
+
+# neighbor reliance (PSNR with true minus with swapped neighbors): a column of the tables, not a figure
+RELIANCE = ("test/reliance_db", "reliance dB", "{:.2f}")
+# every registered metric (graf.metrics.names.REGISTRY): (results.json key, label, number format)
+METRICS = tuple((f"test/{m.name}", m.label, m.fmt) for m in REGISTRY.values())
+# the settings a study may vary, in the order its table blocks are nested (declared in graf.reports.axes)
+AXES = AXIS_NAMES
+UNTRAINED = tuple(a.name for a in AXIS_LIST if a.untrained is not None)  # a baseline's row: not trained
+PSNR_TARGETS = (16.0, 18.0, 20.0, 22.0, 25.0)  # dB: "how densely must I measure for X dB?"
+
+
+def label_hz(label: str) -> float:
+    """The frequency of a :func:`band_label` ("915 MHz", "2.412 GHz") in Hz; 0.0 for anything else."""
+    parts = label.split()
+    if len(parts) != 2 or parts[1] not in ("MHz", "GHz"):
+        return 0.0
+    try:
+        return float(parts[0]) * (1e9 if parts[1] == "GHz" else 1e6)
+    except ValueError:
+        return 0.0
+
+
+def ft_fraction(label: str) -> float | None:
+    """The fraction a fine-tuning label stands for (``zero-shot``: 0, ``f20``: 0.2); None for any other label."""
+    if label == "zero-shot":
+        return 0.0
+    if label.startswith("f") and label[1:].isdigit():
+        return int(label[1:]) / 100.0
+    return None
+
+
+def result_files(runs: Path) -> list[Path]:
+    """The ``results.json`` files of ``runs`` (a folder, or one file), those under ``base/`` folders left out."""
+    if not runs.exists():
+        raise ConfigError(f"graf-report: {runs} does not exist")
+    if runs.is_file():
+        files = [runs]
+    else:  # runs may be one run's own folder: its results.json counts
+        files = [f for f in sorted(runs.rglob("results.json")) if "base" not in f.relative_to(runs).parts[:-1]]
+    if not files:
+        raise ConfigError(f"graf-report: no results.json under {runs} (base/ folders are left out)")
+    return files
+
+
+def job_settings(result: dict, job: str) -> dict:
+    """The settings of a job that every row of it shares: the job axes of :data:`graf.reports.axes.AXES`, the
+    test pool and the survey's spacing."""
+    out = {"job": job}
+    for a in AXIS_LIST:
+        if a.of_evaluation is None:
+            out[a.name] = a.of_job(result)
+        if a.name == "finetune":  # where the fine-tuned model's test neighbors came from, beside its fraction
+            out["test_pool"] = (result.get("finetune") or {}).get("test_pool", "")
+    # the survey's density: median nearest-neighbor distance of the measured training positions (m)
+    out["spacing_m"] = (result.get("splits") or {}).get("measured_spacing_m")
+    return out
+
+
+def evaluations(result: dict) -> list[dict]:
+    """A job's evaluations: a cross-scene run's list, or the one evaluation of a single-scene run."""
+    return result.get("evaluations") or [
+        {
+            "eval_scene": result.get("eval_scene") or result.get("scene"),
+            "within_scene": result.get("within_scene", True),
+            "metrics": result.get("metrics", {}),
+            "n_test": result.get("n_test"),
+            "band_hz": result.get("band_hz"),
+            "baselines": result.get("baselines"),
+        }
+    ]
+
+
+def _figures(tested: dict) -> dict:
+    return {k: (tested.get("metrics") or {}).get(k) for k, _, _ in (*METRICS, RELIANCE)}
+
+
+def rows_of(result: dict, job: str) -> list[dict]:
+    """One row per (test scene, method) of a job's results.json."""
+    ft = result.get("finetune")
+    steps = int(result.get("global_step") or 0)
+    budget = f"{steps}" if not ft else f"{ft.get('base_steps', '?')}+{ft.get('steps', 0)}"
+    common = job_settings(result, job)
+    out = []
+    for ev in evaluations(result):
+        base = {
+            **common,
+            **{a.name: a.of_evaluation(result, ev) for a in AXIS_LIST if a.of_evaluation is not None},
+            "within_scene": bool(ev.get("within_scene")),
+            "n_test": ev.get("n_test"),
+        }
+        out.append({**base, "method": result.get("method"), "steps": budget, **_figures(ev)})
+        for name, b in (ev.get("baselines") or {}).items():
+            # a baseline is not trained: it is the same whatever the job trained on
+            untrained = {**{a.name: a.untrained for a in AXIS_LIST if a.untrained is not None}, "within_scene": None}
+            out.append({**base, **untrained, "method": name, "steps": "0", **_figures(b)})
+    return out
+
+
+def collect_rows(runs: Path) -> tuple[list[dict], list[Path]]:
+    """The rows of every run's results.json under ``runs`` (a baseline tested on the same data in several jobs
+    once), and the files read."""
+    files = result_files(runs)
+    rows, seen = [], set()
+    for f in files:
+        result = read_run_result(f)
+        if result is None:  # a table written into the folder: not a run
+            continue
+        job = str(f.parent.relative_to(runs.parent if runs.is_file() else runs))
+        for r in rows_of(result, job):
+            key = json.dumps({k: v for k, v in r.items() if k != "job"}, sort_keys=True, default=str)
+            if key not in seen:  # the same baseline on the same data in several jobs: once
+                seen.add(key)
+                rows.append(r)
+    if not rows:
+        raise ConfigError(f"graf-report: no run's results.json under {runs} (base/ folders and tables are left out)")
+    return rows, files
+
+
+def varying_axes(rows: list[dict]) -> list[str]:
+    """The settings of :data:`AXES` that take more than one value in the study (baselines' "-" aside)."""
+    return [a for a in AXES if len({str(r.get(a)) for r in rows if r["steps"] != "0" or a not in UNTRAINED}) > 1]
+
+
+def _sort_key(v):
+    if isinstance(v, (int, float)):
+        return (0, v, "")
+    f = ft_fraction(str(v)) if isinstance(v, str) else None
+    return (0, f, "") if f is not None else (1, 0, str(v))
+
+
+def table(rows: list[dict], axes: list[str]) -> tuple[list[str], list[list]]:
+    """Method x metric rows, sorted by the study's varying axes (the paper's tables: one block per setting)."""
+    header = [*axes, "method", "n_test", "steps", *[n for _, n, _ in (*METRICS, RELIANCE)]]
+    order = sorted(rows, key=lambda r: ([_sort_key(r.get(a)) for a in axes], r["method"] == "knn", r["method"]))
+    return header, [
+        [r.get(a) for a in axes]
+        + [r["method"], r.get("n_test"), r["steps"]]
+        + [r.get(k) for k, _, _ in (*METRICS, RELIANCE)]
+        for r in order
+    ]
+
+
+def mean(values) -> float | None:
+    """The mean of the values that are numbers (None and NaN left out); None when there are none."""
+    v = [x for x in values if x is not None and not (isinstance(x, float) and math.isnan(x))]
+    return float(np.mean(v)) if v else None
+
+
+def curve(rows: list[dict], axis: str, same_family: bool) -> dict:
+    """``{method: {x: {metric: mean}}}`` over test scenes (same-family pairs only when asked and present)."""
+    pick = [r for r in rows if r.get(axis) is not None]
+    if same_family:
+        fam = [
+            r
+            for r in pick
+            if r["steps"] == "0" or all(family(t) == family(r["eval_scene"]) for t in r["trained_on"].split("+"))
+        ]
+        pick = fam or pick
+    groups = defaultdict(list)
+    for r in pick:
+        groups[(r["method"], r[axis])].append(r)
+    out = defaultdict(dict)
+    for (m, x), rs in groups.items():
+        # a baseline tested beside several models appears once per (test scene, x): average those
+        out[m][x] = {name: mean(r.get(k) for r in rs) for k, name, _ in METRICS} | {"n_pairs": len(rs)}
+    return {m: dict(sorted(v.items(), key=lambda kv: _sort_key(kv[0]))) for m, v in out.items()}
+
+
+def spacing_for(points: dict, targets=PSNR_TARGETS) -> dict:
+    """``{target dB: the largest survey spacing (m) at which the test PSNR reaches it}`` from a method's
+    ``{spacing: {"PSNR": ...}}``, interpolated linearly in log spacing between measured points (None when no
+    measured spacing reaches the target)."""
+    xs = sorted((float(x), p["PSNR"]) for x, p in points.items() if p.get("PSNR") is not None)
+    out = {}
+    for t in targets:
+        best = None
+        for (x0, y0), (x1, y1) in zip(xs, xs[1:]):
+            if y0 >= t > y1:  # crosses downward between x0 and x1
+                f = (y0 - t) / (y0 - y1)
+                best = float(10 ** (math.log10(x0) + f * (math.log10(x1) - math.log10(x0))))
+        ok = [x for x, y in xs if y >= t]
+        if ok and (best is None or max(ok) > best):
+            best = max(ok)
+        out[f"{t:g}"] = best
+    return out
+
+
+def short_scenes(trained_on: str) -> str:
+    """A training set as a figure title or the ledger names it: one or two scenes by name, more by count ("6
+    scenes": six names overlap)."""
+    names = trained_on.split("+")
+    return trained_on if len(names) <= 2 else f"{len(names)} scenes"
