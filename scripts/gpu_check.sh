@@ -7,7 +7,7 @@
 #
 # 1. installs what DIR/wheels holds into DIR/site (no index, no network; skipped where hydra and omegaconf import
 #    already or there is no DIR), and points the LPIPS weights and the simulated room at DIR;
-# 2. graf-bench at the paper's sizes (GRaF `graf`, NeRF2 `nerf2`) and the studies' GRaF (`graf_cpu_ray`) on the
+# 2. graf-bench at the paper's sizes (GRaF `graf`, NeRF2 `nerf2`) and the studies' GRaF (`graf_cpu_ray_weights`) on the
 #    embedded rfid_s23 and the simulated conference_v1, in fp32 and under bf16 autocast: s/spectrum (3 spectra),
 #    s/step (3 steps at the paper's 5,120 rays), peak GPU memory;
 # 3. the main job (graf-train experiment=graf_rfid_s23) trained and tested on the GPU;
@@ -55,7 +55,7 @@ OUT=${GRAF_GPU_CHECK_OUT:-sweeps/bench/gpu_$SLUG}
 mkdir -p "$OUT"
 echo "device: $DEVICE -> $OUT"
 
-BENCH=(data_root="$DATA" "bench.models=[graf,graf_cpu_ray,nerf2]" bench.spectra=3 bench.train_steps=3)
+BENCH=(data_root="$DATA" "bench.models=[graf,graf_cpu_ray_weights,nerf2]" bench.spectra=3 bench.train_steps=3)
 TRAIN=(experiment=graf_rfid_s23 trainer=gpu)
 if [ $TINY -eq 1 ]; then  # toy sizes, the embedded scene only, on whatever device there is
     BENCH=("bench.scenes=[real]" "bench.models=[graf,nerf2]" quick=true threads=1 "bench.quick_skip=[]"

@@ -5,7 +5,7 @@
 #
 #   bash scripts/paper_studies_cpu.sh [matrix] [nc] [bands] [unseen]        (no argument: all four, in this order)
 #
-# Each trained model runs its budget from the paper-density learning curves (GRaF graf_cpu_scenes_ray 3,000 steps,
+# Each trained model runs its budget from the paper-density learning curves (GRaF graf_cpu_scenes_ray_weights 3,000 steps,
 # KNN-DL 300: study_budgets in conf/study_size/paper.yaml).  Missing catalogs are ray-traced on first use.
 #   matrix  GRaF on conference_v1 and office_v1, seeds 0-2, tested on the six layouts (about 35 min a job on a 2-core
 #           Xeon before issue 53's fast training path: 26 min of training at 0.5 s/step, 7.5 min of testing 720
@@ -45,21 +45,21 @@ for study in "${STUDIES[@]}"; do
         for seed in 0 1 2; do  # seed-major: any prefix of the queue covers both training scenes
             for scene in conference_v1 office_v1; do
                 say "matrix: GRaF scene=$scene seed=$seed"
-                "$TRAIN" experiment=cross_scene_matrix model=graf_cpu_scenes_ray "scene=$scene" "seed=$seed" \
+                "$TRAIN" experiment=cross_scene_matrix model=graf_cpu_scenes_ray_weights "scene=$scene" "seed=$seed" \
                     study_steps=3000 "${COMMON[@]}" hydra.sweep.dir=$MATRIX
             done
         done
         ;;
     nc)
-        ckpt="$MATRIX/model=graf_cpu_scenes_ray,reliance=False,scene=\${hydra:runtime.choices.scene},seed=\${seed},study_steps=3000,torch_threads=2/checkpoints/last.ckpt"
+        ckpt="$MATRIX/model=graf_cpu_scenes_ray_weights,reliance=False,scene=\${hydra:runtime.choices.scene},seed=\${seed},study_steps=3000,torch_threads=2/checkpoints/last.ckpt"
         for scene in conference_v1 office_v1; do
             for seed in 0 1 2; do
-                f="$MATRIX/model=graf_cpu_scenes_ray,reliance=False,scene=$scene,seed=$seed,study_steps=3000,torch_threads=2/checkpoints/last.ckpt"
+                f="$MATRIX/model=graf_cpu_scenes_ray_weights,reliance=False,scene=$scene,seed=$seed,study_steps=3000,torch_threads=2/checkpoints/last.ckpt"
                 [ -f "$f" ] || { echo "nc: $f is missing: run the matrix first (bash $0 matrix)" >&2; exit 2; }
             done
         done
         say "nc: GRaF, zero-shot from the matrix's checkpoints"
-        "$TRAIN" experiment=neighbor_count model=graf_cpu_scenes_ray 'scene=conference_v1,office_v1' \
+        "$TRAIN" experiment=neighbor_count model=graf_cpu_scenes_ray_weights 'scene=conference_v1,office_v1' \
             finetune.base=null "finetune.init_from=\"$ckpt\"" \
             'hydra.job.config.override_dirname.exclude_keys=[experiment,data_root,study_size,finetune.base,finetune.init_from]' \
             "neighbors.L=$NC_L" "${COMMON[@]}" hydra.sweep.dir=sweeps/neighbor_count_paper
@@ -73,7 +73,7 @@ for study in "${STUDIES[@]}"; do
         ;;
     unseen)
         say "unseen layouts: GRaF and KNN-DL, seed 0"
-        "$TRAIN" experiment=unseen_layouts 'model=graf_cpu_scenes_ray,knn_dl' seed=0 "finetune=$UNSEEN_FT" \
+        "$TRAIN" experiment=unseen_layouts 'model=graf_cpu_scenes_ray_weights,knn_dl' seed=0 "finetune=$UNSEEN_FT" \
             "finetune.base.band=$UNSEEN_BAND" "${COMMON[@]}" \
             hydra.sweep.dir=sweeps/unseen_layouts_paper
         ;;

@@ -43,11 +43,11 @@ ROOT = Path(__file__).resolve().parents[1]
 PY = sys.executable
 T0 = time.time()
 MODES = ["pooled", "ray", "ray_knn", "ray_weights"]
-GRAF_MODELS = {  # the studies' model of each mode (graf_cpu_ray + 4-D positions: the curves' configuration)
+GRAF_MODELS = {  # the studies' model of each mode (graf_cpu_ray_weights + 4-D positions: the curves' configuration)
     "pooled": "graf_cpu_scenes_pooled",
     "ray": "graf_cpu_scenes_ray_plain",
     "ray_knn": "graf_cpu_scenes_ray_knn",
-    "ray_weights": "graf_cpu_scenes_ray",
+    "ray_weights": "graf_cpu_scenes_ray_weights",
 }
 LOG: list[str] = []
 

@@ -5,7 +5,7 @@ with its value and its comment, the constructor states the same settings without
 from Python (a test, a notebook: ``GRaFModule(d_model=8)``) takes what it leaves out from the home file.  So the
 value a run gets and the value a script gets cannot drift apart (``chunk_rays`` had 4096 in the constructor and
 1024 in ``conf/model/graf.yaml``).  Other files targeting the class (presets: ``model/graf_cpu.yaml``) derive from
-the home through their defaults list and state only what they change; ``tests/test_config_home.py`` fails on a
+the home through their defaults list and state only what they change; ``tests/app/test_config_home.py`` fails on a
 setting stated in two places.
 
 A value that is an interpolation (``seed: ${seed}``) is wiring, not a default: the constructor keeps its own

@@ -6,6 +6,7 @@ key that does not exist, a path with a non-ASCII character left unquoted) refuse
 
 from __future__ import annotations
 
+import re
 import shlex
 from pathlib import Path
 
@@ -22,6 +23,11 @@ __all__ = ["RENAMED_KEYS", "check_overrides", "modernize"]
 # with "/" is a config group; an entry applies only once its group exists in the config folder.
 RENAMED_KEYS: dict[str, str] = {
     "model.neighbor_features": "model/features",
+}
+# Options of a config group that were renamed (the old name builds the same thing, with a one-line deprecation):
+# presets are named for the neighbor-feature mode they build.
+RENAMED_OPTIONS: dict[str, dict[str, str]] = {
+    "model": {"graf_cpu_ray": "graf_cpu_ray_weights", "graf_cpu_scenes_ray": "graf_cpu_scenes_ray_weights"},
 }
 
 
@@ -41,7 +47,8 @@ def is_group(key: str, conf_dir: Path = CONF_DIR) -> bool:
 def modernize(args: list[str], conf_dir: Path = CONF_DIR) -> tuple[list[str], list[str]]:
     """The overrides in today's spelling, and one deprecation warning per override changed: "neighbour" ->
     "neighbor" in any key and in a config group's value (``experiment=neighbour_count``), then
-    :data:`RENAMED_KEYS` (``model.neighbour_features=X`` -> ``model/features=X``).  Flags (``-m``) pass as
+    :data:`RENAMED_KEYS` (``model.neighbour_features=X`` -> ``model/features=X``) and :data:`RENAMED_OPTIONS`
+    (``model=graf_cpu_scenes_ray`` -> ``model=graf_cpu_scenes_ray_weights``).  Flags (``-m``) pass as
     they are."""
     out, warnings = [], []
     for arg in args:
@@ -55,6 +62,8 @@ def modernize(args: list[str], conf_dir: Path = CONF_DIR) -> tuple[list[str], li
             key = renamed
         if is_group(key, conf_dir):
             value = value.replace("neighbour", "neighbor")
+            for was, now in RENAMED_OPTIONS.get(key.split("@", 1)[0], {}).items():  # each item of a sweep or list
+                value = re.sub(rf"(?<![\w/]){was}(?![\w])", now, value)
         new = f"{prefix}{key}={value}"
         if new != arg:
             warnings.append(f"warning: '{arg}' is deprecated; write '{new}'")

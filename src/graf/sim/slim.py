@@ -13,7 +13,7 @@ layout, measured).  So ``slim`` also stores the original value of every pixel wh
 ``TIE`` of a half (``tie_index``, ``tie_value``; a few hundred thousand), and of any other pixel the rebuild gets
 wrong; ``restore`` puts them back.  The result is the traced file's spectra bit for bit wherever the rebuild is
 within ``TIE`` of the original computation.  ``slim`` records the original spectra's sha256 (``spectra_sha256``)
-and ``restore`` the rebuilt ones', so a caller can check the two match (``tests/test_sim_slim.py``).
+and ``restore`` the rebuilt ones', so a caller can check the two match (``tests/sim/test_sim_slim.py``).
 
     python -m graf.sim.slim slim data/sim/conference_v1/2.4ghz.h5 conference_v1.slim.h5
     python -m graf.sim.slim restore conference_v1.slim.h5 data/sim/conference_v1/2.4ghz.h5

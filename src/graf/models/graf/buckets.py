@@ -5,7 +5,7 @@ presets), and every group runs the whole ray pass (tens of small operations forw
 widths a group's fixed cost is that of some hundreds of voxels, so one group per S spends much of a step on
 overhead.  :func:`buckets` joins consecutive counts into groups whose rays are padded to the group's largest S;
 padded voxels are masked out of the ray transformer's keys and of the mean over the ray, so each ray's output is
-the same function as in its own group (within float rounding; tests/test_graf_fast_training.py).
+the same function as in its own group (within float rounding; tests/models/test_graf_fast_training.py).
 
 The partition minimises ``groups x group_cost + padded voxels`` exactly (dynamic programming over the sorted
 counts; a few dozen counts at most).
@@ -16,7 +16,7 @@ from __future__ import annotations
 import torch
 
 # A group's fixed cost in voxels (forward + backward of one ray pass), measured on the 2-core Xeon with the
-# study preset (graf_cpu_scenes_ray): a padded group of 1,024 rays x 24 voxels against 24 groups of 43 rays.
+# study preset (graf_cpu_scenes_ray_weights): a padded group of 1,024 rays x 24 voxels against 24 groups of 43 rays.
 GROUP_COST_VOXELS = 384
 
 

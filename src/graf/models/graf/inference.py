@@ -2,7 +2,7 @@
 
 **Fast path** (:func:`fast_path`): at inference on a CPU in fp32 (eval mode, no autograd, no autocast, the
 model's ``fast_inference`` on) the blocks run feature-major through :mod:`graf.models.graf.kernels` (a fused
-attention kernel): the same function within float rounding (tests/test_graf_fast.py).  Everywhere else (training,
+attention kernel): the same function within float rounding (tests/models/test_graf_fast.py).  Everywhere else (training,
 GPUs, reduced precision) the blocks' own ``forward`` runs: the *plain path*.
 
 **Chunks in parallel** (:func:`map_chunks`): on a CPU, a spectrum's chunks of rays go to ``torch.get_num_threads()``

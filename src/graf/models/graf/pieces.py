@@ -15,7 +15,7 @@ synchronisation, and beside another busy process every operation waits for the s
 The pieces are fixed by the step, not by the threads, so a result does not depend on how many worker threads ran
 them or in which order they finished: a busy machine gets fewer workers (:func:`graf.models.graf.inference.
 serial_threads`), not other bits.  Within float rounding each parameter gets the gradient of the plain step
-(tests/test_graf_fast_training.py).  Not under data-parallel training (DDP reduces the gradients that autograd
+(tests/models/test_graf_fast_training.py).  Not under data-parallel training (DDP reduces the gradients that autograd
 accumulates; a step there renders its rays in one piece, still through the kernel and the padded groups).
 """
 

@@ -1,0 +1,368 @@
+"""The Optuna sweeper (hydra/sweeper=graf_optuna): persistence, resume after SIGKILL, failed and NaN trials,
+two processes on one storage, pruning, and searches that never see the test split.
+
+Most tests drive a tiny Hydra app (tests/fixtures/sweep_app: no torch, millisecond trials) in subprocesses, as a
+user would run a sweep; the searches themselves are smoke-tested with KNN on the embedded scene."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import optuna
+import pytest
+from optuna.trial import TrialState
+
+from graf.search.objectives import check_objective_names, objective_values
+
+REPO = Path(__file__).resolve().parents[2]
+APP = REPO / "tests" / "fixtures" / "sweep_app" / "app.py"
+
+
+def run_app(tmp: Path, *overrides: str, wait: bool = True, timeout: float = 300, env: dict | None = None):
+    cmd = [sys.executable, str(APP), f"marks={tmp / 'marks'}", f"hydra.sweep.dir={tmp / 'sweep'}", *overrides]
+    env = dict(os.environ, PYTHONUNBUFFERED="1", **(env or {}))
+    if not wait:
+        return subprocess.Popen(
+            cmd,
+            stdout=open(tmp / f"app_{time.time_ns()}.log", "w"),
+            stderr=subprocess.STDOUT,
+            env=env,
+            start_new_session=True,
+        )
+    r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout)
+    return r
+
+
+def load(tmp: Path) -> optuna.Study:
+    return optuna.load_study(study_name="study", storage=f"sqlite:///{tmp / 'sweep' / 'optuna.db'}")
+
+
+def trained(tmp: Path) -> dict[int, int]:
+    """x -> how many times a trial with that x ran to its end."""
+    return {int(p.name[len("finished_x") :]): len(p.read_text().split()) for p in (tmp / "marks").glob("finished_x*")}
+
+
+def states(study) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for t in study.trials:
+        out[t.state.name] = out.get(t.state.name, 0) + 1
+    return out
+
+
+def test_failed_and_nan_trials_are_stored_as_failed_and_the_study_goes_on(tmp_path):
+    r = run_app(tmp_path, "raise_at=2", "nan_at=3", "hydra.sweeper.sampler=grid", "x=choice(1,2,3,4,5,6)")
+    assert r.returncode == 0, r.stderr[-3000:]
+    study = load(tmp_path)
+    complete = [t for t in study.trials if t.state == TrialState.COMPLETE]
+    failed = {t.params["x"]: t.user_attrs["graf.error"] for t in study.trials if t.state == TrialState.FAIL}
+    assert len(complete) == 4
+    assert set(failed) == {"2", "3"}
+    assert "fails on purpose" in failed["2"] and "nan" in failed["3"]
+    assert all(t.value is not None and t.value == t.value for t in complete)  # no NaN stored as a value
+    table = (tmp_path / "sweep" / "trials.csv").read_text().splitlines()
+    assert len(table) == 1 + len(study.trials) and "FAIL" in "".join(table)
+
+
+def test_too_many_failures_stop_the_sweep_with_an_error(tmp_path):
+    r = run_app(tmp_path, "raise_at=2", "x=choice(2)", "hydra.sweeper.max_failures=2", "hydra.sweeper.sampler=tpe")
+    assert r.returncode != 0
+    assert "max_failures=2" in r.stderr
+    assert states(load(tmp_path)) == {"FAIL": 2}
+    assert (tmp_path / "sweep" / "trials.csv").is_file()  # the outputs are written all the same
+
+
+@pytest.mark.slow  # 20-72 s in a fresh-clone CI run here: the default run must stay under 15 min
+def test_a_sweep_killed_after_its_second_trial_resumes_to_exactly_four_trials(tmp_path):
+    # the grid order is seeded: find which x the third trial gets from a dry run, then make it the slow one
+    probe = tmp_path / "probe"
+    probe.mkdir()
+    assert run_app(probe, "hydra.sweeper.n_trials=3").returncode == 0
+    third = next(t.params["x"] for t in load(probe).trials if t.number == 2)
+    p = run_app(tmp_path, wait=False, env={"SWEEP_APP_SLOW_AT": str(third)})
+    deadline = time.time() + 120
+    while not list((tmp_path / "marks").glob(f"started_x{third}_*")):
+        assert p.poll() is None and time.time() < deadline, "the sweep ended before its third trial"
+        time.sleep(0.2)
+    assert sorted(trained(tmp_path).values()) == [1, 1]  # two trials finished, the third is running
+    os.killpg(p.pid, signal.SIGKILL)
+    p.wait()
+    study = load(tmp_path)
+    assert [t.state for t in study.trials if t.number == 2] == [TrialState.RUNNING]  # left behind by the kill
+
+    r = run_app(tmp_path)  # the same command again
+    assert r.returncode == 0, r.stderr[-3000:]
+    study = load(tmp_path)
+    complete = [t for t in study.trials if t.state == TrialState.COMPLETE]
+    assert len(complete) == 4
+    assert len({t.params["x"] for t in complete}) == 4
+    interrupted = [t for t in study.trials if t.user_attrs.get("graf.interrupted")]
+    assert [t.number for t in interrupted] == [2] and interrupted[0].state == TrialState.FAIL
+    requeued = [t for t in complete if t.user_attrs.get("graf.requeued_from") == 2]
+    assert len(requeued) == 1 and requeued[0].params == interrupted[0].params
+    assert set(trained(tmp_path).values()) == {1}  # no configuration trained (to its end) twice
+    assert len(trained(tmp_path)) == 4
+
+    # once more: the study is finished, nothing runs
+    r = run_app(tmp_path)
+    assert r.returncode == 0
+    assert len(load(tmp_path).trials) == len(study.trials)
+
+
+@pytest.mark.slow  # 20-72 s in a fresh-clone CI run here: the default run must stay under 15 min
+def test_a_preempted_trial_stops_the_sweep_with_code_143_and_is_run_again_on_resume(tmp_path):
+    probe = tmp_path / "probe"
+    probe.mkdir()
+    assert run_app(probe, "hydra.sweeper.n_trials=2").returncode == 0
+    second = next(t.params["x"] for t in load(probe).trials if t.number == 1)
+    r = run_app(tmp_path, f"preempt_at={second}")
+    assert r.returncode == 143, r.stderr[-3000:]
+    assert "queued again" in r.stdout + r.stderr
+    study = load(tmp_path)
+    assert [t.state for t in study.trials] == [TrialState.COMPLETE, TrialState.FAIL, TrialState.WAITING]
+    assert study.trials[1].user_attrs.get("graf.interrupted") and study.trials[2].user_attrs["graf.requeued_from"] == 1
+    assert (tmp_path / "sweep" / "trials.csv").is_file()  # the outputs are written before it stops
+
+    r = run_app(tmp_path, f"preempt_at={second}")  # the same command again
+    assert r.returncode == 0, r.stderr[-3000:]
+    study = load(tmp_path)
+    complete = [t for t in study.trials if t.state == TrialState.COMPLETE]
+    assert len(complete) == 4 and len({t.params["x"] for t in complete}) == 4
+    assert [t.number for t in complete if t.user_attrs.get("graf.requeued_from") == 1] == [2]
+    assert study.trials[2].params == study.trials[1].params  # the pre-empted configuration, run again
+    assert set(trained(tmp_path).values()) == {1}  # no configuration trained twice
+
+
+def test_two_processes_on_one_storage_complete_four_trials_without_duplicates(tmp_path):
+    procs = [run_app(tmp_path, "work_s=0.5", "hydra.sweeper.threads_per_job=1", wait=False) for _ in range(2)]
+    for p in procs:
+        assert p.wait(timeout=300) == 0, "".join(f.read_text() for f in tmp_path.glob("app_*.log"))[-3000:]
+    study = load(tmp_path)
+    complete = [t for t in study.trials if t.state == TrialState.COMPLETE]
+    assert len(complete) == 4
+    assert len({t.params["x"] for t in complete}) == 4
+    assert set(trained(tmp_path).values()) == {1} and len(trained(tmp_path)) == 4
+    pids = {p.name.rsplit("_", 1)[1] for p in (tmp_path / "marks").glob("started_*")}
+    assert len(pids) == 2, "both processes ran trials"
+    threads = {p.read_text() for p in (tmp_path / "marks").glob("started_*")}
+    assert threads == {"1"}  # each trial got its thread count
+
+
+def test_n_jobs_starts_workers_that_share_the_study(tmp_path):
+    r = run_app(tmp_path, "work_s=0.5", "hydra.sweeper.n_jobs=2")
+    assert r.returncode == 0, r.stderr[-3000:]
+    study = load(tmp_path)
+    assert states(study).get("COMPLETE") == 4
+    assert len({t.params["x"] for t in study.trials if t.state == TrialState.COMPLETE}) == 4
+    assert (tmp_path / "sweep" / "worker_1.log").is_file()
+    assert set(trained(tmp_path).values()) == {1}
+
+
+def test_a_pruned_trial_is_stored_as_pruned(tmp_path):
+    r = run_app(
+        tmp_path,
+        "lightning=true",
+        "hydra.sweeper.n_trials=2",
+        "hydra.sweeper.pruner.name=median",
+        "hydra.sweeper.pruner.n_startup_trials=1",
+        "hydra.sweeper.pruner.n_warmup_steps=0",
+    )
+    assert r.returncode == 0, r.stderr[-3000:]
+    study = load(tmp_path)
+    by_state = {t.state: t for t in study.trials}
+    assert set(by_state) == {TrialState.COMPLETE, TrialState.PRUNED}
+    first, pruned = by_state[TrialState.COMPLETE], by_state[TrialState.PRUNED]
+    assert first.intermediate_values == {2: 10.0, 4: 10.0, 6: 10.0}
+    assert pruned.intermediate_values == {2: -10.0}  # stopped at its first report
+    assert pruned.params["x"] not in trained(tmp_path)  # never ran to its end
+
+
+def test_the_validation_that_ends_training_never_prunes():
+    from types import SimpleNamespace
+
+    import torch
+
+    from graf.search.pruning import OptunaPruning
+
+    study = optuna.create_study(
+        direction="maximize", pruner=optuna.pruners.MedianPruner(n_startup_trials=1, n_warmup_steps=0)
+    )
+    done = study.ask()
+    done.report(10.0, 2)
+    done.report(10.0, 4)
+    study.tell(done, 10.0)
+
+    def trainer(step):
+        return SimpleNamespace(
+            sanity_checking=False,
+            global_step=step,
+            max_steps=4,
+            callback_metrics={"val/psnr": torch.tensor(-10.0)},
+            is_global_zero=True,
+            world_size=1,
+        )
+
+    last = OptunaPruning(study.ask(), "val/psnr")
+    last.on_validation_end(trainer(4), None)  # far under the median, but training is over: reported, not pruned
+    assert last.reported == [(4, -10.0)]
+    early = OptunaPruning(study.ask(), "val/psnr")
+    with pytest.raises(optuna.TrialPruned):
+        early.on_validation_end(trainer(2), None)
+
+
+def test_search_space_grammar():
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from optuna.distributions import CategoricalDistribution, FloatDistribution, IntDistribution
+
+    from graf.search.search_space import SearchSpaceError, parse_search_space
+
+    parser = OverridesParser.create()
+    space = parse_search_space(
+        {
+            "a": "interval(0, 1)",
+            "b": "tag(log, interval(1e-4, 1e-2))",
+            "c": "range(2, 5)",
+            "d": "choice([1,2],[3,10])",
+            "e": "tag(int, interval(1, 9))",
+            "f": "choice(1,2)",
+        },
+        ["g=3", "f=choice(4,5,6)"],
+        parser,
+    )
+    d = space.distributions
+    assert d["a"] == FloatDistribution(0.0, 1.0)
+    assert d["b"] == FloatDistribution(1e-4, 1e-2, log=True)
+    assert d["c"] == IntDistribution(2, 5)  # upper bound included
+    assert d["d"] == CategoricalDistribution(["[1,2]", "[3,10]"])
+    assert d["e"] == IntDistribution(1, 9)
+    assert d["f"] == CategoricalDistribution(["4", "5", "6"])  # the command line wins over params
+    assert space.fixed == ["g=3"]
+    assert space.overrides({"d": "[3,10]", "b": 0.001}) == ["g=3", "d=[3,10]", "b=0.001"]
+    with pytest.raises(SearchSpaceError, match="log"):
+        parse_search_space({"b": "tag(log, interval(0, 1))"}, [], parser)
+
+
+def test_samplers_follow_the_space_and_the_objectives():
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from graf.search.search_space import SearchSpaceError, parse_search_space
+    from graf.sweeper.optuna_sweeper import make_sampler
+
+    parser = OverridesParser.create()
+    cat = parse_search_space({"a": "choice(1,2)", "b": "choice(3,4,5)"}, [], parser)
+    mixed = parse_search_space({"a": "choice(1,2)", "lr": "tag(log, interval(1e-4, 1e-2))"}, [], parser)
+    assert isinstance(make_sampler("auto", cat, 1, 0), optuna.samplers.GridSampler)
+    assert isinstance(make_sampler("auto", mixed, 1, 0), optuna.samplers.TPESampler)
+    nsga = make_sampler("auto", mixed, 2, 0, population_size=4)
+    assert isinstance(nsga, optuna.samplers.NSGAIISampler) and nsga._population_size == 4
+    with pytest.raises(SearchSpaceError, match="choice"):
+        make_sampler("grid", mixed, 1, 0)
+    with pytest.raises(SearchSpaceError, match="population_size"):
+        make_sampler("nsga2", mixed, 2, 0, population_size=1)
+
+
+def test_objectives_refuse_test_metrics_and_average_over_test_scenes():
+    from graf.errors import ConfigError
+
+    for bad in ("test/psnr", "test/psnr@mean", "val/psnr@max", "cost/train_s"):
+        with pytest.raises(ConfigError, match="test split"):
+            check_objective_names([bad])
+    metrics = {"val/psnr": 20.0, "test/psnr": 99.0}
+    per_scene = [{"val/psnr": 20.0, "test/psnr": 99.0}, {"val/psnr": 10.0, "test/psnr": 98.0}]
+    assert objective_values(["val/psnr", "val/psnr@mean"], metrics, per_scene) == [20.0, 15.0]
+
+
+def test_best_json_means_are_the_means_over_the_evaluated_scenes():
+    from graf.search.objectives import metrics_mean
+
+    evals = [
+        {"eval_scene": "a", "metrics": {"val/psnr": 15.0, "test/psnr": 14.0, "val/ssim": 0.5}},
+        {"eval_scene": "b", "metrics": {"val/psnr": 13.0, "test/psnr": 16.0}},
+    ]
+    assert metrics_mean(evals) == {"val/psnr": 14.0, "test/psnr": 15.0}  # only metrics every scene has
+    assert metrics_mean(evals[:1]) is None and metrics_mean([]) is None
+
+
+def test_heldout_scenes_are_the_other_layouts_of_the_training_families():
+    from graf.app.config import heldout_scenes
+    from graf.errors import ConfigError
+
+    assert heldout_scenes(["conference_v1"], "auto") == ["conference_v2", "conference_v3"]
+    assert heldout_scenes(["conference_v1", "office_v2"], "auto") == [
+        "conference_v2",
+        "conference_v3",
+        "office_v1",
+        "office_v3",
+    ]
+    assert heldout_scenes(["conference_v1"], ["conference_v3", "office_v3"]) == ["conference_v3"]
+    assert heldout_scenes(["rfid_s23"], "auto") == []
+    with pytest.raises(ConfigError, match="unknown scene"):
+        heldout_scenes(["conference_v1"], ["conference_v9"])
+
+
+@pytest.mark.parametrize("search", ["neighbor_count", "cross_scene", "graf_size"])
+@pytest.mark.slow  # 20-72 s in a fresh-clone CI run here: the default run must stay under 15 min
+def test_search_smoke_with_knn_on_the_embedded_scene_never_sees_the_test_split(tmp_path, search):
+    """The documented smoke test of each search; its trials are validated only (no test figure, no test
+    spectrum predicted), the objective is their validation PSNR, and the chosen one is tested once."""
+    env = dict(os.environ, OMP_NUM_THREADS="2", WANDB_MODE="offline")
+    cmd = [
+        str(Path(sys.executable).parent / "graf-train"),
+        "-m",
+        f"hparams_search={search}",
+        "model=knn",
+        "scene=rfid_s23",
+        "hydra.sweeper.n_trials=3",
+        f"hydra.sweep.dir={tmp_path / 'sweep'}",
+        f"data_root={tmp_path / 'data'}",
+        "logger=none",
+    ]
+    r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
+    assert r.returncode == 0, r.stderr[-4000:]
+    sweep = tmp_path / "sweep"
+    study = optuna.load_study(study_name=f"search_{search}", storage=f"sqlite:///{sweep / 'optuna.db'}")
+    complete = [t for t in study.trials if t.state == TrialState.COMPLETE]
+    # cross_scene's space without `scene` (given on the command line) is a 2-point grid: n_trials 3 -> 2
+    assert len(complete) == (2 if search == "cross_scene" else 3)
+    if search == "cross_scene":
+        assert "the grid has 2 points: n_trials 3 -> 2" in r.stdout + r.stderr
+    test_ids = {int(line) for line in (REPO / "src/graf/embedded/rfid_s23_200/test_index.txt").read_text().split()}
+    assert all(set(t.params) <= {"neighbors.L", "neighbors.L_train"} for t in study.trials)  # what KNN has
+    by_number = {t.number: t for t in study.trials}
+    for t in complete:
+        if "graf.duplicate_of" in t.user_attrs:  # a sampler's repeat: the stored outcome, nothing trained
+            orig = by_number[int(t.user_attrs["graf.duplicate_of"])]
+            assert orig.params == t.params and orig.values == t.values and "graf.output_dir" not in t.user_attrs
+            continue
+        res = json.loads((Path(t.user_attrs["graf.output_dir"]) / "results.json").read_text())
+        assert res["n_test"] == 0 and all(res["metrics"][f"test/{m}"] is None for m in ("mse", "psnr"))
+        assert res["metrics"]["val/psnr"] == pytest.approx(t.values[0])
+        # its validation targets are none of the scene's test spectra
+        assert res["splits"]["n_val"] > 0 and not set(res["splits"]["val_ids"]) & test_ids
+    best = json.loads((sweep / "best" / "best.json").read_text())
+    assert best["metrics"]["test/psnr"] is not None
+    assert best["metrics"]["val/psnr"] == pytest.approx(max(t.values[0] for t in complete)) or search == "graf_size"
+    for name in ("trials.csv", "best_overrides.txt", "best_params.json", "optimization_history.png"):
+        assert (sweep / name).is_file(), name
+    assert "hydra.mode=RUN" in (sweep / "best_overrides.txt").read_text()
+    if search == "graf_size":
+        assert (sweep / "pareto_front.png").is_file() and (sweep / "pareto.json").is_file()
+
+
+def test_heartbeat_settings_on_sqlite_are_said_to_be_unused(caplog):
+    """hydra.sweeper.heartbeat applies to RDB servers (PostgreSQL, MySQL); on SQLite it is not silently dropped:
+    one log line says it is unused and what finds dead workers there instead."""
+    import logging
+
+    from graf.sweeper.optuna_sweeper import make_storage
+
+    with caplog.at_level(logging.INFO, logger="graf"):
+        url = make_storage("sqlite:///x.db", {"interval": 10, "grace_period": 60, "max_retry": 3})
+    assert url == "sqlite:///x.db"
+    said = [r.getMessage() for r in caplog.records if "heartbeat" in r.getMessage()]
+    assert len(said) == 1 and "not used" in said[0] and "owner" in said[0]
