@@ -56,7 +56,7 @@ def test_a_two_job_multirun_through_submitit_local_equals_the_basic_launchers(tm
     local = multirun(tmp_path / "submitit", "hydra/launcher=submitit_local")
     assert (tmp_path / "submitit" / ".submitit").is_dir()  # the jobs went through submitit
     for b, s in zip(basic, local):
-        assert b["neighbors"] == s["neighbors"]
+        assert b["config"]["neighbors"] == s["config"]["neighbors"]
         for k in ("test/psnr", "test/ssim", "test/lpips", "test/reliance_db"):
             assert s["metrics"][k] == pytest.approx(b["metrics"][k], abs=1e-6), k
     assert {r["config"]["neighbors"]["L"] for r in basic} == {2, 6}

@@ -208,7 +208,6 @@ class RunRecord(Record):
     eval_split: str
     split_source: str
     splits: dict
-    neighbors: str
     trainable_parameters: int
     global_step: int
     device: str

@@ -81,7 +81,6 @@ def run_record(cfg: DictConfig, built: BuiltRun, scenes: list[SceneTest], facts:
         eval_split=dm.eval_split,
         split_source="; ".join(d.split_source for d in dm.sets),
         splits=dm.split_summary(),
-        neighbors=repr(built.neighbors),
         trainable_parameters=int(sum(p.numel() for p in model.parameters() if p.requires_grad)),
         global_step=int(facts.checkpoint.global_step if facts.checkpoint else built.trainer.global_step),
         device=run_device(built.trainer, model),
