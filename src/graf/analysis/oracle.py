@@ -199,7 +199,7 @@ def summarize(psnr: torch.Tensor) -> dict:
 
 def plot_oracle(results: dict, path: str | Path) -> Path:
     """Left: histograms of the per-target PSNR of each lr and of IDW KNN, with the paper's 20.5 dB.
-    Right: histogram of the normalised fitted weights (seed Fig 1b's statistics) of each lr."""
+    Right: histogram of the normalised fitted weights (the statistics of the paper's Fig 1b) of each lr."""
     fig, (ax, axw) = plt.subplots(1, 2, figsize=(11, 3.8), constrained_layout=True)
     series = [(f"oracle lr {run['lr']:g}", run["psnr"]["per_target"]) for run in results["runs"]]
     series.append(("IDW KNN", results["idw"]["psnr"]["per_target"]))
