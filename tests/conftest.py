@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import os
+import signal
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +34,16 @@ def smooth_spectra(positions: np.ndarray, seed: int = 0) -> np.ndarray:
     s = np.exp(-((daz / 25.0) ** 2) - ((el - el0) / 15.0) ** 2)
     s = (s - s.min(axis=(1, 2), keepdims=True)) / np.ptp(s, axis=(1, 2), keepdims=True)
     return s.astype(np.float32)
+
+
+@pytest.fixture(autouse=True)
+def _sigint_put_back():
+    """A test whose command ended on a Ctrl+C leaves SIGINT ignored in the worker (a second Ctrl+C is ignored
+    while a command ends); put it back, or every subprocess the worker starts later inherits SIGINT ignored."""
+    handler = signal.getsignal(signal.SIGINT)
+    yield
+    if signal.getsignal(signal.SIGINT) is not handler:
+        signal.signal(signal.SIGINT, handler)
 
 
 @pytest.fixture
