@@ -72,11 +72,12 @@ def test_a_measured_set_holding_a_test_position_is_refused():
 
 @pytest.mark.slow
 def test_graf_localize_quality_on_a_jobs_own_test_budget_equals_its_test_psnr(tmp_path):
-    """quality_test_count: a run tested on the first 12 test spectra (3 batches of 4, as the density jobs test on
-    their first 32) gets that run's test PSNR as its synthesis quality; the localizers still see all 40."""
+    """quality_test_count: a run tested on the first 12 test spectra (data.test_subset=12 with
+    test_subset_seed=null, as the density jobs test their first 32) gets that run's test PSNR as its synthesis
+    quality; the localizers still see all 40."""
     run, out, data = tmp_path / "knn", tmp_path / "loc", tmp_path / "data"
     _run("graf.cli.evaluate", "model=knn", "logger=none", "plot_count=0", "data.batch_size=4",
-         "data.test_subset=12", f"hydra.run.dir={run}", f"data_root={data}")  # fmt: skip
+         "data.test_subset=12", "data.test_subset_seed=null", f"hydra.run.dir={run}", f"data_root={data}")  # fmt: skip
     res = json.loads((run / "results.json").read_text())
     n = res["n_test"]
     assert n == 12

@@ -76,6 +76,8 @@ def read_run(folder: Path, data_root: str | None) -> dict:
     cfg = OmegaConf.create(res["config"])
     if data_root is not None:
         cfg.data_root = data_root
+    if cfg.get("data") is not None:  # the localizers see the whole test split; the synthesizer's quality is
+        cfg.data.test_subset = None  # measured on its first quality_test_count (a run may have tested fewer)
     _, _, _, dm = build_datamodule(cfg, "eval_scene" if cfg.get("eval_scene") else "scene")
     dm.setup("fit")
     if len(dm.sets) != 1:
