@@ -54,7 +54,8 @@ def defaults_from(rel: str):
 
     def decorate(cls):
         init = cls.__init__
-        params = inspect.signature(init).parameters
+        signature = inspect.signature(init)  # once, not per construction
+        params = signature.parameters
         values = home_values(rel)
         unknown = [k for k in values if k not in params and not any(p.kind == p.VAR_KEYWORD for p in params.values())]
         if unknown:
@@ -68,7 +69,7 @@ def defaults_from(rel: str):
 
         @functools.wraps(init)
         def __init__(self, *args, **kwargs):
-            bound = inspect.signature(init).bind_partial(self, *args, **kwargs).arguments
+            bound = signature.bind_partial(self, *args, **kwargs).arguments
             for k, v in home_values(rel).items():
                 if k not in bound:
                     kwargs[k] = v

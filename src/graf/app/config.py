@@ -17,7 +17,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-import graf
+from graf.config_home import CONF_DIR as CONF_HOME_DIR
 from graf.errors import ConfigError, is_user_error, user_message
 
 log = logging.getLogger("graf")
@@ -26,7 +26,7 @@ log = logging.getLogger("graf")
 # @hydra.main reads them as a package resource, so an installed wheel works from any folder; add a
 # folder of your own with Hydra's --config-dir.  CONF_DIR is the same folder on disk.
 CONF_PATH = "pkg://graf.conf"
-CONF_DIR = Path(graf.__file__).resolve().parent / "conf"
+CONF_DIR = CONF_HOME_DIR  # graf.config_home's: the folder is named once
 
 
 def output_dir(cfg: DictConfig) -> Path:
