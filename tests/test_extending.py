@@ -103,3 +103,16 @@ def test_every_method_of_the_platform_is_a_method():
         KNNModule().has_trainable_parameters is False
         and NeRF2Module(depth=2, width=16, skips=[]).uses_neighbors is False
     )
+
+
+def test_a_registration_too_late_to_reach_every_reader_is_refused():
+    """Registered after the reports were imported, a metric or an axis would be silently left out of them."""
+    import graf.reports.rows  # noqa: F401  (a reader of both registries)
+    from graf.metrics.names import Metric, register
+    from graf.reports.axes import Axis
+    from graf.reports.axes import register as register_axis
+
+    with pytest.raises(ValueError, match="register it in a plugin"):
+        register(Metric("late", "late", "", True, "{:.1f}", per_spectrum=lambda p, t: p.mean(dim=(1, 2))))
+    with pytest.raises(ValueError, match="register it in a plugin"):
+        register_axis(Axis("late", of_job=lambda r: 0))

@@ -9,6 +9,7 @@ figure a run computes reaches ``results.json``, the per-spectrum records and the
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -79,12 +80,27 @@ EVAL_METRICS: tuple[str, ...] = ()
 _derived()
 
 
+# modules that copy the registry when they are imported: a metric registered after them would not reach them
+READERS = ("graf.callbacks", "graf.run.per_spectrum", "graf.reports.rows", "graf.reports.statistics",
+           "graf.reports.intervals", "graf.reports.figures", "graf.search.objectives")  # fmt: skip
+
+
+def too_late(imported: list[str], what: str) -> None:
+    """Refuse a registration that modules already imported would not see (it would be silently left out)."""
+    if imported:
+        raise ValueError(
+            f"{what} registered after {', '.join(imported)} was imported, which would not see it: register it in a "
+            "plugin (GRAF_PLUGINS, imported when graf is)"
+        )
+
+
 def register(metric: Metric) -> Metric:
     """Add a metric to :data:`REGISTRY` (docs/extending.md, "Add a metric"): every evaluation computes it from then
     on, and it reaches ``results.json``, the per-spectrum records, graf-report's tables, intervals and figures.
     Call it where graf is imported before any run starts: in a plugin (``GRAF_PLUGINS``, :mod:`graf.plugins`)."""
     if metric.name in REGISTRY or metric.name in COUNT_NAMES + RELIANCE_NAMES:
         raise ValueError(f"metric {metric.name!r} is registered already")
+    too_late([m for m in READERS if m in sys.modules], f"metric {metric.name!r}")
     REGISTRY[metric.name] = metric
     _derived()
     return metric

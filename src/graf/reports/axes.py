@@ -8,9 +8,12 @@ An axis reads its value from a job's ``results.json`` (:attr:`Axis.of_job`) or f
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
+
+from graf.metrics.names import too_late
 
 
 def band_label(hz) -> str:
@@ -95,6 +98,7 @@ def register(axis: Axis, after: str | None = None) -> Axis:
     global AXES, AXIS_NAMES
     if axis.name in AXIS_NAMES:
         raise ValueError(f"study axis {axis.name!r} is declared already")
+    too_late([m for m in ("graf.reports.rows", "graf.reports.intervals") if m in sys.modules], f"axis {axis.name!r}")
     if (axis.of_job is None) == (axis.of_evaluation is None):
         raise ValueError(f"study axis {axis.name!r}: give of_job or of_evaluation (one of the two)")
     names = list(AXIS_NAMES)
