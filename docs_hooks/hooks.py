@@ -212,10 +212,18 @@ def tree(make, *args):
 def on_config(config):
     """The navigation's "API reference" entry becomes the generated pages, the index first."""
     pages = [{title: path} for path, (title, _) in tree(tree_pages.api_pages, ROOT).items()]
-    for i, item in enumerate(config["nav"]):
-        if isinstance(item, dict) and API_NAV in item:
-            config["nav"][i] = {API_NAV: pages}
-            return config
+
+    def replace(items: list) -> bool:  # the entry at any depth of the navigation (it sits under Reference)
+        for i, item in enumerate(items):
+            if isinstance(item, dict) and API_NAV in item:
+                items[i] = {API_NAV: pages}
+                return True
+            if isinstance(item, dict) and any(isinstance(v, list) and replace(v) for v in item.values()):
+                return True
+        return False
+
+    if replace(config["nav"]):
+        return config
     raise PluginError(f"docs: mkdocs.yml's nav has no {API_NAV!r} entry for the generated API pages")
 
 
