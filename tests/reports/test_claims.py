@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import csv
 import json
+import re
+from collections import Counter
 
 import numpy as np
 from hydra import compose, initialize_config_dir
@@ -93,11 +95,20 @@ def test_the_ledger_is_rebuilt_from_records_with_the_verdicts_their_intervals_gi
     assert "no record yet" in by_id["table1_bedroom"]["reason"]
     assert by_id["table6_size"]["verdict"] == "not comparable"
 
-    write_ledger(table, tmp_path / "sweeps" / "claims")
-    with open(tmp_path / "sweeps" / "claims" / "claims.csv", newline="") as f:
+    out = tmp_path / "sweeps" / "claims"
+    out.mkdir(parents=True)
+    (out / "dropped_claim.png").write_bytes(b"png")  # a figure of a claim no longer in the ledger
+    write_ledger(_claims(), table, tmp_path, out)
+    with open(out / "claims.csv", newline="") as f:
         back = list(csv.DictReader(f))
     assert [r["id"] for r in back] == [r["id"] for r in table] and back[0]["verdict"] == table[0]["verdict"]
-    assert "**holds**" in (tmp_path / "sweeps" / "claims" / "claims.md").read_text()
+    text = (out / "claims.md").read_text()
+    assert "Verdict: **holds**" in text and "| conference_v1 -> conference_v2 | +0.5" in text
+    # a figure per claim whose record holds its cells, none for a claim without a record, the stale one gone
+    figures = {p.name for p in out.glob("*.png")}
+    assert figures == {"cross_scene_vs_knn_dl.png", "cross_scene_vs_knn.png", "table5_L2_to_L4.png",
+                       "table5_plateau.png"}  # fmt: skip
+    assert "![" in text and "(sweeps/claims/table5_L2_to_L4.png)" in text
 
 
 def _matrix_ledger(runs, root) -> dict:
@@ -163,3 +174,61 @@ def test_a_target_row_judges_a_ratio_against_its_own_figure_and_says_by_how_much
     calm = {"key": "rows.0.slow", "paper_value": 2.5, "higher_is_better": False}
     assert judge_value(calm, record)["verdict"] == "holds"
     assert judge_value({**calm, "over": "rows.9.s"}, record)["verdict"] == "not reproduced"  # no such row
+
+
+SUMMARY = re.compile(r"^- \*\*(holds|refuted|not reproduced|not comparable)\*\* \((\d+)\): (.*)$", re.M)
+SECTION = re.compile(r"^## (.+) \{#(\w+)\}$", re.M)
+MAX_CELL = 60  # characters in a table cell of the page: its tables fit the site's column
+MAX_COLUMNS = 5
+
+
+def test_the_published_ledger_page_is_a_summary_then_a_section_per_claim_with_its_figure():
+    """sweeps/claims/claims.md, the page docs/claims.md shows: the summary's counts are the CSV's verdicts, every
+    claim has its section (heading, verdict, command in a code block) and every comparison its forest plot; no
+    table is wider than the column; the page is what graf-claims writes from the records today."""
+    from pathlib import Path
+
+    from graf.reports.claims import claim_cells
+    from graf.reports.ledger import page
+
+    root = Path(__file__).resolve().parents[2]
+    out = root / "sweeps" / "claims"
+    with open(out / "claims.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    text = (out / "claims.md").read_text()
+    counts = Counter()
+    for verdict, n, named in SUMMARY.findall(text):
+        counts[verdict] += int(n)
+        assert len(re.findall(r"\]\(#\w+\)", named)) == int(n)
+    assert counts == Counter(r["verdict"] for r in rows)
+    assert [i for _, i in SECTION.findall(text)] == [r["id"] for r in rows]
+    for r, part in zip(rows, re.split(r"^## ", text, flags=re.M)[1:]):
+        assert f"Verdict: **{r['verdict']}**." in part and (not r["command"] or "```\n" in part)
+        if r["interval"]:  # a comparison: its cells' table and its forest plot, drawn and shown
+            assert (out / f"{r['id']}.png").is_file() and f"](sweeps/claims/{r['id']}.png)" in part
+            assert "| 95% interval |" in part
+    for line in (x for x in text.splitlines() if x.startswith("|")):
+        cells = [c.strip() for c in line.strip("|").split(" | ")]
+        assert len(cells) <= MAX_COLUMNS and max(map(len, cells)) <= MAX_CELL, line
+    claims = _claims()
+    assert text == page(claims, rows, {c["id"]: claim_cells(c, root) for c in claims}, root, out)
+
+
+def test_the_claims_page_cites_the_paper_and_shows_the_ledger():
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[2] / "docs" / "claims.md").read_text()
+    title = "Generalizable Radio-Frequency Radiance Fields for Spatial Spectrum Synthesis"
+    assert title in text and "CVPR 2026" in text and "2502.05708" in text
+    assert "../shared" not in text and "<!-- gen: include sweeps/claims/claims.md -->" in text
+
+
+def test_a_long_command_is_wrapped_into_lines_that_read_as_the_same_command():
+    from graf.reports.ledger import wrap
+
+    command = "graf-bench threads=2 " + " ".join(f"'+model@models.m{i}=graf_cpu_scenes_ray_weights'" for i in range(4))
+    lines = wrap(command, width=60).splitlines()
+    assert len(lines) > 1 and all(len(x) <= 60 for x in lines)
+    assert all(x.endswith(" \\") for x in lines[:-1]) and all(x.startswith("    ") for x in lines[1:])
+    assert " ".join(x.removesuffix(" \\").strip() for x in lines) == command
+    assert wrap("graf-bench") == "graf-bench"

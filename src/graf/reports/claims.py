@@ -21,8 +21,11 @@ how (``kind``):
 
 Every claim may require the paper's density (``paper_density: true``): a record made on scenes cut below it (its
 ``sim_num_tx``, or ``config.sim_num_tx``, set) makes the verdict "not comparable" with the count.  A claim whose
-record is missing is "not reproduced (no record)".  The ledger is ``claims.csv``, ``claims.md`` (the docs page
-includes it) and ``results.json`` in ``out``; its inputs are the records alone, so it is rebuilt from them.
+record is missing is "not reproduced (no record)".  The ledger is ``claims.csv`` (the machine form) and
+``results.json`` in ``out``, and the page to read, ``claims.md`` (the docs page includes it), with a forest plot
+``<id>.png`` per claim with intervals (:mod:`graf.reports.ledger`; a claim's ``title`` heads its section, and a
+``paper_value`` of a paired claim is drawn on its plot); its inputs are the records alone, so it is rebuilt from
+them.
 """
 
 from __future__ import annotations
@@ -38,11 +41,11 @@ from omegaconf import DictConfig, OmegaConf
 from graf.app.config import task_wrapper
 from graf.errors import ConfigError
 from graf.io import atomic_write_bytes, atomic_write_json
+from graf.reports.ledger import VERDICTS, write_page
 from graf.reports.rows import short_scenes
 
 log = logging.getLogger("graf")
 
-VERDICTS = ("holds", "refuted", "not reproduced", "not comparable")
 COLUMNS = ("id", "source", "claim", "paper", "platform", "interval", "verdict", "reason", "record", "command")
 
 
@@ -93,20 +96,39 @@ def _match(row: dict, cell: dict | list) -> bool:
     return True
 
 
-def judge_paired(claim: dict, data: dict) -> dict:
+def _pair(r: dict) -> str:
+    """A study row's cell as the ledger names it: ``trained on -> tested on`` (or the test scene alone)."""
+    return f"{short_scenes(r['trained_on'])} -> {r['eval_scene']}" if r.get("trained_on") else r["eval_scene"]
+
+
+def _cell(name: str, c: dict) -> dict:
+    return {"cell": name, "diff": c["diff"], "low": c["low"], "high": c["high"], "verdict": c["verdict"]}
+
+
+def paired_cells(claim: dict, data: dict) -> list[dict]:
+    """The cells of a paired claim: per selected row, ``method`` minus ``reference`` (``cell``, ``diff``, ``low``,
+    ``high``, the interval's ``verdict``)."""
     rows = [
         r for r in data.get("rows", []) if r.get("method") == claim["method"] and r.get("metric") == claim["metric"]
     ]
     rows = [r for r in rows if _match(r, claim.get("cell") or {})]
-    comps = [(r, r.get(f"vs_{claim['reference']}")) for r in rows]
-    comps = [(r, c) for r, c in comps if c]
-    if not comps:
+    return [_cell(_pair(r), r[f"vs_{claim['reference']}"]) for r in rows if r.get(f"vs_{claim['reference']}")]
+
+
+def _joined(cells: list[dict]) -> dict:
+    """The ledger's platform and interval columns of ``cells``."""
+    return {
+        "platform": "; ".join(f"{c['cell']}: {c['diff']:+.2f}" for c in cells),
+        "interval": "; ".join(f"{c['cell']}: [{c['low']:+.2f}, {c['high']:+.2f}]" for c in cells),
+    }
+
+
+def judge_paired(claim: dict, data: dict) -> dict:
+    cells = paired_cells(claim, data)
+    if not cells:
         return {"verdict": "not reproduced", "reason": "no such comparison in the record"}
-    name = lambda r: f"{short_scenes(r['trained_on'])} -> {r['eval_scene']}" if r.get("trained_on") else r["eval_scene"]  # noqa: E731
-    parts = [f"{name(r)}: {c['diff']:+.2f}" for r, c in comps]
-    intervals = [f"{name(r)}: [{c['low']:+.2f}, {c['high']:+.2f}]" for r, c in comps]
-    verdict, reason = _direction([c["verdict"] for _, c in comps], "ahead")
-    return {"platform": "; ".join(parts), "interval": "; ".join(intervals), "verdict": verdict, "reason": reason}
+    verdict, reason = _direction([c["verdict"] for c in cells], "ahead")
+    return {**_joined(cells), "verdict": verdict, "reason": reason}
 
 
 def _direction(verdicts: list[str], want: str) -> tuple[str, str]:
@@ -122,30 +144,38 @@ def _direction(verdicts: list[str], want: str) -> tuple[str, str]:
     return "not reproduced", f"{also}interval includes 0 in {n_level} of {n} cells"
 
 
+def transfer_cells(claim: dict, data: dict) -> list[dict]:
+    """The cells of a transfer claim: per band pair of the record, ``train band -> test band``."""
+    want = {"method": claim["method"], "metric": claim["metric"], **(claim.get("cell") or {})}
+    found = [c for c in data.get("band_transfers", []) if _match(c, want)]
+    return [_cell(f"{c['train_band']} -> {c['eval_band']}", c) for c in found]
+
+
 def judge_transfer(claim: dict, data: dict) -> dict:
     expect = str(claim.get("expect", "behind"))
     if expect not in ("ahead", "behind"):
         raise ConfigError(f"claim {claim.get('id')!r}: expect must be 'ahead' or 'behind', got {expect!r}")
-    want = {"method": claim["method"], "metric": claim["metric"], **(claim.get("cell") or {})}
-    found = [c for c in data.get("band_transfers", []) if _match(c, want)]
-    if not found:
+    cells = transfer_cells(claim, data)
+    if not cells:
         return {"verdict": "not reproduced", "reason": "no band transfer in the record"}
-    name = lambda c: f"{c['train_band']} -> {c['eval_band']}"  # noqa: E731
-    verdict, reason = _direction([c["verdict"] for c in found], expect)
-    return {
-        "platform": "; ".join(f"{name(c)}: {c['diff']:+.2f}" for c in found),
-        "interval": "; ".join(f"{name(c)}: [{c['low']:+.2f}, {c['high']:+.2f}]" for c in found),
-        "verdict": verdict,
-        "reason": reason,
-    }
+    verdict, reason = _direction([c["verdict"] for c in cells], expect)
+    return {**_joined(cells), "verdict": verdict, "reason": reason}
+
+
+def change_cells(claim: dict, data: dict) -> list[dict]:
+    """The one cell of a change claim: the record's first L change of ``method`` and ``metric`` from ``L_from`` to
+    ``L_to``, or none."""
+    want = {k: claim[k] for k in ("method", "L_from", "L_to", "metric")}
+    found = [c for c in data.get("L_changes", []) if all(str(c.get(k)) == str(v) for k, v in want.items())]
+    return [_cell(f"L = {claim['L_from']} -> {claim['L_to']}", c) for c in found[:1]]
 
 
 def judge_change(claim: dict, data: dict) -> dict:
-    want = {k: claim[k] for k in ("method", "L_from", "L_to", "metric")}
-    found = [c for c in data.get("L_changes", []) if all(str(c.get(k)) == str(v) for k, v in want.items())]
-    if not found:
+    cells = change_cells(claim, data)
+    if not cells:
+        want = {k: claim[k] for k in ("method", "L_from", "L_to", "metric")}
         return {"verdict": "not reproduced", "reason": f"no L change {want} in the record"}
-    c = found[0]
+    c = cells[0]
     out = {"platform": f"{c['diff']:+.2f}", "interval": f"[{c['low']:+.2f}, {c['high']:+.2f}]"}
     if claim.get("tolerance") is not None:
         tol = float(claim["tolerance"])
@@ -240,25 +270,29 @@ def ledger(claims: list[dict], root: Path) -> list[dict]:
     return [judge(c, root) for c in claims]
 
 
-def to_markdown(rows: list[dict]) -> str:
-    cols = ("source", "claim", "paper", "platform", "interval", "verdict", "reason", "command")
-    esc = lambda s: str(s).replace("|", "\\|").replace("\n", " ")  # noqa: E731
-    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-    for r in rows:
-        cells = [esc(r[c]) if c != "command" or not r[c] else f"`{esc(r[c])}`" for c in cols]
-        cells[cols.index("verdict")] = f"**{cells[cols.index('verdict')]}**"
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+CELLS = {"paired": paired_cells, "change": change_cells, "transfer": transfer_cells}
 
 
-def write_ledger(rows: list[dict], out: Path) -> None:
+def claim_cells(claim: dict, root: Path) -> list[dict]:
+    """The cells with an interval that ``claim`` reads from its record under ``root`` (its figure's rows); none
+    for a claim of another kind or without a record."""
+    if claim.get("kind") not in CELLS:
+        return []
+    data = _load(root, claim["record"])
+    return [] if data is None else CELLS[claim["kind"]](claim, data)
+
+
+def write_ledger(claims: list[dict], rows: list[dict], root: Path, out: Path) -> None:
+    """The ledger of ``claims`` (``rows``, from the records under ``root``) in ``out``: ``claims.csv`` (the machine
+    form), ``results.json``, and the page to read, ``claims.md`` with a forest plot per claim with intervals
+    (:func:`graf.reports.ledger.write_page`)."""
     out.mkdir(parents=True, exist_ok=True)
     text = io.StringIO()
     w = csv.DictWriter(text, fieldnames=COLUMNS, lineterminator="\n")
     w.writeheader()
     w.writerows(rows)
     atomic_write_bytes(out / "claims.csv", text.getvalue().encode())
-    atomic_write_bytes(out / "claims.md", to_markdown(rows).encode())
+    write_page(claims, rows, {c["id"]: claim_cells(c, root) for c in claims}, root, out)
     counts = {v: sum(r["verdict"] == v for r in rows) for v in VERDICTS}
     atomic_write_json(out / "results.json", {"task": "claims", "counts": counts, "rows": rows})
 
@@ -267,10 +301,11 @@ def write_ledger(rows: list[dict], out: Path) -> None:
 def claims(cfg: DictConfig) -> dict:
     """graf-claims: the ledger of ``cfg.claims`` from the records under ``cfg.records``, written into ``cfg.out``."""
     root = Path(str(cfg.records))
-    rows = ledger(OmegaConf.to_container(cfg.claims, resolve=True), root)
+    claims = OmegaConf.to_container(cfg.claims, resolve=True)
+    rows = ledger(claims, root)
     out = Path(str(cfg.out))
-    write_ledger(rows, out)
+    write_ledger(claims, rows, root, out)
     for r in rows:
         log.info("%-28s %-15s %s", r["id"], r["verdict"], r["platform"])
-    log.info("ledger: %s", out / "claims.csv")
+    log.info("ledger: %s (the page: %s)", out / "claims.csv", out / "claims.md")
     return {"counts": {v: sum(r["verdict"] == v for r in rows) for v in VERDICTS}}

@@ -1,0 +1,199 @@
+"""The claims ledger as a page to read: ``claims.md`` (``docs/claims.md`` includes it) and a forest plot
+``<id>.png`` per claim with intervals, beside the machine form ``claims.csv`` (:mod:`graf.reports.claims`).
+
+The page opens with the counts per verdict, one line each, every claim named and linked to its section; the
+claims judged against another figure than the paper's (an issue's target: the claim's ``against``) are counted
+apart.  Then one section per claim, headed by its ``title``: its source and what the paper says, the platform's
+figure (for a comparison: a table of its cells with their 95% intervals and the forest plot, drawn from the same
+interval records the verdict reads), the verdict and its reason, the record and the command.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import matplotlib.pyplot as plt  # on the Agg backend: graf.plotting (below) sets it
+import numpy as np
+
+from graf.io import atomic_write_bytes
+from graf.metrics.names import REGISTRY
+from graf.plotting import save_figure
+
+VERDICTS = ("holds", "refuted", "not reproduced", "not comparable")
+WIDTH = 88  # a command's lines in its code block, continued with " \"
+TOKEN = re.compile(r"(?:'[^']*'|\"[^\"]*\"|\S)+")  # a word of a command, quotes kept whole
+
+
+def write_page(claims: list[dict], rows: list[dict], cells: dict[str, list[dict]], root: Path, out: Path) -> Path:
+    """``out/claims.md`` of the ledger ``rows`` of ``claims``, and ``out/<id>.png`` for each claim with ``cells``
+    (:func:`graf.reports.claims.claim_cells`); a figure of a claim no longer in the ledger is removed."""
+    figures = set()
+    for claim in claims:
+        if cells.get(claim["id"]):
+            forest_plot(claim, cells[claim["id"]], out / f"{claim['id']}.png")
+            figures.add(f"{claim['id']}.png")
+    for stale in out.glob("*.png"):
+        if stale.name not in figures:
+            stale.unlink()
+    text = page(claims, rows, cells, root, out)
+    return atomic_write_bytes(out / "claims.md", text.encode())
+
+
+def page(claims: list[dict], rows: list[dict], cells: dict[str, list[dict]], root: Path, out: Path) -> str:
+    """The ledger's page: the summary, then a section per claim (in the config's order)."""
+    by_id = {c["id"]: c for c in claims}
+    parts = [summary(claims, rows)]
+    for row in rows:
+        claim = by_id[row["id"]]
+        figure = _link(out / f"{row['id']}.png", root) if cells.get(row["id"]) else None
+        parts.append(section(claim, row, cells.get(row["id"]) or [], figure, root))
+    return "\n\n".join(parts) + "\n"
+
+
+def _link(path: Path, root: Path) -> str:
+    """``path`` as the page names it: from the repository root (``sweeps/claims/x.png``, as a docs page links a
+    published figure) when it lies under ``root``."""
+    try:
+        return path.resolve().relative_to(root.resolve()).as_posix()
+    except ValueError:
+        return path.as_posix()
+
+
+def title(claim: dict) -> str:
+    return str(claim.get("title") or claim["id"])
+
+
+def summary(claims: list[dict], rows: list[dict]) -> str:
+    """The counts per verdict, one line each naming its claims (linked to their sections); the paper's claims
+    first, then each group judged against another figure (``against``)."""
+    by_id = {c["id"]: c for c in claims}
+    groups: dict[str | None, list[dict]] = {}
+    for row in rows:
+        groups.setdefault(by_id[row["id"]].get("against"), []).append(row)
+    out = []
+    for against, group in sorted(groups.items(), key=lambda g: g[0] is not None):
+        whose = "The paper's claims" if against is None else f"Judged against {against} figure, not the paper's"
+        lines = [f"**{whose}** ({len(group)}):", ""]
+        for verdict in VERDICTS:
+            named = [f"[{title(by_id[r['id']])}](#{r['id']})" for r in group if r["verdict"] == verdict]
+            lines.append(f"- **{verdict}** ({len(named)}): {', '.join(named) or 'none'}")
+        out.append("\n".join(lines))
+    return "\n\n".join(out)
+
+
+def _stop(text: str) -> str:
+    """``text`` ending with a full stop."""
+    text = str(text).strip()
+    return text if not text or text.endswith((".", "?", "!")) else text + "."
+
+
+def _sentence(text: str) -> str:
+    """``text`` as a sentence: its first letter capital, a full stop at the end."""
+    text = _stop(text)
+    return text[:1].upper() + text[1:]
+
+
+def section(claim: dict, row: dict, cells: list[dict], figure: str | None, root: Path) -> str:
+    """One claim's section: heading, source and statement, the platform's figure, verdict, record, command."""
+    speaker = _sentence(claim.get("against", "the paper's").removesuffix("'s")).rstrip(".")  # The paper
+    parts = [
+        f"## {title(claim)} {{#{row['id']}}}",
+        f"*Source: {_stop(row['source'])}* {speaker}: {_sentence(row['claim'])} Its figure: {_stop(row['paper'])}",
+        platform(claim, row, cells, figure),
+        f"Verdict: **{row['verdict']}**. {_sentence(row['reason'])}",
+        record(row["record"], root),
+    ]
+    if row["command"]:
+        parts.append("Command:\n\n```\n" + wrap(row["command"]) + "\n```")
+    return "\n\n".join(p for p in parts if p)
+
+
+def _metric(claim: dict) -> tuple[str, str]:
+    """The label and unit of the claim's metric (the metric registry's; the name alone for one it lacks)."""
+    m = REGISTRY.get(str(claim.get("metric")))
+    return (m.label, m.unit) if m else (str(claim.get("metric", "")), "")
+
+
+def difference(claim: dict) -> str:
+    """What a cell's figure is: ``PSNR, graf-ray-weights minus knn-dl``."""
+    label = _metric(claim)[0]
+    if claim["kind"] == "change":
+        return f"{label} of {claim['method']}, L = {claim['L_to']} minus L = {claim['L_from']}"
+    if claim["kind"] == "transfer":
+        return f"{label} of {claim['method']}, trained at another band minus at the test band"
+    return f"{label}, {claim['method']} minus {claim['reference']}"
+
+
+def platform(claim: dict, row: dict, cells: list[dict], figure: str | None) -> str:
+    """The platform's figure: the cells' table and forest plot, else the figure beside the paper's, else the
+    platform column as prose."""
+    if cells:
+        unit = _metric(claim)[1]
+        head = f"The platform: {difference(claim)}{f' ({unit})' if unit else ''}, per cell, with its 95% interval:"
+        body = [[c["cell"], f"{c['diff']:+.2f}", f"[{c['low']:+.2f}, {c['high']:+.2f}]"] for c in cells]
+        table = _table(["cell", f"difference{f' ({unit})' if unit else ''}", "95% interval"], body)
+        alt = f"{title(claim)}: each cell's difference and 95% interval"
+        return f"{head}\n\n{table}\n\n![{alt}]({figure})" if figure else f"{head}\n\n{table}"
+    if row["platform"] and claim.get("kind") in ("value", "difference") and claim.get("paper_value") is not None:
+        paper = format(float(claim["paper_value"]), claim.get("format", ".2f"))
+        whose = claim.get("against", "the paper's")
+        return _table(["the platform's figure", f"{whose} figure"], [[row["platform"], paper]])
+    if row["platform"]:
+        return f"The platform: {_sentence(row['platform'])}"
+    return "The platform has no figure for it."
+
+
+def _table(header: list[str], body: list[list[str]]) -> str:
+    esc = lambda s: str(s).replace("|", "\\|").replace("\n", " ")  # noqa: E731
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return "\n".join(lines + ["| " + " | ".join(esc(c) for c in r) + " |" for r in body])
+
+
+def record(path: str, root: Path) -> str:
+    """Where the figure comes from: the record (as a path: the site publishes the records' figures alone) and its
+    folder's README where it has one."""
+    if not path:
+        return ""
+    readme = Path(path).parent / "README.md"
+    how = f"; how it was made: `{readme.as_posix()}`" if (root / readme).is_file() else ""
+    return f"Record: `{path}`{how}."
+
+
+def wrap(command: str, width: int = WIDTH) -> str:
+    """``command`` in lines of at most ``width`` characters (a longer word alone), broken between words and
+    continued with `` \\``, so that the block reads without scrolling and copies as one command."""
+    lines, line = [], ""
+    for word in TOKEN.findall(command):
+        if line and len(line) + 1 + len(word) + 2 > width:
+            lines.append(line + " \\")
+            line = "    " + word
+        else:
+            line = f"{line} {word}" if line else word
+    return "\n".join(lines + [line])
+
+
+def forest_plot(claim: dict, cells: list[dict], path: Path) -> Path:
+    """Each cell's difference and 95% interval on one axis (the first cell on top), the 0 line, the paper's
+    figure as a marker where the claim has one (``paper_value``), and the band a plateau claim allows
+    (``tolerance``)."""
+    n = len(cells)
+    y = np.arange(n)[::-1]
+    diff = np.array([c["diff"] for c in cells])
+    err = np.array([[c["diff"] - c["low"] for c in cells], [c["high"] - c["diff"] for c in cells]])
+    fig, ax = plt.subplots(figsize=(7.0, 1.9 + 0.3 * n), constrained_layout=True)
+    if claim.get("tolerance") is not None:
+        tol = float(claim["tolerance"])
+        ax.axvspan(-tol, tol, color="0.88", label=f"within ±{tol:g} (the paper's plateau)")
+    ax.axvline(0.0, color="0.3", lw=1.0, ls="--", label="0 (no difference)")
+    ax.errorbar(diff, y, xerr=err, fmt="o", color="C0", capsize=3, label="the platform: 95% interval")
+    if claim.get("paper_value") is not None:
+        paper = float(claim["paper_value"])
+        ax.plot([paper] * n, y, "D", color="C3", label=f"the paper's figure, {paper:+.2f}")
+    unit = _metric(claim)[1]
+    ax.set_xlabel(f"{difference(claim)}{f' ({unit})' if unit else ''}", fontsize=9)
+    ax.set_yticks(y, [c["cell"] for c in cells], fontsize=8)
+    ax.set_ylim(-0.7, n - 0.3)
+    ax.set_title(title(claim), fontsize=10)
+    fig.legend(fontsize=7, loc="outside lower center", ncols=3, frameon=False)  # below: it hides no interval
+    return save_figure(fig, path, dpi=100)
