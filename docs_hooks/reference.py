@@ -10,6 +10,8 @@ Two directives, each on a line of its own (:func:`expand` replaces them):
   A command's table is preceded by the config groups it composes, with their default options.
 - ``<!-- gen: group NAME -->``: the options of config group ``NAME`` (its ``*.yaml`` files, the shared ``base/``
   files left out), each with the first sentence of its file's comment.
+- ``<!-- gen: interp PATH[,PATH...] -->``: the interpolation case study's figures, one row per scene of each
+  graf-interp record (``sweeps/interpolation/<run>``; its ``results.json``), as the Case studies page shows them.
 
 Comments are read from the YAML's lines: the comment on a key's line (and the comment lines aligned under it), or
 else the comment lines just above the key.  A nested block of settings (``bench:``) is listed key by key; a block of
@@ -19,6 +21,7 @@ named entries (``regimes:``, ``points:``) is one row naming them.
 from __future__ import annotations
 
 import ast
+import json
 import re
 from pathlib import Path
 
@@ -28,7 +31,7 @@ from mkdocs.exceptions import PluginError
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "src" / "graf" / "conf"
-DIRECTIVE = re.compile(r"^<!-- gen: (config|group) (\S+) -->$", re.M)
+DIRECTIVE = re.compile(r"^<!-- gen: (config|group|interp) (\S+) -->$", re.M)
 # what the keys every command shares set, where a config file leaves them without a comment
 BUILT_IN = {
     "task_name": "names the output folder (`outputs/<task_name>/<time>/`) and its log file",
@@ -47,8 +50,10 @@ def expand(markdown: str, src_uri: str = "") -> str:
     def one(m: re.Match) -> str:
         kind, name = m.group(1), m.group(2)
         try:
-            return config_block(name, depth) if kind == "config" else group_block(name)
-        except (OSError, ValueError, yaml.YAMLError, tree_pages.TreeError) as e:
+            makers = {"config": lambda: config_block(name, depth), "group": lambda: group_block(name),
+                      "interp": lambda: interp_table(name)}  # fmt: skip
+            return makers[kind]()
+        except (OSError, ValueError, KeyError, yaml.YAMLError, tree_pages.TreeError) as e:
             raise PluginError(f"docs: <!-- gen: {kind} {name} -->: {e}") from e
 
     return DIRECTIVE.sub(one, markdown)
@@ -205,8 +210,27 @@ def cell(text: str) -> str:
     return "`".join(parts)
 
 
+MACHINE = re.compile(r"\b\d[\d.,]* ?(?:ms|s|min|minutes|h)\b.*\bhere\b|\b\d+-core\b")  # a timing "here", a machine
+
+
+def site_voice(text: str) -> str:
+    """A comment without its asides about the machine it was measured on: a parenthesis's ``;``-separated parts that
+    give a timing "here" or name an N-core machine (``(about 80 s here)``, ``1024 was fastest on the 2-core CPU``)
+    are left out, as is a parenthesis left empty.  The site names machines and timings only in its Reproducibility
+    log."""
+
+    def keep(m: re.Match) -> str:
+        parts = [p for p in m.group(1).split("; ") if not MACHINE.search(p)]
+        return f" ({'; '.join(parts)})" if parts else ""
+
+    return re.sub(r"\s*\(([^()]*)\)", keep, text)
+
+
 def table(rows: list[tuple[str, str, str]]) -> str:
-    body = [f"| `{key}` | {default} | {cell(comment or BUILT_IN.get(key, ''))} |" for key, default, comment in rows]
+    body = [
+        f"| `{key}` | {default} | {cell(site_voice(comment) or BUILT_IN.get(key, ''))} |"
+        for key, default, comment in rows
+    ]
     return "\n".join(["| key | default | what it sets |", "|---|---|---|", *body])
 
 
@@ -250,7 +274,7 @@ def group_block(group: str) -> str:
         if rel.parts[0] == "base":
             continue
         option = rel.with_suffix("").as_posix()
-        rows.append(f"| `{option}` | {cell(first_sentence(header(path.read_text().splitlines())))} |")
+        rows.append(f"| `{option}` | {cell(site_voice(first_sentence(header(path.read_text().splitlines()))))} |")
     body = "\n".join(["| option | what it is |", "|---|---|", *rows])
     return body + f"\n\n*Generated from `src/graf/conf/{group}/`.*"
 
@@ -259,3 +283,67 @@ def first_sentence(text: str) -> str:
     """Up to the first full stop that ends a sentence (not one inside a file name, a number or "e.g.")."""
     m = re.search(r"(?<!e\.g)(?<!i\.e)\.(\s|$)", text)
     return text[: m.start() + 1] if m else text
+
+
+# ---- the interpolation case study (graf-interp's records)
+
+INTERP_SCALES = (0.01, 0.1, 1.0, 5.0)  # the fine scales shown, in wavelengths
+
+
+def interp_table(paths: str) -> str:
+    """Two tables of the graf-interp records in ``paths`` (comma-separated folders under the repository): per scene
+    the dataset part's slopes and the fine scales' median error and steepest local slope (a scene once, from the
+    first record that has it); per record and scene, error / dP^2 against the curvature K."""
+    scales = " / ".join(f"{w:g}" for w in INTERP_SCALES)
+    first = [["scene", "dataset slope, barycentric [95%]", "dataset slope, IDW",
+              f"median RMSE at ΔP = {scales} wavelengths", "steepest local slope (at ΔP)"]]  # fmt: skip
+    second = [["record", "scene", "K step = scale", "Spearman ρ (K, error/ΔP²) (p)", "slope of error/ΔP² on K [95%]"]]
+    seen = set()
+    for rel in paths.split(","):
+        record = json.loads((ROOT / rel / "results.json").read_text())
+        for scene, r in record["scenes"].items():
+            if scene not in seen:
+                seen.add(scene)
+                first.append([scene, *interp_row(r)])
+            if r.get("curvature"):
+                second.append([f"`{Path(rel).name}`", scene, *curvature_row(r["curvature"])])
+    names = ", ".join(f"`{p}/results.json`" for p in paths.split(","))
+    return "\n\n".join([markdown(first), markdown(second), f"*Generated from {names}.*"])
+
+
+def markdown(rows: list[list[str]]) -> str:
+    return "\n".join(["| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0]),
+                      *["| " + " | ".join(r) + " |" for r in rows[1:]]])  # fmt: skip
+
+
+def interp_row(r: dict) -> list[str]:
+    """The dataset part's slopes and the fine scales' figures of one scene (a measured scene: the dataset part)."""
+    bary, idw = r["dataset"]["barycentric"]["fit"], r["dataset"]["idw"]["fit"]
+    out = [f"{bary['slope']:.2f} [{bary['ci'][0]:.2f}, {bary['ci'][1]:.2f}]", f"{idw['slope']:.2f}"]
+    fine = r.get("fine")
+    if not fine:
+        return out + ["-", "-"]
+    scales = [x / r["wavelength_m"] for x in fine["scales_m"]]
+    med = fine["barycentric"]["median_rmse"]
+    picks = [min(range(len(scales)), key=lambda i, w=w: abs(scales[i] - w)) for w in INTERP_SCALES]
+    local = fine["barycentric"]["local_slopes"]
+    k = max(range(len(local["slope"])), key=lambda i: local["slope"][i])
+    return out + [
+        " / ".join(f"{med[i]:.2g}" for i in picks),
+        f"{local['slope'][k]:.2f} ({local['at_m'][k] * 1000:.0f} mm)",
+    ]
+
+
+def curvature_row(c: dict) -> list[str]:
+    """error / dP^2 against K at one scene: the step and scale, the rank correlation, the log-log slope."""
+    fit = c["fit_ratio_vs_K"]
+    step = (
+        f"{c['fd_step_m'] * 1000:.1f} mm"
+        if c["fd_step_m"] == c["scale_m"]
+        else f"{c['fd_step_m'] * 1000:.1f} mm, {c['scale_m'] * 1000:.1f} mm"
+    )
+    return [
+        step,
+        f"{c['spearman_rho']:.2f} ({c['spearman_p']:.1g})",
+        f"{fit['slope']:.2f} [{fit['ci'][0]:.2f}, {fit['ci'][1]:.2f}]",
+    ]
