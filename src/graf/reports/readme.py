@@ -30,6 +30,7 @@ from graf.reports.published import md, study_tables
 START = "<!-- graf-report: generated from report.json, rows.json, intervals.json; do not edit -->"
 END = "<!-- /graf-report -->"
 MAX_COLUMNS = 7
+SIGNED = "{:+.2f}"  # a difference of PSNR (dB); -0.00: below zero by less than the last digit
 AXIS_WORDS = {"trained_on": "trained on", "train_band": "train band", "finetune": "fine-tuned",
               "eval_scene": "tested on", "eval_band": "test band"}  # fmt: skip
 METRIC_FORMS = (("psnr", "PSNR (dB)", "{:+.2f}"), ("ssim", "SSIM", "{:+.3f}"), ("lpips", "LPIPS", "{:+.3f}"),
@@ -83,18 +84,16 @@ def _load(path: Path, required: bool = True):
         raise UserError(f"{path}: not valid JSON ({e})") from None
 
 
-def signed(x: float, form: str = "{:+.2f}") -> str:
-    """``x`` in ``form``, a value that rounds to zero as +0 (never -0.00)."""
-    s = form.format(x)
-    return form.format(0.0) if float(s) == 0 else s
+def _diff(c: dict) -> str:
+    return SIGNED.format(c["diff"])
 
 
 def _ends(c: dict) -> str:
-    return f"[{signed(c['low'])}, {signed(c['high'])}]"
+    return f"[{SIGNED.format(c['low'])}, {SIGNED.format(c['high'])}]"
 
 
 def _interval(c: dict | None) -> str:
-    return f"{signed(c['diff'])} {_ends(c)} {c['verdict'].split()[0]}" if c else "-"
+    return f"{_diff(c)} {_ends(c)} {c['verdict'].split()[0]}" if c else "-"
 
 
 def verdicts(rows: list[dict]) -> str:
@@ -114,7 +113,7 @@ def verdicts(rows: list[dict]) -> str:
             counts[c["verdict"].split()[0]] += 1
         diffs = sorted(c["diff"] for c in cs)
         reach = max(max(c["diff"] - c["low"], c["high"] - c["diff"]) for c in cs)
-        spread = f"{signed(diffs[0], form)} to {signed(diffs[-1], form)}"
+        spread = f"{form.format(diffs[0])} to {form.format(diffs[-1])}"
         told = ", ".join(f"{n} {v}" for v, n in sorted(counts.items()))
         body.append([method, ref.upper(), metric.upper(), told, spread, form.format(reach).lstrip("+")])
     head = ["method", "minus", "metric", "verdicts (cells)", "differences", "widest reach"]
@@ -169,7 +168,7 @@ def changes(record: dict) -> list[str]:
     ls.sort(key=lambda c: (c["method"], c["L_from"], c["L_to"]))
     if ls:
         word = {"ahead": "rises", "behind": "falls"}
-        body = [[c["method"], f"{c['L_from']} -> {c['L_to']}", signed(c["diff"]), _ends(c),
+        body = [[c["method"], f"{c['L_from']} -> {c['L_to']}", _diff(c), _ends(c),
                  word.get(c["verdict"], c["verdict"].split()[0])] for c in ls]  # fmt: skip
         out.append(
             "PSNR change with L, pooled over the trained-on / test-scene pairs, paired by spectrum:\n\n"
@@ -177,7 +176,7 @@ def changes(record: dict) -> list[str]:
         )
     bands = [c for c in record.get("band_transfers") or [] if c["metric"] == "psnr"]
     if bands:
-        body = [[c["method"], c["train_band"], c["eval_band"], signed(c["diff"]), _ends(c), c["verdict"].split()[0]]
+        body = [[c["method"], c["train_band"], c["eval_band"], _diff(c), _ends(c), c["verdict"].split()[0]]
                 for c in bands]  # fmt: skip
         out.append(
             "PSNR of a model trained at another band minus the model trained at the test band, paired by spectrum:\n\n"
