@@ -19,14 +19,23 @@ A page asks for a generated block with a directive on a line of its own:
 - ``<!-- gen: page PATH -->``: a markdown file of the repository (``CONTRIBUTING.md``) as the page's text;
 - ``<!-- gen: layout src -->``: the map of the package (floors, rooms, modules, commands, scripts);
 - ``<!-- gen: headline PATH -->``: the main job's table from its record (``sweeps/main_job/results.json``), the
-  same table ``scripts/headline.py`` writes into the README.
+  same table ``scripts/headline.py`` writes into the README;
+- ``<!-- gen: records sweeps -->``: one entry per folder of ``sweeps/`` with its figures (:mod:`records`), the
+  Records page.
+
+A generated table wider than its page's content column at 1,400 px is split into tables of the same rows, each
+with the row labels and as many columns as fit (:func:`site_checks.fit_tables`), so no column of figures sits
+behind a scroll bar.  The Results pages (the navigation's ``Results`` section) hide the table of contents, which
+gives their tables 250 px more.
 
 A directive whose record is missing fails the build (``mkdocs build --strict`` in CI), so a page never shows a
-table its records do not hold.  Figures: every ``*.png`` of ``sweeps/`` (three folders deep) is published at
+table its records do not hold.  Figures: every ``*.png`` of ``sweeps/`` (at any depth, but in checkpoint, trial
+and model folders: :func:`records.figures`) is published at
 ``sweeps/...``, so a page links ``![](sweeps/NAME/figure.png)`` (from a page in ``docs/``).
 
 This folder is outside ``docs/``, so the hooks are not published with the site; MkDocs loads this file and puts
-its folder on ``sys.path`` while it does, which is how ``tree_pages`` is imported.
+its folder on ``sys.path`` while it does, which is how ``tree_pages``, ``records`` and ``site_checks`` are
+imported.
 """
 
 from __future__ import annotations
@@ -37,6 +46,8 @@ import math
 import re
 from pathlib import Path
 
+import records
+import site_checks
 import tree_pages
 from mkdocs.exceptions import PluginError
 from mkdocs.structure.files import File
@@ -47,7 +58,10 @@ from graf.reports import published
 ROOT = Path(__file__).resolve().parents[1]
 SWEEPS = ROOT / "sweeps"
 API_NAV = "API reference"
-DIRECTIVE = re.compile(r"^<!-- gen: (study|search|include|code|page|choose|layout|headline) (\S+) -->$", re.M)
+DIRECTIVE = re.compile(r"^<!-- gen: (study|search|include|code|page|choose|layout|headline|records) (\S+) -->$", re.M)
+RESULTS_NAV = "Results"  # the navigation's section whose pages hide the table of contents (WIDE_PAGES)
+WIDE_PAGES: set[str] = set()  # filled by on_config
+NAV_TITLES: dict[str, str] = {}
 
 
 def _record(path: Path) -> Path:
@@ -210,7 +224,14 @@ def tree(make, *args):
 
 
 def on_config(config):
-    """The navigation's "API reference" entry becomes the generated pages, the index first."""
+    """The navigation's "API reference" entry becomes the generated pages, the index first; the pages of its
+    Results section are noted (:data:`WIDE_PAGES`), and every page's title (the Records page's links)."""
+    WIDE_PAGES.clear()
+    for item in config["nav"]:
+        if isinstance(item, dict) and isinstance(item.get(RESULTS_NAV), list):
+            WIDE_PAGES.update(records.nav_titles(item[RESULTS_NAV]))
+    NAV_TITLES.clear()
+    NAV_TITLES.update(records.nav_titles(config["nav"]))
     pages = [{title: path} for path, (title, _) in tree(tree_pages.api_pages, ROOT).items()]
 
     def replace(items: list) -> bool:  # the entry at any depth of the navigation (it sits under Reference)
@@ -229,7 +250,10 @@ def on_config(config):
 
 # The search ranks the pages a reader wants above the API reference, whose many short entries (one per function)
 # otherwise come first for "neighbor" or "KNN": Material's per-page search boost (page.meta search.boost).
-SEARCH_BOOST = {"neighbors.md": 4.0, "methods/": 3.0, "scaling-out.md": 2.0, "data.md": 2.0, "api/": 0.25}
+# The task pages come first for the words of their task ("install", "resume", "GPU", "own data"), above the
+# pages that mention them in passing (the command reference, the reproducibility log).
+SEARCH_BOOST = {"neighbors.md": 4.0, "methods/": 3.0, "how-to/install.md": 4.0, "how-to/resume.md": 4.0,
+                "how-to/own-data.md": 4.0, "scaling-out.md": 4.0, "data.md": 2.0, "api/": 0.25}  # fmt: skip
 
 
 def search_boost(src_uri: str) -> float | None:
@@ -240,16 +264,28 @@ def search_boost(src_uri: str) -> float | None:
     return None
 
 
+def records_page(folder: str) -> str:
+    """The Records page: an entry per folder of ``sweeps/`` (:mod:`records`)."""
+    if folder != "sweeps":
+        raise PluginError(f"docs: <!-- gen: records {folder} -->: the records are those of sweeps")
+    return records.page(SWEEPS, ROOT, NAV_TITLES)
+
+
 def on_page_markdown(markdown: str, page, config, files) -> str:
     boost = search_boost(page.file.src_uri)
     if boost is not None:
         page.meta.setdefault("search", {}).setdefault("boost", boost)
+    hide = page.meta.setdefault("hide", [])
+    if page.file.src_uri in WIDE_PAGES and "toc" not in hide:
+        hide.append("toc")
+    width = site_checks.column_width(toc="toc" not in hide, nav="navigation" not in hide)
 
     def expand(m: re.Match) -> str:
         kind, arg = m.group(1), m.group(2)
         makers = {"study": study, "search": search, "include": include, "code": code, "page": page_file,
-                  "choose": choose, "layout": layout, "headline": headline}  # fmt: skip
-        return makers[kind](arg)
+                  "choose": choose, "layout": layout, "headline": headline, "records": records_page}  # fmt: skip
+        text = makers[kind](arg)
+        return text if kind == "code" else site_checks.fit_tables(text, width)
 
     return DIRECTIVE.sub(expand, markdown)
 
@@ -265,9 +301,7 @@ def on_page_content(html: str, page, config, files) -> str:
 
 def on_files(files, config):
     site = config["site_dir"]
-    for png in sorted(SWEEPS.glob("*/*.png")) + sorted(SWEEPS.glob("*/*/*.png")):
-        if png.parent.name.startswith(("trial_", "model=")):
-            continue
+    for png in records.figures(SWEEPS):
         uri = png.relative_to(ROOT).as_posix()
         files.append(File(uri, src_dir=str(ROOT), dest_dir=site, use_directory_urls=config["use_directory_urls"]))
     for path, (_, text) in tree(tree_pages.api_pages, ROOT).items():

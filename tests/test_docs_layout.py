@@ -21,7 +21,7 @@ from urllib.parse import unquote, urlsplit
 
 import pytest
 import yaml
-from docs_hooks import tree_pages
+from docs_hooks import site_checks, tree_pages
 
 ROOT = Path(__file__).resolve().parents[1]
 SRC = ROOT / "src"
@@ -74,8 +74,16 @@ def test_every_public_module_has_an_api_entry_and_every_api_page_is_in_the_navig
     rooms = {".".join(m.split(".")[:2]) for m in package_modules()} - {"graf"}
     index = pages["api/index.md"][1]
     assert all(f"[`{r}`]" in index for r in rooms)
-    nav = mkdocs_config()["nav"]
-    assert {"API reference": "api/index.md"} in nav  # the hook replaces it with every page above
+
+    def entries(items: list) -> list[dict]:  # the navigation's entries at any depth
+        return [
+            e
+            for i in items
+            if isinstance(i, dict)
+            for e in [i, *entries([*i.values()][0] if isinstance([*i.values()][0], list) else [])]
+        ]
+
+    assert {"API reference": "api/index.md"} in entries(mkdocs_config()["nav"])  # the hook puts every page above
     assert not list((ROOT / "docs" / "api").glob("*.md")), "docs/api/ is generated: no hand-written page there"
 
 
@@ -173,25 +181,46 @@ def test_a_module_without_a_docstring_stops_the_build_with_its_path(tmp_path):
         tree_pages.layout(tmp_path)
 
 
-def test_the_site_builds_strictly_without_the_hooks_in_it(tmp_path):
+@pytest.fixture(scope="module")
+def site(tmp_path_factory) -> Path:
+    """The site, built once for this module's tests as CI builds it (strictly)."""
     pytest.importorskip("mkdocs")
     mkdocs = shutil.which("mkdocs", path=str(Path(sys.executable).parent)) or shutil.which("mkdocs")
     env = {**os.environ, "NO_MKDOCS_2_WARNING": "1"}
-    site = tmp_path / "site"
+    site = tmp_path_factory.mktemp("built") / "site"
     proc = subprocess.run([mkdocs, "build", "--strict", "--site-dir", str(site)], cwd=ROOT, env=env,
                           capture_output=True, text=True, timeout=300)  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
+    return site
+
+
+def test_the_site_builds_strictly_without_the_hooks_in_it(site):
     assert not list(site.rglob("*.py"))
     assert (site / "api" / "run" / "index.html").is_file() and (site / "api" / "modules" / "index.html").is_file()
     assert 'id="graf.run.evaluation"' in (site / "api" / "run" / "index.html").read_text()
     problems = site_problems(site)
     assert not problems, "\n".join(problems[:20])
-    # the search ranks the pages a reader wants above the API reference's many short entries
+
+
+def test_every_published_figure_is_shown_on_a_page(site):
+    missing = figures_not_shown(site, ROOT / "sweeps")
+    assert not missing, f"{len(missing)} figures of sweeps/ on no page: {missing[:10]}"
+    records = (site / "records" / "index.html").read_text()
+    folders = sorted(p.name for p in (ROOT / "sweeps").iterdir() if p.is_dir())
+    assert all(f'id="{name}"' in records for name in folders), "the Records page has an entry per sweeps/ folder"
+
+
+def test_the_search_ranks_the_task_pages_first(site):
+    """The pages a reader wants above the API reference's many short entries (one per function), and the task
+    pages first for their task's words ("install", "resume", "GPU", "own data"): Material's per-page boost."""
     boosts = {
         d["location"]: d.get("boost", 1)
         for d in json.loads((site / "search" / "search_index.json").read_text())["docs"]
     }
     assert boosts["neighbors/"] > 1 and boosts["methods/knn/"] > 1 and boosts["api/models/"] < 1
+    tasks = ["how-to/install/", "how-to/resume/", "scaling-out/", "how-to/own-data/"]
+    others = [b for loc, b in boosts.items() if loc.split("#")[0] not in tasks and not loc.startswith("neighbors/")]
+    assert all(boosts[t] > max(others, default=1) for t in tasks), {t: boosts[t] for t in tasks}
 
 
 class _Page(HTMLParser):
@@ -225,8 +254,10 @@ class _Page(HTMLParser):
 def site_problems(site: Path) -> list[str]:
     """What a reader would trip over in the built site: a local link or image that does not resolve, a list that
     renders as a run-on paragraph (" - " items without the blank line Markdown needs), a Sphinx role printed
-    literally (``:func:``), a published figure (``sweeps/.../x.png``) a page names but does not show."""
-    out = []
+    literally (``:func:``), a published figure (``sweeps/.../x.png``) a page names but does not show, a table
+    whose right-hand columns sit behind a scroll bar at 1,400 px (:func:`site_checks.overflowing_tables`, which
+    agrees with headless Chromium: ``scripts/site_audit.py``)."""
+    out = site_checks.overflowing_tables(site)
     for f in sorted(site.rglob("*.html")):
         page = _Page()
         page.feed(f.read_text())
@@ -252,6 +283,44 @@ def site_problems(site: Path) -> list[str]:
     return out
 
 
+def figures_not_shown(site: Path, sweeps: Path) -> list[str]:
+    """The figures of ``sweeps`` (every ``*.png`` at any depth, but in a checkpoint's, an Optuna trial's or a model's
+    folder) that no page of the built ``site`` shows as an image."""
+    shown = set()
+    for f in site.rglob("*.html"):
+        page = _Page()
+        page.feed(f.read_text())
+        for src in page.images:
+            u = urlsplit(src)
+            if not (u.scheme or u.netloc):
+                shown.add((f.parent / unquote(u.path)).resolve())
+    out = []
+    for png in sorted(sweeps.rglob("*.png")):
+        rel = png.relative_to(sweeps.parent)
+        if any(p.startswith(("trial_", "model=", "checkpoints")) for p in rel.parts[2:-1]):
+            continue
+        if (site / rel).resolve() not in shown:
+            out.append(rel.as_posix())
+    return out
+
+
+def heading_problems(root: Path) -> list[str]:
+    """The reference pages a reader scans by heading: each entry of ``docs/troubleshooting.md`` a heading (not a
+    paragraph opening in bold), a heading of ``docs/commands.md`` for each console script of ``pyproject.toml``."""
+    out = []
+    trouble = FENCE.sub("", (root / "docs" / "troubleshooting.md").read_text())
+    for para in re.split(r"\n\s*\n", trouble):
+        if BOLD_ENTRY.match(para.strip()):
+            out.append(f"docs/troubleshooting.md: an entry in bold, not a heading: {para.strip()[:60]!r}")
+    heads = re.findall(r"^#+ (.*)$", FENCE.sub("", (root / "docs" / "commands.md").read_text()), re.M)
+    for name in tree_pages.commands(root):
+        if not any(re.search(rf"(?<![\w-]){re.escape(name)}(?![\w-])", h) for h in heads):
+            out.append(f"docs/commands.md: no heading for the command {name}")
+    return out
+
+
+FENCE = re.compile(r"^```.*?^```", re.M | re.S)
+BOLD_ENTRY = re.compile(r"\*\*[^*\n]+\*\*")
 RUN_ON = re.compile(r"\n\s*[-*] \S")
 ROLE = re.compile(r":(?:mod|func|class|meth|data|attr|exc|obj):")
 FIGURE = re.compile(r"sweeps/[\w./=,-]+?\.png")
@@ -261,16 +330,92 @@ def test_the_site_checks_find_what_a_reader_trips_over(tmp_path):
     site = tmp_path / "site"
     (site / "img").mkdir(parents=True)
     (site / "img" / "a.png").write_bytes(b"png")
+    wide = "<table><tr>" + "<th>figure</th>" * 12 + "</tr><tr>" + "<td>conference_v1</td>" * 12 + "</tr></table>"
     (site / "index.html").write_text(
         '<p>Intro:\n- one\n- two</p><a href="missing/">x</a><a href="img/a.png">ok</a>'
-        "<p>uses :func:<code>f</code></p><p>see sweeps/s/fig.png</p>"
+        f"<p>uses :func:<code>f</code></p><p>see sweeps/s/fig.png</p>{wide}"
     )
     problems = site_problems(site)
-    assert len(problems) == 4
+    assert len(problems) == 5
     assert any("broken link missing/" in p for p in problems) and any("rendered as text" in p for p in problems)
     assert any("Sphinx role" in p for p in problems) and any("sweeps/s/fig.png" in p for p in problems)
-    (site / "index.html").write_text('<p>Fine.</p><img src="img/a.png"><p>sweeps/x/a.png</p>')
+    assert any("table 0 (figure | figure" in p and "behind a scroll bar" in p for p in problems)
+    narrow = wide.replace("<td>conference_v1</td>" * 12, "<td>1.5</td>" * 12)
+    (site / "index.html").write_text(f'<p>Fine.</p><img src="img/a.png"><p>sweeps/x/a.png</p>{narrow}')
     assert site_problems(site) == []
+    # the same wide table fits where the page hides its table of contents and its navigation
+    hidden = (
+        '<div class="md-sidebar md-sidebar--primary" hidden></div><div class="md-sidebar md-sidebar--secondary" hidden>'
+    )
+    (site / "index.html").write_text(hidden + "</div>" + wide)
+    assert site_problems(site) == []
+
+
+def test_a_figure_on_no_page_and_an_entry_without_a_heading_are_found(tmp_path):
+    site, sweeps = tmp_path / "site", tmp_path / "sweeps"
+    for rel in ("s/a.png", "s/sub/deep/b.png", "s/trial_3/c.png", "s/x/checkpoints/d.png"):
+        (sweeps / rel).parent.mkdir(parents=True, exist_ok=True)
+        (sweeps / rel).write_bytes(b"png")
+    (site / "page").mkdir(parents=True)
+    (site / "page" / "index.html").write_text('<img src="../sweeps/s/a.png">')
+    assert figures_not_shown(site, sweeps) == ["sweeps/s/sub/deep/b.png"]
+    made_up_tree(tmp_path)
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "docs" / "troubleshooting.md").write_text("# T\n\n## Slow\n\nText.\n\n**It fails.** Why.\n")
+    (tmp_path / "docs" / "commands.md").write_text("# Commands\n\n```bash\n# graf-train\n```\n")
+    assert heading_problems(tmp_path) == [
+        "docs/troubleshooting.md: an entry in bold, not a heading: '**It fails.** Why.'",
+        "docs/commands.md: no heading for the command graf-train",
+    ]
+    (tmp_path / "docs" / "troubleshooting.md").write_text("# T\n\n## It fails\n\nWhy; **not** in bold.\n")
+    (tmp_path / "docs" / "commands.md").write_text("# Commands\n\n## `graf-train`\n")
+    assert heading_problems(tmp_path) == []
+
+
+def test_troubleshooting_entries_and_commands_have_headings():
+    problems = heading_problems(ROOT)
+    assert not problems, "\n".join(problems)
+
+
+def test_the_width_estimate_reads_the_css_and_chromium_measures_alike():
+    """The cells' padding and header width the estimate assumes are extra.css's, and its widths are Chromium's
+    (headless, 1,400 px; measured once with ``scripts/site_screenshots.sh``) to within 2 px (bold's kerning)."""
+    css = (ROOT / "docs" / "stylesheets" / "extra.css").read_text()
+    assert (
+        f"padding: 0.6em {site_checks.CELL_PAD_EM}em;" in css and site_checks.TH_MIN_PX == 0 and "min-width: 0;" in css
+    )
+    measured = {("conference_v1", False): 93.34, ("trainer.max_steps", True): 128.41, ("well-known", False): 41.92,
+                ("trial 12 re-queued", False): 48.22, ("1.2e-05", False): 32.84,
+                ("error/ΔP²", False): 35.30}  # fmt: skip
+    for (text, bold), px in measured.items():
+        assert site_checks.piece_width(text, bold) == pytest.approx(px, abs=2.0), text
+    # a table cell holding only code (its padding included), code breaking only where text does (after a hyphen)
+    cells = {"max_failures": 104, "graf.reports.published": 170, "a-b-c-d-e-f": 39, "sqlite:///x/optuna.db": 163}
+    for text, px in cells.items():
+        assert site_checks.cell_width([(text, "code")]) == pytest.approx(px, abs=1.5), text
+    assert ".md-typeset table:not([class]) code {\n  word-break: normal;" in css
+
+
+def test_a_generated_table_too_wide_for_its_page_is_split_by_its_rows_labels():
+    """Each part repeats the row labels (the leading columns that are not figures) and fits the column; a ratio's
+    column (``× GRaF``) stays beside its column; every other column is in one part."""
+    heads = [f"figure {i}" for i in range(14)]
+    heads.insert(8, "× GRaF")  # the ratio of figure 7
+    header = "| scene | method | " + " | ".join(heads) + " |"
+    rows = [f"| conference_v{k} | graf | " + " | ".join(f"{k}{i}.25 (12.5)" for i in range(15)) + " |" for k in (1, 2)]
+    text = "Before.\n\n" + "\n".join([header, "|" + "---|" * 17, *rows]) + "\n\nAfter."
+    width = site_checks.column_width()
+    out = site_checks.fit_tables(text, width)
+    tables = [t.split("\n") for t in re.findall(r"(?:^\|.*\n?)+", out, re.M)]
+    assert len(tables) > 1 and out.startswith("Before.") and out.endswith("After.")
+    assert "*The same rows, continued (2 of" in out
+    cells = [[site_checks.md_cells(x) for i, x in enumerate(t) if i != 1 and x] for t in tables]
+    assert all(t[0][:2] == ["scene", "method"] and [r[0] for r in t[1:]] == ["conference_v1", "conference_v2"]
+               for t in cells)  # fmt: skip
+    assert [h for t in cells for h in t[0][2:]] == heads
+    assert any(t[0][2:].index("× GRaF") == t[0][2:].index("figure 7") + 1 for t in cells if "× GRaF" in t[0])
+    assert all(site_checks.table_width([[site_checks.md_runs(c) for c in r] for r in t]) <= width for t in cells)
+    assert site_checks.fit_tables(text, 10_000) == text
 
 
 def test_the_readme_headline_is_the_published_main_job_record():
