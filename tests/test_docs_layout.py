@@ -181,38 +181,30 @@ def test_a_module_without_a_docstring_stops_the_build_with_its_path(tmp_path):
         tree_pages.layout(tmp_path)
 
 
-@pytest.fixture(scope="module")
-def site(tmp_path_factory) -> Path:
-    """The site, built once for this module's tests as CI builds it (strictly)."""
+def test_the_site_builds_strictly_and_passes_the_readers_checks(tmp_path):
+    """The site as CI builds it (strictly; built once, for every check): the hooks not published, the API pages
+    there; nothing a reader trips over (:func:`site_problems`: broken links, run-on lists, literal roles, named
+    figures not shown, tables behind a scroll bar); every figure of ``sweeps/`` shown on a page and an entry per
+    folder on the Records page; the search ranking the pages a reader wants above the API reference's many short
+    entries (one per function), and the task pages first for their task's words ("install", "resume", "GPU",
+    "own data"): Material's per-page boost."""
     pytest.importorskip("mkdocs")
     mkdocs = shutil.which("mkdocs", path=str(Path(sys.executable).parent)) or shutil.which("mkdocs")
     env = {**os.environ, "NO_MKDOCS_2_WARNING": "1"}
-    site = tmp_path_factory.mktemp("built") / "site"
+    site = tmp_path / "site"
     proc = subprocess.run([mkdocs, "build", "--strict", "--site-dir", str(site)], cwd=ROOT, env=env,
                           capture_output=True, text=True, timeout=300)  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
-    return site
-
-
-def test_the_site_builds_strictly_without_the_hooks_in_it(site):
     assert not list(site.rglob("*.py"))
     assert (site / "api" / "run" / "index.html").is_file() and (site / "api" / "modules" / "index.html").is_file()
     assert 'id="graf.run.evaluation"' in (site / "api" / "run" / "index.html").read_text()
     problems = site_problems(site)
-    assert not problems, "\n".join(problems[:20])
-
-
-def test_every_published_figure_is_shown_on_a_page(site):
     missing = figures_not_shown(site, ROOT / "sweeps")
-    assert not missing, f"{len(missing)} figures of sweeps/ on no page: {missing[:10]}"
+    problems += [f"{png}: a figure of sweeps/ on no page" for png in missing]
     records = (site / "records" / "index.html").read_text()
-    folders = sorted(p.name for p in (ROOT / "sweeps").iterdir() if p.is_dir())
-    assert all(f'id="{name}"' in records for name in folders), "the Records page has an entry per sweeps/ folder"
-
-
-def test_the_search_ranks_the_task_pages_first(site):
-    """The pages a reader wants above the API reference's many short entries (one per function), and the task
-    pages first for their task's words ("install", "resume", "GPU", "own data"): Material's per-page boost."""
+    problems += [f"records/: no entry for sweeps/{p.name}/" for p in sorted((ROOT / "sweeps").iterdir())
+                 if p.is_dir() and f'id="{p.name}"' not in records]  # fmt: skip
+    assert not problems, f"{len(problems)} problems:\n" + "\n".join(problems[:30])
     boosts = {
         d["location"]: d.get("boost", 1)
         for d in json.loads((site / "search" / "search_index.json").read_text())["docs"]
