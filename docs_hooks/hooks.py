@@ -22,6 +22,8 @@ A page asks for a generated block with a directive on a line of its own:
   same table ``scripts/headline.py`` writes into the README;
 - ``<!-- gen: records sweeps -->``: one entry per folder of ``sweeps/`` with its figures (:mod:`records`), the
   Records page.
+- ``<!-- gen: config NAME -->``, ``<!-- gen: group NAME -->``, ``<!-- gen: interp PATHS -->``: a command's or a config
+  file's settings, a config group's options, the interpolation study's table (:mod:`reference`, the reference pages).
 
 A generated table wider than its page's content column at 1,400 px is split into tables of the same rows, each
 with the row labels and as many columns as fit (:func:`site_checks.fit_tables`), so no column of figures sits
@@ -47,6 +49,7 @@ import re
 from pathlib import Path
 
 import records
+import reference
 import site_checks
 import tree_pages
 from mkdocs.exceptions import PluginError
@@ -287,6 +290,7 @@ def on_page_markdown(markdown: str, page, config, files) -> str:
         text = makers[kind](arg)
         return text if kind == "code" else site_checks.fit_tables(text, width)
 
+    markdown = reference.expand(markdown, page.file.src_uri, fit=lambda text: site_checks.fit_tables(text, width))
     return DIRECTIVE.sub(expand, markdown)
 
 

@@ -42,9 +42,10 @@ BUILT_IN = {
 }
 
 
-def expand(markdown: str, src_uri: str = "") -> str:
+def expand(markdown: str, src_uri: str = "", fit=None) -> str:
     """``markdown`` with every ``config`` and ``group`` directive replaced by its table; ``src_uri`` (the page's
-    path under ``docs/``) makes the links to the config groups' sections relative to the page."""
+    path under ``docs/``) makes the links to the config groups' sections relative to the page; ``fit`` (text ->
+    text), when given, shapes each generated block (the hooks split a table too wide for its page)."""
     depth = src_uri.count("/")
 
     def one(m: re.Match) -> str:
@@ -52,7 +53,8 @@ def expand(markdown: str, src_uri: str = "") -> str:
         try:
             makers = {"config": lambda: config_block(name, depth), "group": lambda: group_block(name),
                       "interp": lambda: interp_table(name)}  # fmt: skip
-            return makers[kind]()
+            text = makers[kind]()
+            return fit(text) if fit else text
         except (OSError, ValueError, KeyError, yaml.YAMLError, tree_pages.TreeError) as e:
             raise PluginError(f"docs: <!-- gen: {kind} {name} -->: {e}") from e
 
