@@ -4,7 +4,7 @@ reading the jobs again (:func:`graf.reports.readme.block`; ``graf-report runs=FO
 same for one folder), and the main job's table in ``sweeps/main_job/README.md`` from its ``results.json``
 (:func:`graf.reports.published.with_headline`):
 
-    python scripts/record_readmes.py                      # every sweeps/*/ with a report.json and a README.md, the main job
+    python scripts/record_readmes.py                      # the main job, every sweeps/*/ with report.json + README
     python scripts/record_readmes.py sweeps/bands_paper   # these folders (a README is made where there is none)
     python scripts/record_readmes.py --check              # exit 1, naming them, if a README's block is not current
 """
@@ -54,7 +54,7 @@ def main(argv: list[str]) -> int:
         for folder in folders(args):
             readme = folder / "README.md"
             text = readme.read_text() if readme.is_file() else ""
-            if stale_or_write(readme, text, with_block(text, block(folder), folder.name), check):
+            if stale_or_write(readme, text, with_block(text, block(folder), folder.name, str(readme)), check):
                 stale.append(str(readme))
             elif not check:
                 print(readme)

@@ -148,3 +148,30 @@ def test_the_main_job_readme_shows_the_table_its_record_makes():
     text = (ROOT / "sweeps" / "main_job" / "README.md").read_text()
     assert markers(HEADLINE)[0] in text
     assert with_headline(text, json.loads((ROOT / HEADLINE).read_text())) == text
+
+
+def test_graf_report_writes_the_readme_block_and_refreshes_it_alone(tmp_path):
+    """graf-report writes the block into the study folder's README (the text around it kept); ``readme_only=true``
+    rewrites it from the folder's own files, reading no job."""
+    from hydra import compose, initialize_config_dir
+
+    from graf.app.config import CONF_DIR
+    from graf.reports.study import make_report, report
+    from tests.reports.test_report import GHZ24, REFERENCE, _result
+
+    knn = {"a_v1": 15.0, "b_v1": 13.0}
+    _result(tmp_path / "j0", "graf", ["a_v1"], [("a_v1", 20.0, GHZ24), ("b_v1", 12.0, GHZ24)], knn=knn)
+    _result(tmp_path / "j1", "graf", ["b_v1"], [("a_v1", 11.0, GHZ24), ("b_v1", 19.0, GHZ24)], knn=knn)
+    out = tmp_path / "out"
+    _record(out, "# The study\n\nHow it was run.\n")
+    make_report(tmp_path, out, REFERENCE)
+    text = (out / "README.md").read_text()
+    assert text.startswith("# The study\n\nHow it was run.\n\n" + START)
+    assert "| graf | b_v1 | 11.00 | 19.00 |" in text and readme_problems(out, None) == []
+    (out / "README.md").write_text(text.replace("| graf | b_v1 | 11.00 | 19.00 |", "| graf | b_v1 | 1.00 | 9.00 |"))
+    for job in ("j0", "j1"):
+        (tmp_path / job / "results.json").unlink()  # the light path reads no job
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        cfg = compose("report", overrides=[f"runs={out}", f"paths.output_dir={tmp_path}", "readme_only=true"])
+    report(cfg)
+    assert (out / "README.md").read_text() == text

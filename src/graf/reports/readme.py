@@ -33,8 +33,7 @@ MAX_COLUMNS = 7
 SIGNED = "{:+.2f}"  # a difference of PSNR (dB); -0.00: below zero by less than the last digit
 AXIS_WORDS = {"trained_on": "trained on", "train_band": "train band", "finetune": "fine-tuned",
               "eval_scene": "tested on", "eval_band": "test band"}  # fmt: skip
-METRIC_FORMS = (("psnr", "PSNR (dB)", "{:+.2f}"), ("ssim", "SSIM", "{:+.3f}"), ("lpips", "LPIPS", "{:+.3f}"),
-                ("mse", "MSE", "{:+.4f}"))  # fmt: skip
+FORMS = {"psnr": "{:+.2f}", "ssim": "{:+.3f}", "lpips": "{:+.3f}", "mse": "{:+.4f}"}  # a difference, by metric
 
 
 def _numeric(cell: str) -> bool:
@@ -46,10 +45,10 @@ def split_table(lines: list[str], max_columns: int = MAX_COLUMNS) -> list[str]:
     with a cell that is not a figure) repeated in each, the figure columns shared out evenly."""
     rows = [[c.strip() for c in line.strip().strip("|").split(" | ")] for line in lines if not line.startswith("|-")]
     header, body = rows[0], rows[1:]
-    if len(header) <= max_columns:
-        return ["\n".join(lines)]
     keys = next((i for i in range(len(header)) if all(_numeric(r[i]) for r in body)), len(header))
     values = list(range(keys, len(header)))
+    if len(header) <= max_columns or not values:
+        return ["\n".join(lines)]
     n = math.ceil(len(values) / max(1, max_columns - keys))
     size = math.ceil(len(values) / n)
     out = []
@@ -104,10 +103,10 @@ def verdicts(rows: list[dict]) -> str:
         for ref in ("knn", "knn-dl"):
             if r.get(f"vs_{ref}"):
                 groups[(r["method"], ref, r["metric"])].append(r[f"vs_{ref}"])
-    order = {m: i for i, (m, _, _) in enumerate(METRIC_FORMS)}
+    order = {m: i for i, m in enumerate(FORMS)}
     body = []
-    for (method, ref, metric), cs in sorted(groups.items(), key=lambda kv: (kv[0][0], kv[0][1], order.get(kv[0][2]))):
-        form = dict((m, f) for m, _, f in METRIC_FORMS).get(metric, "{:+.3g}")
+    for (method, ref, metric), cs in sorted(groups.items(), key=lambda kv: (*kv[0][:2], order.get(kv[0][2], 9))):
+        form = FORMS.get(metric, "{:+.3g}")
         counts = defaultdict(int)
         for c in cs:
             counts[c["verdict"].split()[0]] += 1
@@ -214,13 +213,13 @@ def block(folder: Path) -> str:
     return "\n".join([START, "", "\n\n".join(parts), "", END])
 
 
-def with_block(text: str, generated: str, title: str) -> str:
-    """``text`` (a README, empty if new) with its generated block replaced by ``generated`` (appended if it has
-    none; a new README starts with ``# title``)."""
+def with_block(text: str, generated: str, title: str, name: str = "README.md") -> str:
+    """``text`` (the README ``name``, empty if new) with its generated block replaced by ``generated`` (appended if
+    it has none; a new README starts with ``# title``)."""
     if START in text:
         before, rest = text.split(START, 1)
         if END not in rest:
-            raise UserError(f"README: the generated block has no end marker {END}")
+            raise UserError(f"{name}: its generated block has no end marker {END}")
         return before + generated + rest.split(END, 1)[1]
     if not text.strip():
         return f"# {title}\n\n{generated}\n"
@@ -232,7 +231,7 @@ def refresh(folder: Path) -> Path:
     folder = Path(folder)
     readme = folder / "README.md"
     text = readme.read_text() if readme.is_file() else ""
-    new = with_block(text, block(folder), folder.name)
+    new = with_block(text, block(folder), folder.name, str(readme))
     if new != text:
         atomic_write_text(readme, new)
     return readme

@@ -16,7 +16,10 @@ left out: their figures are the study's jobs' starting points, not its results) 
   conference_v1 -> v2/v3 and office_v1 -> v2/v3), ``vs_fraction.png`` (metric vs fine-tuned fraction per
   test scene; zero-shot at 0), ``band_matrix.png`` (train band x test band per method), and
   ``spectra_<scene>.png``: the same test positions, true and predicted by every method (from the jobs'
-  ``samples/``, ``save_samples=N``).
+  ``samples/``, ``save_samples=N``);
+- ``README.md``: the tables and the paired intervals between the markers of :mod:`graf.reports.readme`, the text
+  around them kept (``readme_only=true``: only this, from ``out``'s own ``report.json``, ``rows.json`` and
+  ``intervals.json``, no job read again: how a published record's README is refreshed).
 
 A study's multirun calls it when it ends (:class:`StudyReport`, a Hydra callback); it is also this command.
 """
@@ -36,6 +39,7 @@ from graf.app.launch import command
 from graf.io import atomic_write_bytes, atomic_write_json
 from graf.reports.figures import band_figure, curve_figure, matrix_figures, spectra_grids
 from graf.reports.intervals import write_intervals
+from graf.reports.readme import refresh
 from graf.reports.rows import (
     AXES,
     METRICS,
@@ -156,6 +160,7 @@ def make_report(runs: Path, out: Path, reference: dict) -> dict:
         summary["intervals"] = "intervals.md"
     atomic_write_json(out / "rows.json", {"rows": rows})
     atomic_write_json(out / "report.json", summary)
+    refresh(out)
     return summary
 
 
@@ -164,6 +169,9 @@ def report(cfg: DictConfig) -> dict:
     """graf-report: write and print the tables of the study under ``cfg.runs``."""
     runs = Path(str(cfg.runs))
     out = Path(str(cfg.out)) if cfg.get("out") else runs
+    if cfg.get("readme_only"):
+        print(f"{refresh(out)}: its generated block made from {out}'s report.json, rows.json and intervals.json")
+        return {"readme": str(out / "README.md")}
     summary = make_report(runs, out, OmegaConf.to_container(cfg.reference))
     print((out / "report.md").read_text())
     print(
