@@ -1,5 +1,6 @@
-"""Every figure a record's README states is held by its record (graf.reports.readme), and the README's generated
-block is the one its record makes: the check on small made-up files first, then on every ``sweeps/*/README.md``."""
+"""Every figure a record's README states is held by its record, and every figure a site page (or the repository's
+README) states is held by the records the page names (graf.reports.readme); a README's generated block is the one
+its record makes: the check on small made-up files first, then on every ``sweeps/*/README.md`` and every page."""
 
 from __future__ import annotations
 
@@ -14,7 +15,9 @@ from graf.reports.readme import (
     END,
     START,
     block,
+    named_records,
     not_held,
+    pages_problems,
     readme_problems,
     record_numbers,
     refresh,
@@ -79,6 +82,47 @@ def test_code_generated_blocks_comments_and_units_state_no_figure(tmp_path):
         ]
     )
     assert [p.split()[1] for p in not_held(text, record_numbers(_record(tmp_path, "", x={"v": 1.5})), "t")] == ["0.19"]
+
+
+def test_settings_sizes_and_confidence_levels_state_no_figure(tmp_path):
+    held = record_numbers(_record(tmp_path, "", x={"v": 1.5}))
+    text = "\n".join(
+        [
+            "Adam lr 1e-3, tested to 4e-7; `graf-eval` with lr=0.0005; a room 7.2 x 14.9 x 6.2, a 95%",
+            "bootstrap interval and a 95% interval; a step took 0.44",  # the unit on the next line
+            "s/step, and PSNR rose by 2.2 dB.",
+        ]
+    )
+    assert [p.split()[1] for p in not_held(text, held, "t")] == ["2.2"]
+
+
+def _site(root: Path, pages: dict[str, str], records: dict[str, dict]) -> Path:
+    for name, obj in records.items():
+        _record(root / "sweeps" / name, "", x=obj)
+    for path, text in {"README.md": "# Project\n", **pages}.items():
+        (root / path).parent.mkdir(parents=True, exist_ok=True)
+        (root / path).write_text(text)
+    return root
+
+
+def test_a_page_figure_is_held_only_by_the_records_the_page_names(tmp_path):
+    """A figure held by another record than the page names fails: with every record as the record, most
+    two-decimal figures would be held by chance."""
+    records = {"bands": {"psnr": 22.31}, "density": {"psnr": 17.44}}
+    pages = {
+        "docs/held.md": "GRaF: 22.31 dB (`sweeps/bands/`).\n",
+        "docs/directive.md": "<!-- gen: study bands -->\n\nGRaF: 22.31 dB.\n",
+        "docs/records_link.md": "GRaF: 22.31 dB ([its record](records.md#bands)).\n",
+        "docs/elsewhere.md": "GRaF: 22.31 dB (`sweeps/density/`).\n",
+        "docs/unnamed.md": "GRaF: 22.31 dB.\n",
+        "docs/reproducibility.md": "It took 3.14 h... and scored 99.99.\n",
+    }
+    root = _site(tmp_path, pages, records)
+    assert [p.name for p in named_records(pages["docs/directive.md"], root / "sweeps")] == ["bands"]
+    problems = pages_problems(root)
+    assert [p.split(":")[0] for p in problems] == ["docs/elsewhere.md", "docs/unnamed.md"]
+    assert problems[0].startswith("docs/elsewhere.md:1: 22.31 ") and "names no record" not in problems[0]
+    assert "the page names no record" in problems[1]
 
 
 def test_the_block_replaces_its_old_self_and_keeps_the_text_around_it():
@@ -175,3 +219,11 @@ def test_graf_report_writes_the_readme_block_and_refreshes_it_alone(tmp_path):
         cfg = compose("report", overrides=[f"runs={out}", f"paths.output_dir={tmp_path}", "readme_only=true"])
     report(cfg)
     assert (out / "README.md").read_text() == text
+
+
+def test_every_site_page_states_only_figures_its_records_hold():
+    """``docs/**/*.md`` (the Reproducibility log aside) and README.md: each figure is held by the records the page
+    names or by the paper's text (graf.reports.readme.pages_problems)."""
+    if supplement(ROOT) is None:
+        pytest.skip("the paper's supplement (../shared/seed/graf_supplementary.txt) is absent: its figures are unread")
+    assert pages_problems(ROOT) == []
