@@ -103,6 +103,30 @@ def test_a_nerf2_folder_needs_its_band(compose_cfg, make_scene):
     assert band_of("scene=conference_v1", "band=915mhz") == "915mhz"
 
 
+def test_a_band_of_ones_own_config_folder_serves_as_a_scenes_band_and_an_eval_band(tmp_path):
+    """A band file in a user's config folder (hydra.searchpath) is found wherever graf looks a band up by name (a
+    scene's own ``band:``, ``eval_band``), not only as the run's ``band=``; an unknown name still lists the choices."""
+    from hydra.core.hydra_config import HydraConfig
+
+    from graf.app.config import band_choices, load_band_config
+
+    (tmp_path / "band").mkdir()
+    (tmp_path / "band" / "5.8ghz.yaml").write_text("_target_: graf.bands.Band\nname: 5.8ghz\nfrequency_hz: 5.8e9\n")
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        cfg = compose("train", [f"hydra.searchpath=[file://{tmp_path}]"], return_hydra_config=True)
+        HydraConfig.instance().set_config(cfg)
+        try:
+            assert "5.8ghz" in band_choices() and "2.4ghz" in band_choices()
+            assert instantiate(load_band_config("5.8ghz")).frequency_hz == 5.8e9
+            scene = {"name": "site_a", "band": "5.8ghz"}
+            assert scene_band_config(scene, None).frequency_hz == 5.8e9
+            with pytest.raises(ConfigError, match=r"unknown band '6ghz': one of 1.8ghz, 2.4ghz, 3ghz, 5.8ghz, 915mhz"):
+                load_band_config("6ghz")
+        finally:
+            HydraConfig.instance().cfg = None
+    GlobalHydra.instance().clear()
+
+
 def test_rfid_scene_is_915mhz_whatever_the_run_band(compose_cfg):
 
     for overrides in ((), ("band=2.4ghz",)):  # measured data exists at its band only (fixed_band)

@@ -179,16 +179,29 @@ def single_scene_config(cfg: DictConfig, command: str) -> DictConfig:
     return scenes[0]
 
 
+def _band_folders() -> list[Path]:
+    """Where band files are looked for: the running Hydra app's ``file://`` config sources in its search order (a
+    user's own config folder from ``hydra.searchpath`` among them), then graf's own folder."""
+    folders = []
+    if HydraConfig.initialized():
+        for source in HydraConfig.get().runtime.config_sources:
+            if source.schema == "file" and (Path(source.path) / "band").is_dir():
+                folders.append(Path(source.path) / "band")
+    return folders + [CONF_DIR / "band"]
+
+
 def band_choices() -> list[str]:
-    """The options of the ``band`` config group."""
-    return sorted(p.stem for p in (CONF_DIR / "band").glob("*.yaml"))
+    """The options of the ``band`` config group: graf's and those of the app's search path."""
+    return sorted({p.stem for folder in _band_folders() for p in folder.glob("*.yaml")})
 
 
 def load_band_config(name: str) -> DictConfig:
-    path = CONF_DIR / "band" / f"{name}.yaml"
-    if not path.is_file():
-        raise ConfigError(f"unknown band {name!r}: one of {', '.join(band_choices())}")
-    return OmegaConf.load(path)
+    """Band ``name``'s config, found where the run's ``band=`` finds it: a band file of one's own config folder
+    (``hydra.searchpath``) serves as an ``eval_band`` or as a scene's own ``band:`` too."""
+    for folder in _band_folders():
+        if (folder / f"{name}.yaml").is_file():
+            return OmegaConf.load(folder / f"{name}.yaml")
+    raise ConfigError(f"unknown band {name!r}: one of {', '.join(band_choices())}")
 
 
 def scene_band_config(scene_cfg: DictConfig, run_band: DictConfig | None) -> DictConfig:
