@@ -178,6 +178,7 @@ def build(cfg: DictConfig, trains: bool = True) -> BuiltRun:
         datamodule.set_scene_indices([k for k, _ in given])
         datamodule.scene_index_source = given[0][1]
     evaluations = eval_datamodules(cfg, datamodule, table, seen=table if trains or not known else known)
+    check_per_scene(cfg, datamodule, evaluations, trains)
     for ev in evaluations:
         if ev.datamodule is not datamodule:
             check_bands(cfg, table, ev.datamodule, source or "the model")
@@ -219,6 +220,33 @@ def check_not_validation_only(cfg: DictConfig, configs: list) -> None:
                 "validated on, never tested; validate on it with test=false (as graf-curves does), or test on "
                 "another scene"
             )
+
+
+def check_per_scene(cfg: DictConfig, datamodule, evaluations: list, trains: bool) -> None:
+    """Refuse, in one line, a run that trains a per-scene method (its class says ``per_scene = True``: RF Gaussian
+    splatting, whose Gaussians live in one scene's frame) on several scenes, or tests it on a scene it was not
+    trained on (a zero-shot test).  The class is the checkpoint's when the run tests one without training
+    (graf-eval ``ckpt_path``, ``finetune=none``).  Fine-tuning it on a new scene trains it there, and is allowed."""
+    path = (cfg.get("finetune") or {}).get("init_from") or cfg.get("ckpt_path")
+    target = (read_checkpoint(path).get("graf") or {}).get("target") if path and not trains else None
+    target = str(target or (cfg.get("model") or {}).get("_target_") or "")
+    try:  # a class that cannot be imported is reported where the model is made
+        per_scene = target.startswith("graf.") and getattr(hydra.utils.get_class(target), "per_scene", False)
+    except Exception:
+        return
+    if not per_scene:
+        return
+    method = target.rsplit(".", 1)[-1]
+    names = [d.name for d in datamodule.sets]
+    if trains and len(names) > 1:
+        raise ConfigError(f"{method} is a per-scene method: train it on one scene, not on {', '.join(names)}")
+    unseen = [ev.eval_scene for ev in evaluations if not ev.within_scene]
+    if unseen:
+        raise ConfigError(
+            f"{method} is a per-scene method and was not trained on {', '.join(unseen)}: it cannot be tested there "
+            "zero-shot; test it on the scene it was trained on (eval_scene=same), or train it there (finetune=... "
+            "finetune.init_from=CKPT fine-tunes it)"
+        )
 
 
 def eval_datamodules(cfg: DictConfig, train_dm, table: dict | None = None, seen: dict | None = None) -> list[EvalScene]:
