@@ -116,11 +116,13 @@ def test_bf16_autocast_renders_close_to_fp32():
 
 # ---------------------------------------------------------------------------------------------- the module
 def test_the_preset_is_the_constructor_and_the_method_is_per_scene(compose_cfg):
+    from graf.models.base import Method
+
     params = set(inspect.signature(RFGSModule.__init__).parameters) - {"self"}
     cfg = compose_cfg("train", ("model=rf_gs",)).model
     assert set(cfg) - {"_target_"} == params
     model = instantiate(cfg)
-    assert model.method == "rf-gs" and model.per_scene and not model.uses_neighbors
+    assert isinstance(model, Method) and model.method == "rf-gs" and model.per_scene and not model.uses_neighbors
     assert model.field.count == cfg.num_gaussians and model.has_trainable_parameters
     opt = model.configure_optimizers()["optimizer"]
     assert [g["lr"] for g in opt.param_groups] == [cfg.lr_means, cfg.lr]
@@ -299,20 +301,17 @@ def test_a_checkpoint_with_a_grown_count_loads_and_predicts_identically(tmp_path
 def test_two_training_steps_through_the_real_configs_a_grown_checkpoint_and_no_zero_shot(
     compose_cfg, make_scene, monkeypatch, capsys
 ):
-    cfg = compose_cfg(
-        "train",
-        (
-            "scene=rfid_s23",
-            "model=rf_gs",
-            "trainer.max_steps=2",
-            "model.densify_every=1",  # densify at both steps: the checkpoint holds a grown count
-            "model.densify_until=1.0",
-            "data.batch_size=2",
-            "baselines={}",
-            "plot_count=1",
-            "data.test_subset=2",
-        ),
+    overrides = (
+        "scene=rfid_s23",
+        "model=rf_gs",
+        "model.densify_every=1",  # densify at every step: the checkpoint holds a grown count
+        "model.densify_until=1.0",
+        "data.batch_size=2",
+        "baselines={}",
+        "plot_count=1",
+        "data.test_subset=2",
     )
+    cfg = compose_cfg("train", (*overrides, "trainer.max_steps=2"))
     metrics, run = train(cfg)
     out = Path(cfg.paths.output_dir)
     r = json.loads((out / "results.json").read_text())
@@ -327,6 +326,13 @@ def test_two_training_steps_through_the_real_configs_a_grown_checkpoint_and_no_z
     batch = run.built.datamodule.eval_batch([0, 1])
     with torch.no_grad():
         assert torch.equal(loaded.predict_spectra(batch), model.predict_spectra(batch))
+    # resumed for a third step: the grown count loads, and Adam's state with it
+    again = compose_cfg(
+        "train",
+        (*overrides, "trainer.max_steps=3", f"ckpt_path={ckpt}", f"paths.output_dir={out.parent / 'resumed'}"),
+    )
+    _, resumed = train(again)
+    assert resumed.built.trainer.global_step == 3 and resumed.built.model.field.count > model.field.count
     # graf-eval of this checkpoint on another scene: refused in one line, before anything is tested
     other = make_scene(n=16, name="other")
     capsys.readouterr()  # what the training run said (a log handler of an earlier command may have complained)
@@ -362,3 +368,21 @@ def test_training_on_several_scenes_or_testing_on_another_is_refused_before_trai
             train(cfg)
         assert "\n" not in str(info.value), case
         assert not (Path(cfg.paths.output_dir) / "checkpoints").exists(), case  # refused before any step
+
+
+def test_the_studies_list_it_where_a_per_scene_method_belongs():
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from graf.app.config import CONF_DIR
+    from graf.studies.curves import regime_methods
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        curves, bench, pareto = compose("curves"), compose("bench"), compose("pareto")
+    GlobalHydra.instance().clear()
+    assert "rf_gs" in regime_methods(curves, "rfid_sparse")  # the learning curves: one scene only
+    assert all("rf_gs" not in regime_methods(curves, r) for r in curves.regimes if r != "rfid_sparse")
+    assert curves.methods.rf_gs.schedule == "model.decay_steps"
+    assert bench.models.rf_gs._target_ == "graf.models.rf_gs.RFGSModule"
+    assert list(pareto.points.rf_gs.overrides) == ["model=rf_gs"] and "model.decay_steps=200" in pareto.base

@@ -78,7 +78,16 @@ def _results(cfg) -> dict:
 
 def test_the_default_config_benchmarks_every_method_on_a_real_and_a_simulated_scene(bench_cfg):
     cfg = bench_cfg()
-    assert set(cfg.models) == {"graf", "graf_cpu", "graf_cpu_ray_weights", "nerf2", "nerf2_cpu", "knn_dl", "knn"}
+    assert set(cfg.models) == {
+        "graf",
+        "graf_cpu",
+        "graf_cpu_ray_weights",
+        "nerf2",
+        "nerf2_cpu",
+        "rf_gs",
+        "knn_dl",
+        "knn",
+    }
     assert cfg.bench.compete is False
     assert cfg.scenes.real.name == "rfid_s23" and cfg.bands.real.name == "915mhz"
     assert cfg.scenes.room.name == "conference_v1" and cfg.bands.room.name == "2.4ghz"

@@ -1,2 +1,2 @@
-"""The methods, one LightningModule each (KNN, GRaF, KNN-DL, NeRF2), on the evaluation protocol they share
-(:mod:`.base`)."""
+"""The methods, one LightningModule each (KNN, GRaF, KNN-DL, NeRF2, RF Gaussian splatting), on the evaluation
+protocol they share (:mod:`.base`)."""

@@ -169,7 +169,9 @@ class Method(Protocol):
 
     method: its name in ``results.json``, the tables and the intervals (``graf-ray-weights``, ``knn``).
     uses_neighbors: whether a prediction reads the neighbors' spectra (then its test also measures its neighbor
-        reliance); False: a per-scene field (NeRF2), trained on one scene and refused on another.
+        reliance); False: a field of the scenes it was trained on (NeRF2, RF-GS), which reads no neighbor.
+    per_scene: True: one scene's model (RF-GS), refused on a scene it was not trained on and on several scenes at
+        once (:func:`graf.run.build.check_per_scene`); NeRF2 is False, as it may be tested zero-shot (the studies do).
     has_trainable_parameters: False: nothing is trained (KNN), ``graf-train`` only tests it.
     INFERENCE_SETTINGS: settings that change how fast it predicts, not what: graf-eval may change them on a
         trained checkpoint.
@@ -180,6 +182,7 @@ class Method(Protocol):
 
     method: str
     uses_neighbors: bool
+    per_scene: bool
     has_trainable_parameters: bool
     INFERENCE_SETTINGS: tuple[str, ...]
     schedule_record: dict | None
@@ -194,6 +197,7 @@ class SpectrumModule(L.LightningModule):
     :class:`Method` interface, with a default for every member but :meth:`predict_spectra`."""
 
     uses_neighbors = True  # NeRF2 sets False: a per-scene field (its test measures no neighbor reliance)
+    per_scene = False  # RF-GS sets True: tested only on the scene it was trained on (graf.run.build)
     INFERENCE_SETTINGS: tuple[str, ...] = ()
     schedule_record: dict | None = None  # set by the optimiser's schedule (graf.models.schedule)
     LAYOUT = 1

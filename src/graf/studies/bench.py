@@ -4,7 +4,8 @@
 
 For every scene of ``scenes`` (default: ``real`` = the embedded rfid_s23 at 915 MHz, ``room`` = the
 simulated conference_v1 at 2.4 GHz) and every model of ``models`` (default: ``graf``, ``graf_cpu``,
-``nerf2``, ``nerf2_cpu``, ``knn_dl``, ``knn``: the model configs of those names) it measures, one row each:
+``graf_cpu_ray_weights``, ``nerf2``, ``nerf2_cpu``, ``rf_gs``, ``knn_dl``, ``knn``: the model configs of those
+names) it measures, one row each:
 
 - ``infer_s_per_spectrum``: the median over the first ``bench.spectra`` test spectra of the time of one
   ``predict_spectra`` call on a batch of one spectrum (``time.perf_counter``; ``torch.cuda.synchronize()``
@@ -18,7 +19,7 @@ simulated conference_v1 at 2.4 GHz) and every model of ``models`` (default: ``gr
   ``self.log`` is replaced by a no-op (without a Trainer Lightning's own ``log`` does nothing but warn) and
   ``global_step`` stays 0.  Models with a ``rays_per_step`` setting (GRaF, NeRF2) are built with
   ``bench.rays_per_step`` (5,120: the paper's), split evenly across the batch's targets
-  (``train_rays_per_step`` records the rays actually rendered); a model without one (KNN-DL) trains on
+  (``train_rays_per_step`` records the rays actually rendered); a model without one (KNN-DL, RF-GS) trains on
   whole spectra, 32,400 rays per target.  ``train_rays_per_s`` = rays per step / seconds per step.
   Models without trainable parameters (KNN): null.
 - ``peak_mb_infer`` / ``peak_mb_train`` (``peak_mb``: the larger): the phase's peak memory above its
