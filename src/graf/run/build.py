@@ -228,10 +228,12 @@ def check_per_scene(cfg: DictConfig, datamodule, evaluations: list, trains: bool
     trained on (a zero-shot test).  The class is the checkpoint's when the run tests one without training
     (graf-eval ``ckpt_path``, ``finetune=none``).  Fine-tuning it on a new scene trains it there, and is allowed."""
     path = (cfg.get("finetune") or {}).get("init_from") or cfg.get("ckpt_path")
-    target = (read_checkpoint(path).get("graf") or {}).get("target") if path and not trains else None
-    target = str(target or (cfg.get("model") or {}).get("_target_") or "")
+    saved = (read_checkpoint(path).get("graf") or {}).get("target") if path and not trains else None
+    if saved is not None and not str(saved).startswith("graf."):
+        return  # not one of graf's classes: loading the checkpoint refuses it, and nothing is imported here
+    target = str(saved or (cfg.get("model") or {}).get("_target_") or "")
     try:  # a class that cannot be imported is reported where the model is made
-        per_scene = target.startswith("graf.") and getattr(hydra.utils.get_class(target), "per_scene", False)
+        per_scene = bool(target) and getattr(hydra.utils.get_class(target), "per_scene", False)
     except Exception:
         return
     if not per_scene:
