@@ -19,8 +19,8 @@ pattern, not an occluding view; SwiftWRF sums too).
   there.  A Gaussian whose mean is at an edge shows the half of it that lies on the grid.  The zenith (90 deg) is
   a pole of the sphere, where every azimuth is one direction; the Gaussians live in the image plane, as
   SwiftWRF's do, so an azimuth width in degrees stays one at every elevation (on the sphere a Gaussian near the
-  zenith would widen as ``1 / cos(elevation)`` in azimuth degrees).  The measured spectra are nearly constant
-  along the zenith row, which Gaussians wide in azimuth represent.
+  zenith would widen as ``1 / cos(elevation)`` in azimuth degrees).  Nothing makes the top row, one direction,
+  constant: the model learns it from the data as any other row, and Gaussians wide in azimuth can represent it.
 * **Separable.**  Axis-aligned Gaussians factor into an elevation profile ``U [90, N]`` and an azimuth profile
   ``V [360, N]``, so a spectrum is one matrix product ``S = U diag(w) V^T`` (exact, no cutoff): about
   ``90 * 360 * N`` multiply-adds (33 M at N = 1,024), the same code on a CPU and a GPU, and autograd gives the
@@ -59,8 +59,8 @@ def wrapped_distance(x: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
 
 
 def _in_place(*tensors: torch.Tensor) -> bool:
-    """Whether no gradient flows through ``tensors``: the profiles are then computed in place (the same arithmetic,
-    half the time on a CPU, where every fresh [360, N] tensor costs its page faults)."""
+    """Whether no gradient flows through ``tensors``: the profiles are then computed in place (the same arithmetic
+    without a fresh ``[B, 360, N]`` tensor per operation, each of which a CPU must fault in page by page)."""
     return not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
 
 
