@@ -33,14 +33,7 @@ def _batch(path, n=2) -> dict:
     return dm.eval_batch(list(range(n)))
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """These tensors are small: one intra-op thread avoids OpenMP barrier waits on a shared CPU (a 2,048-point
-    training step took 16 ms on one thread and 1.4 s on two while other jobs loaded both cores)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/conftest.py
 
 
 @pytest.fixture

@@ -33,12 +33,7 @@ SMALL = {"num_gaussians": 16, "max_gaussians": 64, "depth": 2, "width": 16, "pe_
 QUICK = ("logger=none", "plot_count=0", "trainer.accelerator=cpu", "trainer.enable_progress_bar=false")
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/conftest.py
 
 
 @pytest.fixture

@@ -206,7 +206,8 @@ def block(folder: Path) -> str:
     if not isinstance(rows, list):
         raise UserError(f"{folder / 'rows.json'}: no list 'rows'")
     intervals = _load(folder / "intervals.json", required=False)
-    parts = ["## Tables", compact("\n\n".join(study_tables(report, rows)))]
+    tables = study_tables(report, rows)  # none for a study shape the site has no table of: no empty heading
+    parts = ["## Tables", compact("\n\n".join(tables))] if tables else []
     if intervals and intervals.get("rows"):
         parts += ["## Paired intervals", compact(intervals_summary(intervals))]
     sources = "`report.json`, `rows.json`" + (" and `intervals.json`" if intervals else "")
