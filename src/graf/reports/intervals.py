@@ -96,18 +96,22 @@ def _cell_order(item: tuple) -> tuple:
     return tuple(map(natural, item[0]))
 
 
-def comparisons(cells: dict, metrics: tuple[str, ...] = METRICS) -> list[dict]:
-    """One row per (cell, trained method, metric): its summary and its paired differences to the references."""
+def comparisons(
+    cells: dict, metrics: tuple[str, ...] = METRICS, references: tuple[str, ...] = REFERENCES
+) -> list[dict]:
+    """One row per (cell, trained method, metric): its summary and its paired differences to the references.
+    A reference that is not in :data:`REFERENCES` (a method taken from another record by :func:`import_references`)
+    is compared with, never given rows of its own."""
     rows = []
     for key, methods in sorted(cells.items(), key=_cell_order):
         cell = dict(zip(CELL, key))
         for method, seeds in sorted(methods.items()):
-            if method == "knn":
+            if method == "knn" or (method in references and method not in REFERENCES):
                 continue
             for m in metrics:
                 runs = [seeds[s][m] for s in sorted(seeds, key=str)]
                 row = {**cell, "method": method, "metric": m, **summary(runs)}
-                for ref in REFERENCES:
+                for ref in references:
                     if ref == method or ref not in methods:
                         continue
                     ref_runs = [methods[ref][s][m] for s in sorted(methods[ref], key=str)]
@@ -215,18 +219,49 @@ def _change_tables(record: dict) -> list[str]:
     return md
 
 
-def write_intervals(runs: Path, out: Path) -> list[dict] | None:
+def import_references(cells: dict, others: list[Path]) -> tuple[str, ...]:
+    """Add to ``cells`` the trained methods of other studies' records (``others``: folders of finished jobs with
+    per-spectrum records) in the cells this study shares with them, as references for its own methods (a
+    per-scene method against GRaF's record of the same scene, say).  A method this study trains itself is not
+    taken; KNN, tested in both, must be the same on the same spectra (checked: the two studies then tested the
+    same spectra).  Returns the methods taken, in name order."""
+    taken: set[str] = set()
+    for other in others:
+        if not Path(other).is_dir():
+            raise FileNotFoundError(f"{other}: no such study record to compare with (graf-report compare_with)")
+        theirs, _ = collect_spectra(Path(other))
+        for key, methods in theirs.items():
+            if key not in cells:
+                continue
+            ours = cells[key]
+            if "knn" in ours and "knn" in methods and not same_baseline(ours["knn"][None], methods["knn"][None]):
+                cell = dict(zip(CELL, key))
+                raise ValueError(f"{other}: KNN on {cell} differs from this study's: not the same spectra")
+            for method, seeds in methods.items():
+                if method != "knn" and method not in ours:
+                    ours[method] = seeds
+                    taken.add(method)
+    return tuple(sorted(taken))
+
+
+def write_intervals(runs: Path, out: Path, compare_with: list[Path] = ()) -> list[dict] | None:
     """intervals.json / .csv / .md of the study under ``runs`` into ``out``; None when no job wrote per-spectrum
-    records."""
+    records.  ``compare_with``: other study records whose trained methods are references too
+    (:func:`import_references`)."""
     cells, densities = collect_spectra(runs)
     if not cells:
         return None
-    rows = comparisons(cells)
+    compared = {key: dict(methods) for key, methods in cells.items()}  # the L changes stay the study's own
+    imported = import_references(compared, list(compare_with))
+    rows = comparisons(compared, references=REFERENCES + imported)
     record = {"rows": rows, "confidence": 0.95, "rule": "graf.reports.statistics", "sim_num_tx": densities}
+    record["compared_with"] = {"records": [str(p) for p in compare_with], "methods": list(imported)}
     record["L_changes"] = l_changes(cells, 2) + l_changes(cells, 4)  # from L = 2 (Table 5's drop), from 4 (plateau)
     record["band_transfers"] = band_transfers(cells)
     atomic_write_json(out / "intervals.json", record)
+    refs = ["knn", "knn-dl", *imported]
     head = [*CELL, "method", "seeds", "spectra", "mean", "median", "seed spread", "- KNN", "- KNN-DL"]
+    head += [f"- {ref}" for ref in imported]
     body = [
         [
             *(r[c] for c in CELL),
@@ -236,8 +271,7 @@ def write_intervals(runs: Path, out: Path) -> list[dict] | None:
             f"{r['mean']:.2f}",
             f"{r['median']:.2f}",
             f"{r['seed_spread']:.2f}",
-            _interval(r.get("vs_knn")),
-            _interval(r.get("vs_knn-dl")),
+            *(_interval(r.get(f"vs_{ref}")) for ref in refs),
         ]
         for r in rows
         if r["metric"] == "psnr"
@@ -256,6 +290,8 @@ def write_intervals(runs: Path, out: Path) -> list[dict] | None:
         "and each difference to KNN and to KNN-DL with its 95% interval (paired bootstrap over spectra, widened to "
         "include every seed's difference) and verdict (graf.reports.statistics)."
     )
+    if imported:
+        note += f" {', '.join(imported)}: from {', '.join(map(str, compare_with))}, on the same test spectra."
     if same:
         note += " Every row: " + ", ".join(f"{head[i]} {body[0][i]}" for i in same) + "."
     md += _change_tables(record)

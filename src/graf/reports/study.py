@@ -125,9 +125,10 @@ def _spacing_curves(rows: list[dict], out: Path, summary: dict) -> None:
         summary["figures"].append(name)
 
 
-def make_report(runs: Path, out: Path, reference: dict) -> dict:
+def make_report(runs: Path, out: Path, reference: dict, compare_with: list[Path] = ()) -> dict:
     """The tables and figures of the study under ``runs``, written into ``out``; the summary (report.json).
-    ``reference``: the setting of each varied axis whose jobs the spectra grids show (conf/report.yaml)."""
+    ``reference``: the setting of each varied axis whose jobs the spectra grids show; ``compare_with``: other
+    study records whose trained methods the paired intervals compare with too (conf/report.yaml)."""
     rows, files = collect_rows(runs)
     out.mkdir(parents=True, exist_ok=True)
     axes = varying_axes(rows)
@@ -155,7 +156,7 @@ def make_report(runs: Path, out: Path, reference: dict) -> dict:
         summary["matrix"] = m["matrices"]
         summary["figures"] += m["figures"]
     summary["figures"] += spectra_grids(rows, runs, out, axes, reference)
-    intervals = write_intervals(runs, out)
+    intervals = write_intervals(runs, out, compare_with)
     if intervals is not None:
         summary["intervals"] = "intervals.md"
     atomic_write_json(out / "rows.json", {"rows": rows})
@@ -172,7 +173,8 @@ def report(cfg: DictConfig) -> dict:
     if cfg.get("readme_only"):
         print(f"{refresh(out)}: its generated block made from {out}'s report.json, rows.json and intervals.json")
         return {"readme": str(out / "README.md")}
-    summary = make_report(runs, out, OmegaConf.to_container(cfg.reference))
+    others = [Path(str(p)) for p in cfg.get("compare_with") or []]
+    summary = make_report(runs, out, OmegaConf.to_container(cfg.reference), others)
     print((out / "report.md").read_text())
     print(
         f"{summary['n_results']} results, {summary['n_rows']} rows; varying: {', '.join(summary['axes']) or 'none'}; "
