@@ -24,7 +24,7 @@ from graf.data.scenes import NeRF2Scene
 from graf.errors import ConfigError
 from graf.models.base import read_checkpoint
 from graf.models.rf_gs import RFGSModule, render, render_dense, split_plan, split_rows
-from graf.models.rf_gs.rasterizer import ELEVATION_EDGES, WIDE, azimuth_profiles
+from graf.models.rf_gs.rasterizer import ELEVATION_EDGES, WIDE, azimuth_profiles, elevation_profiles
 from graf.run.train import train
 from tests.app.test_entry_points import _main as run_main
 
@@ -95,6 +95,26 @@ def test_separable_render_equals_the_dense_sum_where_only_wide_ones_take_the_sec
     assert torch.allclose(fast, dense, atol=1e-5)
     wide = azimuth_profiles(torch.zeros(1, 1), torch.full((1, 1), 60.0))[0, :, 0]
     assert torch.isclose(wide[179], 2 * torch.exp(torch.tensor(-0.5 * (180 / 60) ** 2)))  # the antipode: two turns
+
+
+def test_the_written_out_backward_matches_autograd_of_the_dense_sum():
+    """The profiles' backward (rasterizer._Profile) against autograd through render_dense, in float64: means
+    beyond 360 and below 0, at the seam, narrow and wide (both turns) Gaussians, and the elevation edges."""
+    torch.manual_seed(1)
+    B = 2
+    e = torch.tensor([[0.2, 30.0, 45.0, 90.7, 60.0, 12.0]], dtype=torch.float64).expand(B, 6) + torch.rand(B, 6)
+    a = torch.tensor([[359.5, -0.5, 400.0, 180.0, 10.0, -250.0]], dtype=torch.float64).expand(B, 6) + torch.rand(B, 6)
+    s = torch.tensor([[1.0, 3.0, 8.0, 2.0, 20.0, 0.5]], dtype=torch.float64).expand(B, 6).clone()
+    t = torch.tensor([[2.0, WIDE + 1, 60.0, 1.0, 30.0, 5.0]], dtype=torch.float64).expand(B, 6).clone()
+    w = torch.randn(B, 6, dtype=torch.float64)
+    inputs = [x.clone().requires_grad_() for x in (e, a, s, t, w)]
+    weights = torch.randn(B, 90, 360, dtype=torch.float64)
+    el, az, sig_el, sig_az, amp = inputs  # the profiles themselves, in float64 (render computes in float32)
+    separable = torch.matmul(elevation_profiles(el, sig_el) * amp[:, None, :], azimuth_profiles(az, sig_az).mT)
+    fast = torch.autograd.grad((separable * weights).sum(), inputs)
+    dense = torch.autograd.grad((render_dense(*inputs) * weights).sum(), inputs)
+    for name, f, d in zip(("elevation", "azimuth", "sigma_el", "sigma_az", "amplitude"), fast, dense):
+        assert torch.allclose(f, d, rtol=1e-9, atol=1e-9 * d.abs().max()), name
 
 
 def test_bf16_autocast_renders_close_to_fp32():
