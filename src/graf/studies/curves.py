@@ -314,9 +314,14 @@ def curves(cfg: DictConfig) -> dict:
 
 def regime_methods(cfg: DictConfig, rname: str) -> list[str]:
     """The methods (of ``only_methods``) whose curve regime ``rname`` has: all but those whose ``only_in`` lists
-    other regimes (NeRF2, one scene's field, has no zero-shot curve), each skipped one named in the log."""
+    other regimes (NeRF2, one scene's field, has no zero-shot curve) and, where the regime lists its ``methods``,
+    those it does not list; each skipped one named in the log."""
     keep = []
+    listed = cfg.regimes[rname].get("methods")
     for mname, method in _subset(cfg.methods, cfg.get("only_methods"), "only_methods").items():
+        if listed is not None and mname not in listed:
+            log.info("%s: no %s curve (the regime's methods: %s)", rname, mname, ", ".join(listed))
+            continue
         only_in = method.get("only_in")
         if only_in is not None and rname not in only_in:
             log.info("%s: no %s curve (its only_in: %s)", rname, mname, ", ".join(only_in))
