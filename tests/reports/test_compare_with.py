@@ -52,21 +52,24 @@ def two_studies(tmp_path):
     for test in ("conference_v1", "office_v1"):
         graf = knn[test] + 0.5 + rng.normal(0, 0.1, len(IDS))
         _job(tmp_path / "theirs" / f"eval={test}", "graf", "conference_v1", test, {"graf": graf, "knn": knn[test]})
+        dl = knn[test] + 0.1 + rng.normal(0, 0.1, len(IDS))  # a reference of every study (REFERENCES) as well
+        _job(tmp_path / "theirs" / f"dl,eval={test}", "knn-dl", "conference_v1", test, {"knn-dl": dl, "knn": knn[test]})
     return tmp_path
 
 
 def test_a_method_of_another_record_is_a_reference_on_the_shared_cells(two_studies):
     rows = write_intervals(two_studies / "ours", two_studies / "out", [two_studies / "theirs"])
     psnr = [r for r in rows if r["metric"] == "psnr"]
-    assert [(r["method"], r["eval_scene"]) for r in psnr] == [("rf-gs", "conference_v1")]  # no graf rows, no office
+    assert [(r["method"], r["eval_scene"]) for r in psnr] == [("rf-gs", "conference_v1")]  # none of theirs, no office
     row = psnr[0]
     assert row["vs_graf"]["low"] < 1.0 < row["vs_graf"]["high"] and row["vs_graf"]["verdict"] == "ahead"
     assert row["vs_knn"]["low"] < 1.5 < row["vs_knn"]["high"]
     assert row["vs_graf"]["n_spectra"] == len(IDS) and row["vs_graf"]["n_seeds"] == 2
+    assert row["vs_knn-dl"]["low"] < 1.4 < row["vs_knn-dl"]["high"]  # KNN-DL's column filled from the other record
     record = json.loads((two_studies / "out" / "intervals.json").read_text())
-    assert record["compared_with"]["methods"] == ["graf"]
-    md = (two_studies / "out" / "intervals.md").read_text()
-    assert "- graf" in md and "graf: from" in md
+    assert record["compared_with"]["methods"] == ["graf", "knn-dl"]
+    head = (two_studies / "out" / "intervals.md").read_text().split("\n\n")[1].splitlines()[0]
+    assert head.count("- graf") == 1 and head.count("KNN-DL") == 1 and "knn-dl" not in head
 
 
 def test_without_compare_with_the_record_is_the_studys_own(two_studies):
@@ -76,18 +79,17 @@ def test_without_compare_with_the_record_is_the_studys_own(two_studies):
 
 
 def test_a_knn_on_other_spectra_is_refused(two_studies):
-    other = two_studies / "theirs" / "eval=conference_v1" / "per_spectrum.csv.gz"
-    other.unlink()
-    rng = np.random.default_rng(9)
-    write_per_spectrum(
-        other,
-        [
+    knn = np.random.default_rng(9).normal(20.0, 3.0, len(IDS))  # the other record's KNN: other values, both its jobs
+    for job, method in (("eval=conference_v1", "graf"), ("dl,eval=conference_v1", "knn-dl")):
+        other = two_studies / "theirs" / job / "per_spectrum.csv.gz"
+        other.unlink()
+        rows = [
             {"eval_scene": "conference_v1", "method": m, "id": i, "mse": 0.01, "psnr": float(v), "ssim": 0.5}
             | {"lpips": 0.3}
-            for m in ("graf", "knn")
-            for i, v in zip(IDS, rng.normal(20.0, 3.0, len(IDS)))
-        ],
-    )
+            for m in (method, "knn")
+            for i, v in zip(IDS, knn)
+        ]
+        write_per_spectrum(other, rows)
     with pytest.raises(ValueError, match="KNN on .* differs from this study's"):
         write_intervals(two_studies / "ours", two_studies / "out", [two_studies / "theirs"])
 

@@ -97,16 +97,16 @@ def _cell_order(item: tuple) -> tuple:
 
 
 def comparisons(
-    cells: dict, metrics: tuple[str, ...] = METRICS, references: tuple[str, ...] = REFERENCES
+    cells: dict, metrics: tuple[str, ...] = METRICS, references: tuple[str, ...] = REFERENCES, imported: tuple = ()
 ) -> list[dict]:
     """One row per (cell, trained method, metric): its summary and its paired differences to the references.
-    A reference that is not in :data:`REFERENCES` (a method taken from another record by :func:`import_references`)
-    is compared with, never given rows of its own."""
+    ``imported``: methods taken from another record (:func:`import_references`), compared with, never given rows
+    of their own."""
     rows = []
     for key, methods in sorted(cells.items(), key=_cell_order):
         cell = dict(zip(CELL, key))
         for method, seeds in sorted(methods.items()):
-            if method == "knn" or (method in references and method not in REFERENCES):
+            if method == "knn" or method in imported:
                 continue
             for m in metrics:
                 runs = [seeds[s][m] for s in sorted(seeds, key=str)]
@@ -253,15 +253,16 @@ def write_intervals(runs: Path, out: Path, compare_with: list[Path] = ()) -> lis
         return None
     compared = {key: dict(methods) for key, methods in cells.items()}  # the L changes stay the study's own
     imported = import_references(compared, list(compare_with))
-    rows = comparisons(compared, references=REFERENCES + imported)
+    extra = tuple(m for m in imported if m not in REFERENCES)
+    rows = comparisons(compared, references=REFERENCES + extra, imported=imported)
     record = {"rows": rows, "confidence": 0.95, "rule": "graf.reports.statistics", "sim_num_tx": densities}
     record["compared_with"] = {"records": [str(p) for p in compare_with], "methods": list(imported)}
     record["L_changes"] = l_changes(cells, 2) + l_changes(cells, 4)  # from L = 2 (Table 5's drop), from 4 (plateau)
     record["band_transfers"] = band_transfers(cells)
     atomic_write_json(out / "intervals.json", record)
-    refs = ["knn", "knn-dl", *imported]
+    refs = ["knn", "knn-dl", *extra]
     head = [*CELL, "method", "seeds", "spectra", "mean", "median", "seed spread", "- KNN", "- KNN-DL"]
-    head += [f"- {ref}" for ref in imported]
+    head += [f"- {ref}" for ref in extra]
     body = [
         [
             *(r[c] for c in CELL),
