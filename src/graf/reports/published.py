@@ -259,7 +259,7 @@ def choose(rows: list[dict], modes: list[str]) -> tuple[str, list[dict]]:
                     "step": step,
                     "mode": m,
                     **{k: float(r[k]) for k, _ in VALIDATION_FIGURES},
-                    "reliance": float(r["val_reliance_db"]),
+                    "reliance": float(r["val_reliance_db"] or "nan"),  # none: a method that reads no neighbors
                 }
             )
     score = {m: sum(ranks[m]) / len(ranks[m]) for m in modes}
