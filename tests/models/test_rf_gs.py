@@ -396,8 +396,9 @@ def test_the_studies_list_it_where_a_per_scene_method_belongs():
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         curves, bench, pareto = compose("curves"), compose("bench"), compose("pareto")
     GlobalHydra.instance().clear()
-    assert "rf_gs" in regime_methods(curves, "rfid_sparse")  # the learning curves: one scene only
-    assert all("rf_gs" not in regime_methods(curves, r) for r in curves.regimes if r != "rfid_sparse")
+    within = ("rfid_sparse", "paper_within")  # the learning curves: validated within the scene it trains on
+    assert all("rf_gs" in regime_methods(curves, r) for r in within)
+    assert all("rf_gs" not in regime_methods(curves, r) for r in curves.regimes if r not in within)
     assert curves.methods.rf_gs.schedule == "model.decay_steps"
     assert bench.models.rf_gs._target_ == "graf.models.rf_gs.RFGSModule"
     assert list(pareto.points.rf_gs.overrides) == ["model=rf_gs"] and "model.decay_steps=200" in pareto.base

@@ -75,12 +75,12 @@ def _gauss(d: torch.Tensor, sigma: torch.Tensor, own: bool = False) -> torch.Ten
 
 def _distance(grid: torch.Tensor, mean: torch.Tensor, kind: str) -> tuple[torch.Tensor, torch.Tensor | None]:
     """``(u, sign)``: the distance ``[B, R, N]`` a profile's Gaussian is of, from ``grid [R]`` to ``mean [B, N]``.
-    ``plain``: ``grid - mean``; ``near``: the same wrapped into [-180, 180) (the nearest turn); ``far``:
+    ``plain``: ``grid - mean``; ``near``: the same wrapped into [-180, 180] (the nearest turn); ``far``:
     ``360 - |near|`` (the second-nearest turn), with ``sign`` the sign of the near distance (``du/dmean``)."""
     if kind == "plain":
         return grid[None, :, None] - mean[:, None, :], None
     u = grid[None, :, None] - torch.remainder(mean, 360.0)[:, None, :]  # the mean reduced first, where it is small
-    u = u.add_(180.0).remainder_(360.0).sub_(180.0)
+    u = u.sub_(torch.round(u * (1.0 / 360.0)).mul_(360.0))  # (-360, 360] -> [-180, 180]: cheaper than remainder_
     if kind == "near":
         return u, None
     sign = torch.sign(u)
@@ -120,11 +120,17 @@ class _Profile(torch.autograd.Function):
 
 
 def _profile(grid: torch.Tensor, mean: torch.Tensor, sigma: torch.Tensor, kind: str) -> torch.Tensor:
-    """A Gaussian profile ``[B, R, N]`` over ``grid`` (:class:`_Profile`; computed in place where no gradient
-    flows)."""
-    if _in_place(mean, sigma):
-        return _gauss(_distance(grid, mean, kind)[0], sigma[:, None, :], own=True)
-    return _Profile.apply(grid, mean, sigma, kind)
+    """A Gaussian profile ``[B, R, N]`` over ``grid`` (:class:`_Profile`; where no gradient flows, computed in
+    place from the unsigned distance of :func:`wrapped_distance`, the cheaper one)."""
+    if not _in_place(mean, sigma):
+        return _Profile.apply(grid, mean, sigma, kind)
+    if kind == "plain":
+        d = grid[None, :, None] - mean[:, None, :]
+    else:
+        d = wrapped_distance(grid[None, :, None], mean[:, None, :])
+        if kind == "far":
+            d = d.neg_().add_(360.0)
+    return _gauss(d, sigma[:, None, :], own=True)
 
 
 def elevation_profiles(mean: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
