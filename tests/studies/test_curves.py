@@ -194,7 +194,10 @@ def test_nerf2_has_a_curve_only_in_the_single_scene_regime():
     for zero_shot in ("cross_family", "cross_family_paper"):  # validated on layouts it never saw: no curve
         assert "nerf2" not in regime_methods(cfg, zero_shot)
         assert {"pooled", "ray", "ray_knn", "ray_weights", "knn_dl"} <= set(regime_methods(cfg, zero_shot))
-    assert regime_methods(cfg, "paper_within") == ["rf_gs"]  # the regime lists its methods: a per-scene one's curve
+    assert regime_methods(cfg, "paper_within") == [
+        "rf_gs",
+        "rf_gs_knn",
+    ]  # the regime lists its methods: a per-scene one's curve
     cfg.only_methods = ["nerf2", "ray"]
     assert regime_methods(cfg, "cross_family_paper") == ["ray"]
 

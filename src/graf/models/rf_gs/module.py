@@ -3,7 +3,8 @@ rendered by the separable rasterizer of :mod:`.rasterizer` on any device.
 
 A prediction for the transmitter at ``tgt_pos``: its position in the scene's normalised frame goes through the
 deformation MLP of :class:`.gaussians.GaussianField`, which moves, widens and re-weights the N base Gaussians;
-:func:`.rasterizer.render` sums them on the 90 x 360 grid.  Neighbor spectra are not read.  Training renders the
+:func:`.rasterizer.render` sums them on the 90 x 360 grid.  Neighbor spectra are not read, unless ``base`` is
+``knn``: then the Gaussians are a correction added to KNN's prediction (``model=rf_gs_knn``).  Training renders the
 batch's whole spectra (``data.batch_size`` targets a step; no ray sampling: a spectrum costs one matrix product)
 and minimises their MSE, the metric PSNR is computed from.  The raw sum is trained, unbounded (a Gaussian's
 amplitude is signed); :meth:`RFGSModule.predict_spectra` clamps it to [0, 1], as every method's evaluation does.
@@ -35,9 +36,12 @@ import torch.nn.functional as F
 from graf.config_home import defaults_from
 from graf.geometry.encoding import normalize_positions
 from graf.models.base import SpectrumModule
+from graf.models.knn.weights import idw_weights
 from graf.models.rf_gs.gaussians import GaussianField, split_plan, split_rows
 from graf.models.rf_gs.rasterizer import SIGMA_LIMIT, render
 from graf.models.schedule import check_rates, exponential_record, run_steps, schedule_length
+
+BASES = ("none", "knn")  # what the Gaussians are added to: nothing, or KNN's prediction (a correction of KNN)
 
 
 def check_settings(s: dict) -> None:
@@ -49,6 +53,8 @@ def check_settings(s: dict) -> None:
             raise ValueError(f"model.{key}={s[key]!r}: must be an integer >= 1")
     if s["max_gaussians"] < s["num_gaussians"]:
         raise ValueError(f"model.max_gaussians={s['max_gaussians']}: must be >= model.num_gaussians")
+    if s["base"] not in BASES:
+        raise ValueError(f"model.base={s['base']!r}: must be one of {BASES}")
     if not (isinstance(s["pe_freqs"], int) and s["pe_freqs"] >= 0):
         raise ValueError(f"model.pe_freqs={s['pe_freqs']!r}: must be an integer >= 0")
     if s["decay_steps"] is not None and not (isinstance(s["decay_steps"], int) and s["decay_steps"] >= 1):
@@ -115,6 +121,9 @@ class RFGSModule(SpectrumModule):
         densify_every / densify_until / densify_fraction / prune_amplitude: densification and pruning (module
             docstring); densify_every 0: never.
         chunk_spectra: spectra rendered at once at inference (bounds memory).
+        base: ``none`` (the Gaussians are the spectrum) or ``knn`` (they are added to KNN's prediction, the
+            inverse-distance mean of the neighbors' spectra, power 1 as ``model=knn``: RF-GS as a per-scene
+            correction of KNN, ``model=rf_gs_knn``).
     """
 
     INFERENCE_SETTINGS = ("chunk_spectra",)
@@ -144,10 +153,13 @@ class RFGSModule(SpectrumModule):
         densify_fraction: float,
         prune_amplitude: float,
         chunk_spectra: int,
+        base: str,
     ):
         super().__init__()
         check_settings(dict(locals()))
         self.save_hyperparameters()
+        self.base = str(base)
+        self.uses_neighbors = self.base == "knn"  # a correction of KNN reads the neighbors (its test measures reliance)
         self.lr, self.lr_means, self.lr_decay = float(lr), float(lr_means), float(lr_decay)
         self.decay_steps = None if decay_steps is None else int(decay_steps)
         self.max_gaussians, self.chunk_spectra = int(max_gaussians), int(chunk_spectra)
@@ -160,7 +172,7 @@ class RFGSModule(SpectrumModule):
 
     @property
     def method(self) -> str:
-        return "rf-gs"
+        return "rf-gs" if self.base == "none" else f"rf-gs-{self.base}"
 
     # ------------------------------------------------------------------ rendering
     def gaussians(self, batch: dict) -> dict[str, torch.Tensor]:
@@ -169,14 +181,22 @@ class RFGSModule(SpectrumModule):
 
     def render(self, batch: dict) -> torch.Tensor:
         """Raw spectra ``[B, 90, 360]`` (float32, unbounded) of the batch's targets."""
-        g = self.gaussians(batch)
-        return render(g["elevation"], g["azimuth"], g["sigma_el"], g["sigma_az"], g["amplitude"])
+        return self.compose(batch, self.gaussians(batch))
+
+    def compose(self, batch: dict, g: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The Gaussians ``g`` rendered, added to KNN's prediction when ``base`` is ``knn``."""
+        out = render(g["elevation"], g["azimuth"], g["sigma_el"], g["sigma_az"], g["amplitude"])
+        if self.base == "knn":
+            w = idw_weights(batch["tgt_pos"], batch["src_pos"], batch["src_mask"], power=1.0)
+            out = out + torch.einsum("bl,blhw->bhw", w.float(), batch["src_spectra"].float())
+        return out
 
     def predict_spectra(self, batch: dict) -> torch.Tensor:
         B = batch["tgt_pos"].shape[0]
         parts = []
         for i in range(0, B, self.chunk_spectra):
-            part = {k: batch[k][i : i + self.chunk_spectra] for k in ("tgt_pos", "bounds")}
+            keys = ("tgt_pos", "bounds") + (("src_pos", "src_mask", "src_spectra") if self.base == "knn" else ())
+            part = {k: batch[k][i : i + self.chunk_spectra] for k in keys}
             parts.append(self.render(part).clamp(0.0, 1.0))
         return torch.cat(parts)
 
@@ -184,7 +204,7 @@ class RFGSModule(SpectrumModule):
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         B = batch["tgt_pos"].shape[0]
         g = self.gaussians(batch)
-        pred = render(g["elevation"], g["azimuth"], g["sigma_el"], g["sigma_az"], g["amplitude"])
+        pred = self.compose(batch, g)
         loss = F.mse_loss(pred, batch["tgt_spectrum"].float())
         if self.densify_every:
             self.gather_stat("magnitude", g["amplitude"].detach().abs().mean(0))
