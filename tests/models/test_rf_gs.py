@@ -36,13 +36,18 @@ QUICK = ("logger=none", "plot_count=0", "trainer.accelerator=cpu", "trainer.enab
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/conftest.py
 
 
-@pytest.fixture
-def tiny(make_scene):
+def tiny_batch(make_scene, L: int) -> dict:
+    """Four targets of a 16-transmitter scene with up to L neighbors each."""
     dm = SpectrumDataModule(
-        NeRF2Scene(name="tiny", path=str(make_scene(n=16))), UHF, NeighborSelector(L=2, L_train=(1, 2), radius=10.0)
+        NeRF2Scene(name="tiny", path=str(make_scene(n=16))), UHF, NeighborSelector(L=L, L_train=(1, L), radius=10.0)
     )
     dm.setup()
     return dm.eval_batch([0, 1, 2, 3])
+
+
+@pytest.fixture
+def tiny(make_scene):
+    return tiny_batch(make_scene, L=2)
 
 
 def _one(**g) -> list[torch.Tensor]:

@@ -11,27 +11,17 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
-from graf.bands import Band
-from graf.data.datamodule import SpectrumDataModule
-from graf.data.neighbors import NeighborSelector
-from graf.data.scenes import NeRF2Scene
 from graf.models.knn import KNNModule
 from graf.models.rf_gs import RFGSModule
 from graf.run.train import train
-
-UHF = Band(name="915mhz", frequency_hz=915e6)
-SMALL = {"num_gaussians": 16, "max_gaussians": 64, "depth": 2, "width": 16, "pe_freqs": 4}
+from tests.models.test_rf_gs import SMALL, tiny_batch
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/conftest.py
 
 
 @pytest.fixture
 def tiny(make_scene):
-    dm = SpectrumDataModule(
-        NeRF2Scene(name="tiny", path=str(make_scene(n=16))), UHF, NeighborSelector(L=3, L_train=(1, 3), radius=10.0)
-    )
-    dm.setup()
-    return dm.eval_batch([0, 1, 2, 3])
+    return tiny_batch(make_scene, L=3)
 
 
 def test_the_preset_is_rf_gs_on_a_knn_base(compose_cfg):
