@@ -409,7 +409,7 @@ def test_sigterm_stops_at_the_next_step_saves_a_checkpoint_and_resumes(tmp_path)
     ckpt = Path(record["checkpoint"])
     state = torch.load(ckpt, map_location="cpu", weights_only=False)
     step = state["global_step"]
-    assert 0 < step == record["global_step"] < 100000
+    assert 0 < step == record["global_step"] < 100000 and record["device"] == "cpu"  # where this attempt trained
     # the checkpoint itself says how long its attempt trained (what graf-curves counts after a SIGKILL)
     assert state["graf_attempt"]["start_step"] == 0 and state["graf_attempt"]["global_step"] == step
     assert 0 < state["graf_attempt"]["fit_s"]

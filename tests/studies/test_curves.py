@@ -173,10 +173,31 @@ def test_a_checkpoint_interval_under_one_step_stops_with_one_line(tmp_path):
 
 
 def test_a_points_device_is_short_in_the_table():
-    from graf.studies.curves import short_device
+    from graf.run.evaluation import short_device
 
     assert short_device("cuda:0 (NVIDIA H200)") == "NVIDIA H200"
     assert short_device("cpu") == "cpu" and short_device(None) is None
+
+
+def test_a_point_resumed_on_another_device_names_each_attempts_device_in_order(tmp_path):
+    """A point begun on a lent GPU and finished on the CPU: the table says both, not only the last."""
+    from omegaconf import OmegaConf
+
+    from graf.studies.curves import PREEMPTED_RUNS, attempt_devices, collect
+
+    gpu, old = {"device": "cuda:0 (NVIDIA H200)", "fit_s": 450.0}, {"fit_s": 2000.0}  # old: a record with no device
+    assert attempt_devices([gpu], "cpu") == "NVIDIA H200 + cpu"
+    assert attempt_devices([old, {"device": "cpu"}], "cpu") == "cpu"  # each device once; unknown ones left out
+    assert attempt_devices([], None) is None
+    cfg = OmegaConf.create({"steps": [10], "regimes": {"r": {"max_steps": 10}}, "methods": {"m": {}}})
+    folder = tmp_path / "r" / "m" / "step_10"
+    folder.mkdir(parents=True)
+    (folder / PREEMPTED_RUNS).write_text(json.dumps([gpu]))
+    metrics = {"val/psnr": 20.0, "val/ssim": 0.8, "val/lpips": 0.2}
+    record = {"device": "cpu", "global_step": 10, "timing": {"fit_s": 100.0}, "metrics": metrics}
+    (folder / "results.json").write_text(json.dumps(record))
+    rows, _ = collect(tmp_path, cfg)
+    assert [(r["device"], r["fit_s"]) for r in rows] == [("NVIDIA H200 + cpu", 550.0)]
 
 
 def test_nerf2_has_a_curve_only_in_the_single_scene_regime():

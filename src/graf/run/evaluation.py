@@ -105,6 +105,15 @@ def run_device(trainer, model) -> str:
     return str(dev)
 
 
+def short_device(device: str | None) -> str | None:
+    """``cpu``, or the card's name for a GPU run (``cuda:0 (NVIDIA H200)`` -> ``NVIDIA H200``)."""
+    if not device:
+        return None
+    if "(" in device and device.endswith(")"):
+        return device[device.index("(") + 1 : -1]
+    return device
+
+
 def swapped_psnr(cfg: DictConfig, model, dm, split: str = "test") -> float | None:
     """Neighbor reliance's second pass: the ``split`` (test or val) PSNR with each target's neighbors "
     "replaced by another

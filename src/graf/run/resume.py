@@ -22,6 +22,7 @@ from graf.errors import Preempted
 from graf.interrupts import INTERRUPTED_EXIT_CODE
 from graf.io import atomic_write_json, is_rank_zero
 from graf.models.base import CheckpointError, check_checkpoint, read_checkpoint
+from graf.run.evaluation import run_device
 from graf.run.record import Resumed
 
 log = logging.getLogger("graf")
@@ -104,6 +105,8 @@ def preempted(cfg: DictConfig, trainer, step0: int, fit_s: float | None = None) 
         "max_steps": int(trainer.max_steps),
         "checkpoint": (saved or {}).get("checkpoint"),
         "fit_s": None if fit_s is None else round(float(fit_s), 3),
+        # where this attempt trained: a curve point resumed elsewhere lists each attempt's device (graf-curves)
+        "device": run_device(trainer, trainer.lightning_module),
     }
     if saved:
         msg = (

@@ -2,24 +2,24 @@
 
     graf-curves out=sweeps/learning_curves [until=1000] ['only_regimes=[rfid_sparse]'] ['only_methods=[ray]']
 
-For each regime and method, one training trajectory: a ``graf-train`` run per evaluation step of ``steps``
-(up to the regime's ``max_steps``), into ``<out>/<regime>/<method>/step_<N>/``, each resuming the previous
-step's ``checkpoints/last.ckpt`` with a longer ``trainer.max_steps`` (once the next point is done, a point's
-checkpoint is removed unless ``keep_checkpoints=true``: a curve keeps its newest, which a later run resumes) (the
-schedule's length is the regime's
-budget at every point, so the points lie on one run).  Every run validates (``test=false``: the curves choose
-nothing on test data) and measures validation reliance.  KNN, which trains nothing, is validated once per
-regime into ``<out>/<regime>/knn/``.  A point whose results.json exists is skipped, so the command resumes
-where it stopped, and ``until`` runs the curve only so far; a failed run is recorded in ``failed.json`` and
-ends that method's curve (later points need its checkpoint) while the others go on.  A SIGTERM stops the run
-in progress with its state saved (graf-train's ``preempted.json``) and the command with exit code 143; the
-next invocation resumes that point from its own checkpoint (the stopped attempt's training seconds still
-count in ``fit_s``).  Each run also saves its checkpoint every ``checkpoint_every`` steps, so a run killed
-outright (SIGKILL, a lost machine) resumes from its newest one, and the seconds its saved steps cost (written in
-the checkpoint by ``graf.callbacks.AttemptClock``) count too; the steps after it are trained again.
+For each regime and method, one training trajectory: a ``graf-train`` run per evaluation step of ``steps`` (up to
+the regime's ``max_steps``), into ``<out>/<regime>/<method>/step_<N>/``, each resuming the previous step's
+``checkpoints/last.ckpt`` with a longer ``trainer.max_steps`` (once the next point is done, a point's checkpoint is
+removed unless ``keep_checkpoints=true``: a curve keeps its newest, which a later run resumes; the schedule's length
+is the regime's budget at every point, so the points lie on one run).  Every run validates (``test=false``: the
+curves choose nothing on test data) and measures validation reliance.  KNN, which trains nothing, is validated once
+per regime into ``<out>/<regime>/knn/``.  A point whose results.json exists is skipped, so the command resumes where
+it stopped, and ``until`` runs the curve only so far; a failed run is recorded in ``failed.json`` and ends that
+method's curve (later points need its checkpoint) while the others go on.  A SIGTERM stops the run in progress with
+its state saved (graf-train's ``preempted.json``) and the command with exit code 143; the next invocation resumes
+that point from its own checkpoint (the stopped attempt's training seconds still count in ``fit_s``).  Each run also
+saves its checkpoint every ``checkpoint_every`` steps, so a run killed outright (SIGKILL, a lost machine) resumes
+from its newest one, and the seconds its saved steps cost (written in the checkpoint by
+``graf.callbacks.AttemptClock``) count too; the steps after it are trained again.
 
 After every run: ``curves.csv``, ``curves.md``, ``results.json`` (``rows``: regime, method, step, val_psnr,
-val_ssim, val_lpips, val_reliance_db, fit_s (cumulative wall seconds of training), s_per_step; and ``knn``:
+val_ssim, val_lpips, val_reliance_db, fit_s (cumulative wall seconds of training), s_per_step (the last
+attempt's), device (each attempt's, in order: ``NVIDIA H200 + cpu`` for a point resumed on a CPU); and ``knn``:
 each regime's KNN figures) and ``curves.png`` (PSNR, SSIM and LPIPS against steps on a log axis, one row per
 regime, KNN as a dashed line).  A cross-scene regime's figures are the means over its validation scenes.
 """
@@ -40,6 +40,7 @@ from graf.app.launch import command
 from graf.errors import ConfigError, Preempted
 from graf.io import atomic_write_json, atomic_write_text
 from graf.reports.table import to_csv
+from graf.run.evaluation import short_device
 from graf.studies.runner import run_command
 
 log = logging.getLogger("graf")
@@ -114,8 +115,8 @@ def collect(out: Path, cfg: DictConfig) -> tuple[list[dict], dict]:
                         "val_reliance_db": v["val/reliance_db"],
                         "fit_s": None if fit_s is None else round(fit_s, 1),
                         "s_per_step": t.get("fit_s_per_step"),
-                        # where the point's (last) training attempt ran: seconds differ by orders of magnitude
-                        "device": short_device(r.get("device")),
+                        # where the point's training attempts ran, in order (seconds differ by orders of magnitude)
+                        "device": attempt_devices(preempted_runs(f.parent), r.get("device")),
                     }
                 )
     return rows, knn
@@ -206,13 +207,12 @@ def _killed_attempt(folder: Path) -> dict | None:
     }
 
 
-def short_device(device: str | None) -> str | None:
-    """``cpu``, or the card's name for a GPU run (``cuda:0 (NVIDIA H200)`` -> ``NVIDIA H200``)."""
-    if not device:
-        return None
-    if "(" in device and device.endswith(")"):
-        return device[device.index("(") + 1 : -1]
-    return device
+def attempt_devices(preempted: list[dict], last: str | None) -> str | None:
+    """The devices a point's attempts trained on, in order and each once (``NVIDIA H200 + cpu``); an attempt whose
+    record names none (written before pre-emption records held one) is left out."""
+    names = [short_device(p.get("device")) for p in preempted] + [short_device(last)]
+    seen = [n for n in names if n]
+    return " + ".join(dict.fromkeys(seen)) or None
 
 
 def _fmt(v, spec):
