@@ -1,4 +1,5 @@
 """Rebuild the carried slim catalog files under data/sim (sha256 checked against the traced originals)."""
+
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
