@@ -221,6 +221,14 @@ def test_nerf2_has_a_curve_only_in_the_single_scene_regime():
     ]  # the regime lists its methods: a per-scene one's curve
     cfg.only_methods = ["nerf2", "ray"]
     assert regime_methods(cfg, "cross_family_paper") == ["ray"]
+    # the 30,000-step budget of regime (d): the same runs and validation layouts, its own schedule's length, and only
+    # the curves the rule sends on; a GRaF mode keeps its 4-D positions there
+    long, val = cfg.regimes.cross_family_val_30k, cfg.regimes.cross_family_val
+    assert list(long.overrides) == list(val.overrides) and int(long.max_steps) == 30000
+    assert "eval_scene=[conference_v4,office_v4]" in list(long.overrides)
+    cfg.only_methods = None
+    assert regime_methods(cfg, "cross_family_val_30k") == list(long.methods)
+    assert all("model.use_scene_index=true" in cfg.methods[m].regimes.cross_family_val_30k for m in long.methods)
 
 
 def test_a_regime_may_have_its_own_evaluation_points():
