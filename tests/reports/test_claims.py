@@ -94,6 +94,12 @@ def test_the_ledger_is_rebuilt_from_records_with_the_verdicts_their_intervals_gi
     assert by_id["table1_bedroom"]["verdict"] == "not reproduced"  # no unseen-layouts record in the fixture
     assert "no record yet" in by_id["table1_bedroom"]["reason"]
     assert by_id["table6_size"]["verdict"] == "not comparable"
+    # issue 53's targets on the same cells: +0.6 dB is short of 1.0; better on nearly every spectrum is past 80%
+    assert (
+        by_id["target_matrix_margin"]["verdict"] == "not reproduced"
+        and "(missed by 0.4" in by_id["target_matrix_margin"]["reason"]
+    )
+    assert by_id["target_matrix_share"]["verdict"] == "holds"
 
     out = tmp_path / "sweeps" / "claims"
     out.mkdir(parents=True)
@@ -107,7 +113,7 @@ def test_the_ledger_is_rebuilt_from_records_with_the_verdicts_their_intervals_gi
     # a figure per claim whose record holds its cells, none for a claim without a record, the stale one gone
     figures = {p.name for p in out.glob("*.png")}
     assert figures == {"cross_scene_vs_knn_dl.png", "cross_scene_vs_knn.png", "table5_L2_to_L4.png",
-                       "table5_plateau.png"}  # fmt: skip
+                       "table5_plateau.png", "target_matrix_margin.png", "target_matrix_share.png"}  # fmt: skip
     assert "![" in text and "(sweeps/claims/table5_L2_to_L4.png)" in text
 
 
@@ -174,6 +180,44 @@ def test_a_target_row_judges_a_ratio_against_its_own_figure_and_says_by_how_much
     calm = {"key": "rows.0.slow", "paper_value": 2.5, "higher_is_better": False}
     assert judge_value(calm, record)["verdict"] == "holds"
     assert judge_value({**calm, "over": "rows.9.s"}, record)["verdict"] == "not reproduced"  # no such row
+
+
+def test_a_paired_target_judges_each_cell_against_a_margin_or_a_share_of_spectra_and_says_by_how_much():
+    """Issue 53's matrix targets: ahead of KNN by at least 1.0 dB in every cell (interval excluding 0), and better on
+    at least 80% of each cell's spectra; short of either, the row names the cell furthest short and by how much."""
+    from graf.reports.claims import judge_paired
+    from graf.reports.statistics import paired_difference
+
+    ids = range(40)
+    ref = [{i: 20.0 + 0.1 * i for i in ids}]
+    big = [{i: 21.5 + 0.1 * i + (0.2 if i % 2 else -0.2) for i in ids}]  # +1.5 dB, better on every spectrum
+    small = [{i: 20.0 + 0.1 * i + (0.9 if i % 4 else -0.3) for i in ids}]  # +0.6 dB, better on 30 of 40
+    assert paired_difference(small, ref, "psnr")["share_ahead"] == 0.75
+    assert paired_difference(ref, small, "psnr")["share_ahead"] == 0.25
+    lower = [{i: -v for i, v in small[0].items()}]  # lower is better for MSE: the share follows the metric
+    assert paired_difference(lower, [{i: -v for i, v in ref[0].items()}], "mse")["share_ahead"] == 0.75
+    row = lambda cell, runs: {  # noqa: E731
+        "trained_on": "conference_v1", "eval_scene": cell, "method": "g", "metric": "psnr",
+        "vs_knn": paired_difference(runs, ref, "psnr"),
+    }  # fmt: skip
+    data = {"rows": [row("conference_v2", big), row("conference_v3", small)]}
+    claim = {"method": "g", "reference": "knn", "metric": "psnr", "margin": 1.0}
+    out = judge_paired(claim, data)
+    assert out["verdict"] == "not reproduced" and "1 of 2 cells reach the target's +1.00" in out["reason"]
+    assert "furthest short: conference_v1 -> conference_v3, +0.60 (missed by 0.40)" in out["reason"]
+    assert judge_paired({**claim, "margin": 0.5}, data)["verdict"] == "holds"
+    share = judge_paired({**claim, "margin": None, "share": 0.8}, data)
+    assert share["platform"] == "conference_v1 -> conference_v2: 100%; conference_v1 -> conference_v3: 75%"
+    assert share["verdict"] == "not reproduced" and "(missed by 5 points)" in share["reason"]
+    assert judge_paired({**claim, "margin": None, "share": 0.75}, data)["verdict"] == "holds"
+    # the ledger page's table of a share target shows each cell's share beside its difference
+    from graf.reports.claims import paired_cells
+    from graf.reports.ledger import platform
+
+    shared = {**claim, "margin": None, "share": 0.8, "title": "t", "kind": "paired"}
+    text = platform(shared, share, paired_cells(shared, data), None)
+    assert "| better on (share of spectra) |" in text and "| conference_v1 -> conference_v3 | +0.60 |" in text
+    assert text.rstrip().endswith("| 75% |")
 
 
 SUMMARY = re.compile(r"^- \*\*(holds|refuted|not reproduced|not comparable)\*\* \((\d+)\): (.*)$", re.M)

@@ -5,7 +5,10 @@ how (``kind``):
 
 - ``paired``: rows of a study's ``intervals.json`` (:mod:`graf.reports.intervals`) selected by their cell
   settings; the paper says ``method`` is ahead of ``reference`` on ``metric``.  Holds when every selected cell's
-  interval says ahead, refuted when one says behind, not reproduced when an interval includes 0.
+  interval says ahead, refuted when one says behind, not reproduced when an interval includes 0.  A target's
+  ``margin`` (ahead by at least this much in every cell, the interval excluding 0) or ``share`` (better on at least
+  this share of each cell's spectra) is judged instead where given: holds when every cell reaches it, else not
+  reproduced, with the cell that falls furthest short and by how much.
 - ``value``: one figure of a JSON record (``key``: a dotted path, ``/`` kept inside names) against the paper's
   ``paper_value``; holds when it reaches it in the better direction (``higher_is_better``), else not reproduced.
 - ``difference``: two figures of a record (``key`` minus ``minus``) against the paper's difference, the same rule.
@@ -43,6 +46,7 @@ from graf.errors import ConfigError
 from graf.io import atomic_write_bytes, atomic_write_json
 from graf.reports.ledger import VERDICTS, write_page
 from graf.reports.rows import short_scenes
+from graf.reports.statistics import HIGHER_IS_BETTER
 
 log = logging.getLogger("graf")
 
@@ -102,7 +106,8 @@ def _pair(r: dict) -> str:
 
 
 def _cell(name: str, c: dict) -> dict:
-    return {"cell": name, "diff": c["diff"], "low": c["low"], "high": c["high"], "verdict": c["verdict"]}
+    out = {"cell": name, "diff": c["diff"], "low": c["low"], "high": c["high"], "verdict": c["verdict"]}
+    return out if c.get("share_ahead") is None else {**out, "share_ahead": c["share_ahead"]}
 
 
 def paired_cells(claim: dict, data: dict) -> list[dict]:
@@ -127,8 +132,46 @@ def judge_paired(claim: dict, data: dict) -> dict:
     cells = paired_cells(claim, data)
     if not cells:
         return {"verdict": "not reproduced", "reason": "no such comparison in the record"}
+    if claim.get("margin") is not None or claim.get("share") is not None:
+        return _judge_target(claim, cells)
     verdict, reason = _direction([c["verdict"] for c in cells], "ahead")
     return {**_joined(cells), "verdict": verdict, "reason": reason}
+
+
+def _percent(x: float) -> str:
+    return f"{100 * x:.0f}%"
+
+
+def _signed(x: float) -> str:
+    return f"{x:+.2f}"
+
+
+def _judge_target(claim: dict, cells: list[dict]) -> dict:
+    """A paired target: every cell ahead by at least ``margin`` (in the metric's better direction, its interval
+    excluding 0), or better on at least ``share`` of its spectra."""
+    if claim.get("share") is not None:
+        if any("share_ahead" not in c for c in cells):
+            return {"verdict": "not reproduced", "reason": "the record holds no share of spectra (graf-report again)"}
+        want, got = float(claim["share"]), {c["cell"]: c["share_ahead"] for c in cells}
+        fmt = _percent
+        out = {"platform": "; ".join(f"{k}: {fmt(v)}" for k, v in got.items())}
+        ok = {k: v >= want for k, v in got.items()}
+    else:
+        want = float(claim["margin"])
+        up = HIGHER_IS_BETTER[str(claim["metric"])]
+        got = {c["cell"]: (c["diff"] if up else -c["diff"]) for c in cells}
+        fmt = _signed
+        out = _joined(cells)
+        ok = {c["cell"]: got[c["cell"]] >= want and c["verdict"] == "ahead" for c in cells}
+    if all(ok.values()):
+        return {**out, "verdict": "holds", "reason": f"every cell reaches the target's {fmt(want)}"}
+    worst = min(got, key=got.get)
+    short = f"{100 * (want - got[worst]):.0f} points" if claim.get("share") is not None else f"{want - got[worst]:.2f}"
+    reason = (
+        f"{sum(ok.values())} of {len(ok)} cells reach the target's {fmt(want)}; furthest short: {worst}, "
+        f"{fmt(got[worst])} (missed by {short})"
+    )
+    return {**out, "verdict": "not reproduced", "reason": reason}
 
 
 def _direction(verdicts: list[str], want: str) -> tuple[str, str]:

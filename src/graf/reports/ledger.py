@@ -132,7 +132,11 @@ def platform(claim: dict, row: dict, cells: list[dict], figure: str | None) -> s
         unit = _metric(claim)[1]
         head = f"The platform: {difference(claim)}{f' ({unit})' if unit else ''}, per cell, with its 95% interval:"
         body = [[c["cell"], f"{c['diff']:+.2f}", f"[{c['low']:+.2f}, {c['high']:+.2f}]"] for c in cells]
-        table = _table(["cell", f"difference{f' ({unit})' if unit else ''}", "95% interval"], body)
+        header = ["cell", f"difference{f' ({unit})' if unit else ''}", "95% interval"]
+        if claim.get("share") is not None and all("share_ahead" in c for c in cells):  # a target on that share
+            header.append("better on (share of spectra)")
+            body = [[*b, f"{100 * c['share_ahead']:.0f}%"] for b, c in zip(body, cells)]
+        table = _table(header, body)
         alt = f"{title(claim)}: each cell's difference and 95% interval"
         return f"{head}\n\n{table}\n\n![{alt}]({figure})" if figure else f"{head}\n\n{table}"
     if row["platform"] and claim.get("kind") in ("value", "difference") and claim.get("paper_value") is not None:

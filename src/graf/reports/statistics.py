@@ -74,7 +74,8 @@ def paired_difference(
     """Method minus reference on the same spectra (see the module doc): ``method`` and ``reference`` are lists
     (one per seed or run) of ``{spectrum id: value}``.  Returns ``diff``, ``low``, ``high`` (the reported
     interval), ``boot_low`` / ``boot_high`` (over spectra only), ``seed_diffs`` (each seed's), ``n_spectra``,
-    ``n_seeds``, ``n_reference`` and ``verdict``."""
+    ``n_seeds``, ``n_reference``, ``verdict``, and ``share_ahead``: the share of spectra on which the method's
+    seed-averaged value is better than the reference's (ties count as not better)."""
     if not method or not reference:
         raise PairingError("a paired difference needs at least one run of the method and of the reference")
     ids = sorted(method[0])
@@ -103,6 +104,7 @@ def paired_difference(
         "n_seeds": len(method),
         "n_reference": len(reference),
         "verdict": verdict(low, high, metric),
+        "share_ahead": float(np.mean(d > 0 if HIGHER_IS_BETTER[metric] else d < 0)),
     }
 
 
