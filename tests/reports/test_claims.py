@@ -210,6 +210,12 @@ def test_a_paired_target_judges_each_cell_against_a_margin_or_a_share_of_spectra
     assert share["platform"] == "conference_v1 -> conference_v2: 100%; conference_v1 -> conference_v3: 75%"
     assert share["verdict"] == "not reproduced" and "(missed by 5 points)" in share["reason"]
     assert judge_paired({**claim, "margin": None, "share": 0.75}, data)["verdict"] == "holds"
+    import pytest
+
+    from graf.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="give margin or share, not both"):  # neither is silently dropped
+        judge_paired({**claim, "share": 0.8}, data)
     # the ledger page's table of a share target shows each cell's share beside its difference
     from graf.reports.claims import paired_cells
     from graf.reports.ledger import platform

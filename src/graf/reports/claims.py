@@ -149,6 +149,8 @@ def _signed(x: float) -> str:
 def _judge_target(claim: dict, cells: list[dict]) -> dict:
     """A paired target: every cell ahead by at least ``margin`` (in the metric's better direction, its interval
     excluding 0), or better on at least ``share`` of its spectra."""
+    if claim.get("share") is not None and claim.get("margin") is not None:
+        raise ConfigError(f"claim {claim.get('id')!r}: give margin or share, not both (one target a row)")
     if claim.get("share") is not None:
         if any("share_ahead" not in c for c in cells):
             return {"verdict": "not reproduced", "reason": "the record holds no share of spectra (graf-report again)"}
