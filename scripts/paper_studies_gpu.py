@@ -189,109 +189,178 @@ def choose_all(args, rows: list[dict]) -> dict:
     }
 
 
-def study_jobs(args, choice: dict, data: Path, work: Path, extra: list[str]) -> list[tuple[str, list[str]]]:
+def study_jobs(args, choice: dict, data: Path, work: Path, extra: list[str]) -> list[dict]:
+    """The queue: ``{"name", "cmd" (a list, or a callable giving it at start), "after" (a job to wait for)}``."""
     graf_model = [f"model={GRAF_MODELS[choice['mode']]}"]
     steps = {"graf": choice["graf"]["steps"], "knn_dl": choice["knn_dl"]["steps"], "nerf2": choice["graf"]["steps"]}
     models = {"graf": graf_model, "knn_dl": ["model=knn_dl"], "nerf2": ["model=nerf2_study"]}
-    common = [f"data_root={data}", f"torch_threads={args.threads}", "reliance=false", *extra]
+    threads = {m: args.threads for m in models} | {"graf": args.graf_threads or args.threads}
+    common = [f"data_root={data}", "reliance=false", *extra]
     if args.tiny:
         common += ["data.test_subset=4"]
     jobs = []
 
+    def train(*overrides):
+        return [PY, "-m", "graf.cli.train", *overrides]
+
     def matrix(method, scene, seed):
-        return (
-            f"matrix {method} {scene} seed {seed}",
-            [
-                PY,
-                "-m",
-                "graf.cli.train",
+        return {
+            "name": f"matrix {method} {scene} seed {seed}",
+            "cmd": train(
                 "experiment=cross_scene_matrix",
                 *models[method],
                 f"scene={scene}",
                 f"seed={seed}",
                 f"study_steps={steps[method]}",
+                f"torch_threads={threads[method]}",
                 *common,
                 f"hydra.sweep.dir={work / 'cross_scene_matrix_paper'}",
-            ],
-        )
+            ),
+            "after": None,
+        }
 
     def nc(method, scene, seed, L):
         same = {"conference_v1": "conference_v2,conference_v3", "office_v1": "office_v2,office_v3"}[scene]
-        return (
-            f"neighbor_count {method} {scene} seed {seed} L {L}",
-            [
-                PY,
-                "-m",
-                "graf.cli.train",
-                "experiment=neighbor_count",
-                *models[method],
-                f"scene={scene}",
-                f"seed={seed}",
-                f"study_steps={steps[method]}",
-                f"eval_scene={same}",
-                f"neighbors.L={L}",
-                *common,
-                f"hydra.sweep.dir={work / 'neighbor_count_paper'}",
-            ],
-        )
+        overrides = [
+            "experiment=neighbor_count",
+            *models[method],
+            f"scene={scene}",
+            f"seed={seed}",
+            f"study_steps={steps[method]}",
+            f"eval_scene={same}",
+            f"neighbors.L={L}",
+            f"torch_threads={threads[method]}",
+            *common,
+            f"hydra.sweep.dir={work / 'neighbor_count_paper'}",
+        ]
+        job = {"name": f"neighbor_count {method} {scene} seed {seed} L {L}", "cmd": train(*overrides), "after": None}
+        if args.nc_from_matrix:  # zero-shot from the matrix job's checkpoint (the same weights as a base of its own)
+            job["after"] = f"matrix {method} {scene} seed {seed}"
+            job["cmd"] = lambda: train(*overrides, *zero_shot(work, models[method][0], scene, seed))
+        return job
 
     scenes = ["conference_v1", "office_v1"]
     for m in ("graf", "knn_dl", "nerf2"):
         jobs += [matrix(m, s, 0) for s in scenes]
     for seed in (1, 2):
         jobs += [matrix(m, s, seed) for m in ("graf", "knn_dl") for s in scenes]
-    for Ls in ("2,4,10", "1,6,8,16"):
+    for Ls in args.nc_ls:
         jobs += [nc(m, s, seed, Ls) for seed in (0, 1, 2) for m in ("graf", "knn_dl") for s in scenes]
-    jobs = [j for j in jobs if j[0].split()[0] in args.studies and j[0].split()[1] in args.methods]
+    jobs = [j for j in jobs if j["name"].split()[0] in args.studies and j["name"].split()[1] in args.methods]
     if args.tiny:  # one job of each kind
         keep = (
             "matrix graf conference_v1 seed 0",
             "matrix knn_dl conference_v1 seed 0",
             "matrix nerf2 conference_v1 seed 0",
-            "neighbor_count graf conference_v1 seed 0 L 2,4,10",
+            f"neighbor_count graf conference_v1 seed 0 L {args.nc_ls[0]}",
         )
-        jobs = [j for j in jobs if j[0] in keep]
+        jobs = [j for j in jobs if j["name"] in keep]
     return jobs
 
 
-def run_queue(args, jobs, work: Path) -> list[dict]:
+def matrix_checkpoint(work: Path, model: str, scene: str, seed: int) -> Path:
+    """The finished matrix job's checkpoint of ``model`` (``model=...``), ``scene`` and ``seed``."""
+    want = {model, f"scene={scene}", f"seed={seed}"}
+    found = [
+        d / "checkpoints" / "last.ckpt"
+        for d in (work / "cross_scene_matrix_paper").glob("*model=*")
+        if want <= set(d.name.split(",")) and (d / "results.json").exists()
+    ]
+    if len(found) != 1:
+        raise FileNotFoundError(f"{len(found)} finished matrix jobs of {model} {scene} seed {seed}")
+    return found[0]
+
+
+def zero_shot(work: Path, model: str, scene: str, seed: int) -> list[str]:
+    ckpt = matrix_checkpoint(work, model, scene, seed)
+    keys = "experiment,data_root,study_size,finetune.base,finetune.init_from"
+    return [
+        "finetune.base=null",
+        f'finetune.init_from="{ckpt}"',
+        f"hydra.job.config.override_dirname.exclude_keys=[{keys}]",
+    ]
+
+
+def run_queue(args, jobs: list[dict], work: Path) -> list[dict]:
     """Run ``jobs`` ``--workers`` at a time, in order; a neighbor-count group waits for the one before it with the
-    same base model (its L = 2, 4, 10 part trains the base); stop everything at the deadline."""
+    same base model (its first part trains the base), a job with ``after`` for that job (and is dropped if it
+    failed); stop everything at the deadline."""
     running: dict[str, tuple[subprocess.Popen, float]] = {}
-    outcomes, queue = [], list(jobs)
+    outcomes, queue, exits = [], list(jobs), {}
     (work / "logs").mkdir(parents=True, exist_ok=True)
     while (queue or running) and left(args.deadline) > 0:
         for name, (p, t) in list(running.items()):
             if p.poll() is not None:
                 outcomes.append({"job": name, "exit": p.returncode, "seconds": round(time.time() - t)})
+                exits[name] = p.returncode
                 log(f"done ({p.returncode}): {name} in {time.time() - t:.0f} s")
                 del running[name]
+        for j in [j for j in queue if j["after"] is not None and exits.get(j["after"], 0) != 0]:
+            queue.remove(j)
+            outcomes.append({"job": j["name"], "exit": f"not started: {j['after']} failed"})
         busy_bases = {n.rsplit(" L ", 1)[0] for n in running}
         while len(running) < args.workers and left(args.deadline) > args.min_job_s:
-            ready = [j for j in queue if j[0].rsplit(" L ", 1)[0] not in busy_bases]
+            ready = [
+                j
+                for j in queue
+                if j["name"].rsplit(" L ", 1)[0] not in busy_bases and (j["after"] is None or j["after"] in exits)
+            ]
             if not ready:
                 break
-            name, cmd = ready[0]
-            queue.remove((name, cmd))
-            slug = name.replace(" ", "_").replace(",", "-")
-            running[name] = (
+            job = ready[0]
+            queue.remove(job)
+            try:
+                cmd = job["cmd"]() if callable(job["cmd"]) else job["cmd"]
+            except FileNotFoundError as e:
+                outcomes.append({"job": job["name"], "exit": f"not started: {e}"})
+                log(f"not started: {job['name']}: {e}")
+                continue
+            slug = job["name"].replace(" ", "_").replace(",", "-")
+            running[job["name"]] = (
                 subprocess.Popen(
                     cmd, stdout=open(work / "logs" / f"{slug}.log", "w"), stderr=subprocess.STDOUT, cwd=ROOT
                 ),
                 time.time(),
             )
-            busy_bases.add(name.rsplit(" L ", 1)[0])
-            log(f"start: {name}")
+            busy_bases.add(job["name"].rsplit(" L ", 1)[0])
+            log(f"start: {job['name']}")
         time.sleep(2)
     if running:
         log(f"deadline: stopping {sorted(running)}")
         stop([p for p, _ in running.values()])
         outcomes += [{"job": n, "exit": "stopped at the deadline"} for n in running]
-    outcomes += [{"job": n, "exit": "not started (deadline)"} for n, _ in queue]
+    outcomes += [{"job": j["name"], "exit": "not started (deadline)"} for j in queue]
     return outcomes
 
 
-def pack_out(work: Path, out: Path, summary: dict) -> None:
+def weights_back(work: Path, out: Path) -> None:
+    """The finished matrix jobs' weights (their checkpoints without the optimiser's state: what
+    ``finetune.init_from`` reads), one tarball per GRaF training scene and one for the other methods, each under the
+    16 MiB a file may come back with."""
+    groups: dict[str, list[Path]] = {}
+    slim = work / "weights"
+    for ckpt in sorted((work / "cross_scene_matrix_paper").glob("*/checkpoints/last.ckpt")):
+        run = ckpt.parent.parent
+        if not (run / "results.json").exists():
+            continue
+        import torch
+
+        state = torch.load(ckpt, map_location="cpu", weights_only=True)
+        for k in ("optimizer_states", "lr_schedulers", "loops", "callbacks"):
+            state.pop(k, None)
+        dst = slim / run.name / "checkpoints" / "last.ckpt"
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        torch.save(state, dst)
+        parts = dict(p.split("=", 1) for p in run.name.split(","))
+        key = f"graf_{parts['scene']}" if parts["model"].startswith("graf") else "others"
+        groups.setdefault(key, []).append(dst)
+    for key, files in groups.items():
+        with tarfile.open(out / f"weights_{key}.tar", "w") as tar:
+            for f in files:
+                tar.add(f, arcname=str(f.relative_to(slim)))
+
+
+def pack_out(work: Path, out: Path, summary: dict, weights: bool = False) -> None:
     out.mkdir(parents=True, exist_ok=True)
     for name in ("curves", "cross_scene_matrix_paper", "neighbor_count_paper", "logs"):
         src = work / name
@@ -299,6 +368,11 @@ def pack_out(work: Path, out: Path, summary: dict) -> None:
             continue
         with tarfile.open(out / f"{name}.tar.gz", "w:gz") as tar:
             tar.add(src, arcname=name, filter=lambda ti: None if ti.name.endswith(".ckpt") else ti)
+    if weights:
+        try:
+            weights_back(work, out)
+        except Exception as e:  # noqa: BLE001  (the records still go back)
+            log(f"weights: {type(e).__name__}: {e}")
     (out / "summary.json").write_text(json.dumps(summary, indent=1, default=str))
     (out / "log.txt").write_text("\n".join(LOG) + "\n")
 
@@ -328,8 +402,13 @@ def parse_args() -> argparse.Namespace:
     ap.add_argument("--curves-steps", default="[300,1000,3000]", help="the curves' evaluation points")
     ap.add_argument("--workers", type=int, default=10)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--graf-threads", type=int, default=None, help="GRaF's jobs' torch threads (default --threads)")
     ap.add_argument("--min-job-s", type=float, default=45.0, help="no job starts with less time left")
     ap.add_argument("--fallback-steps", type=int, default=1000)
+    ap.add_argument("--steps", nargs="*", default=[], help="with --no-curves: METHOD=STEPS (graf, knn_dl) budgets")
+    ap.add_argument("--nc-ls", nargs="+", default=["2,4,10", "1,6,8,16"], help="the neighbor-count L groups")
+    ap.add_argument("--nc-from-matrix", action="store_true", help="neighbor count zero-shot from the matrix's models")
+    ap.add_argument("--weights-back", action="store_true", help="the matrix jobs' weights come back (no optimiser)")
     ap.add_argument("--no-curves", action="store_true", help="no curves: --mode and --fallback-steps decide")
     ap.add_argument("--mode", default="ray_weights", choices=MODES, help="GRaF's mode with --no-curves")
     ap.add_argument("--studies", nargs="+", default=["matrix", "neighbor_count"], choices=["matrix", "neighbor_count"])
@@ -354,8 +433,11 @@ def main() -> int:
         summary["stages"]["data_s"] = round(time.time() - t, 1)
         t = time.time()
         if args.no_curves:  # the mode and budget fixed before the run (--mode, --fallback-steps)
-            fixed = {"steps": args.fallback_steps, "why": "fixed before the run (--no-curves)"}
-            choice = {"mode": args.mode, "modes_compared": [], "table": [], "graf": fixed, "knn_dl": fixed}
+            fixed = {m: int(v) for m, v in (kv.split("=", 1) for kv in args.steps)}
+            choice = {"mode": args.mode, "modes_compared": [], "table": []} | {
+                m: {"steps": fixed.get(m, args.fallback_steps), "why": "fixed before the run (--no-curves)"}
+                for m in ("graf", "knn_dl")
+            }
         else:
             cur = curves(args, data, args.work, extra)
             summary["stages"]["curves_s"] = round(time.time() - t, 1)
@@ -375,7 +457,7 @@ def main() -> int:
         log(f"error: {type(e).__name__}: {e}")
         summary["error"] = f"{type(e).__name__}: {e}"
     summary["total_s"] = round(time.time() - T0, 1)
-    pack_out(args.work, args.out, summary)
+    pack_out(args.work, args.out, summary, args.weights_back)
     log(f"total {summary['total_s']} s")
     return 1 if "error" in summary else 0
 
