@@ -15,6 +15,8 @@ A page asks for a generated block with a directive on a line of its own:
   ``sweeps/compare_rfid_s23/table.md``, ...), included as it is;
 - ``<!-- gen: choose PATH -->``: GRaF's modes ranked on validation from a ``curves.csv``
   (:func:`graf.reports.published.choose`, as ``scripts/choose_graf.py``);
+- ``<!-- gen: curve_facts REGIME -->``: a learning-curve regime's facts (its KNN line; per method the best and last
+  point, the last slope, the first step past KNN) from ``sweeps/learning_curves/`` (:mod:`curve_facts`);
 - ``<!-- gen: code PATH -->``: a source file of the repository as a code block (the worked examples' plugin);
 - ``<!-- gen: page PATH -->``: a markdown file of the repository (``CONTRIBUTING.md``) as the page's text;
 - ``<!-- gen: layout src -->``: the map of the package (floors, rooms, modules, commands, scripts);
@@ -36,8 +38,8 @@ and model folders: :func:`records.figures`) is published at
 ``sweeps/...``, so a page links ``![](sweeps/NAME/figure.png)`` (from a page in ``docs/``).
 
 This folder is outside ``docs/``, so the hooks are not published with the site; MkDocs loads this file and puts
-its folder on ``sys.path`` while it does, which is how ``tree_pages``, ``records`` and ``site_checks`` are
-imported.
+its folder on ``sys.path`` while it does, which is how ``tree_pages``, ``records``, ``site_checks`` and
+``curve_facts`` are imported.
 """
 
 from __future__ import annotations
@@ -48,6 +50,7 @@ import math
 import re
 from pathlib import Path
 
+import curve_facts
 import records
 import reference
 import site_checks
@@ -61,7 +64,9 @@ from graf.reports import published
 ROOT = Path(__file__).resolve().parents[1]
 SWEEPS = ROOT / "sweeps"
 API_NAV = "API reference"
-DIRECTIVE = re.compile(r"^<!-- gen: (study|search|include|code|page|choose|layout|headline|records) (\S+) -->$", re.M)
+DIRECTIVE = re.compile(
+    r"^<!-- gen: (study|search|include|code|page|choose|curve_facts|layout|headline|records) (\S+) -->$", re.M
+)
 RESULTS_NAV = "Results"  # the navigation's section whose pages hide the table of contents (WIDE_PAGES)
 WIDE_PAGES: set[str] = set()  # filled by on_config
 NAV_TITLES: dict[str, str] = {}
@@ -286,7 +291,8 @@ def on_page_markdown(markdown: str, page, config, files) -> str:
     def expand(m: re.Match) -> str:
         kind, arg = m.group(1), m.group(2)
         makers = {"study": study, "search": search, "include": include, "code": code, "page": page_file,
-                  "choose": choose, "layout": layout, "headline": headline, "records": records_page}  # fmt: skip
+                  "choose": choose, "curve_facts": curve_facts.block, "layout": layout, "headline": headline,
+                  "records": records_page}  # fmt: skip
         text = makers[kind](arg)
         return text if kind == "code" else site_checks.fit_tables(text, width)
 
