@@ -5,18 +5,18 @@
 #
 #   bash scripts/paper_studies_cpu.sh [matrix] [nc] [bands] [unseen]        (no argument: all four, in this order)
 #
-# Each trained model runs its budget from the paper-density learning curves (GRaF graf_cpu_scenes_ray_weights 3,000 steps,
-# KNN-DL 300: study_budgets in conf/study_size/paper.yaml).  Missing catalogs are ray-traced on first use.
-#   matrix  GRaF on conference_v1 and office_v1, seeds 0-2, tested on the six layouts (about 35 min a job on a 2-core
-#           Xeon before issue 53's fast training path: 26 min of training at 0.5 s/step, 7.5 min of testing 720
-#           spectra; the bands study's 2.4 GHz base, the same model on conference_v1, now trains at 0.32 s/step).  KNN-DL's jobs in the record came from a lent GPU
-#           (scripts/paper_studies_gpu.sh); `model=knn_dl` here runs them on the CPU instead.
+# Each trained model runs its budget from the paper-density learning curves (regime cross_family_val, validated on
+# layouts no study tests on: GRaF graf_cpu_scenes_ray_weights 1,000 steps, KNN-DL 3,000; study_budgets in
+# conf/study_size/paper.yaml; GRAF_STEPS / GRAF_KNN_DL_STEPS set others).  Missing catalogs are ray-traced on first use.
+#   matrix  GRaF, then KNN-DL, on conference_v1 and office_v1, seeds 0-2, each tested on the six layouts, into
+#           sweeps/cross_scene_matrix_paper_val (GRAF_MATRIX: another record; GRAF_MATRIX_MODELS="knn_dl": one method).
+#           A GRaF job of 3,000 steps took about 35 min on a 2-core Xeon before issue 53's fast training path
+#           (26 min of training at 0.5 s/step, 7.5 min of testing 720 spectra); KNN-DL trains with one torch thread.
 #   nc      the neighbor-count study, L in {1, 2, 4, 6, 8, 10, 16} (GRAF_NC_L=2,4: a subset), the four same-family
-#           pairs, seeds 0-2.  GRaF is tested zero-shot from the matrix's own checkpoints: a matrix job trains the
-#           same weights as the study's base model of that scene, seed and thread count (the test scenes do not
-#           enter training: bit for bit at 20 steps), so its six GRaF base trainings (2.6 h here) are not run twice.
-#           75 s a GRaF job here (84 in all; GRAF_NC_L=2,4,10, 36 jobs: 45 min, sweeps/neighbor_count_paper/README.md).
-#           KNN-DL trains its own bases (25 s each).
+#           pairs, seeds 0-2, into sweeps/neighbor_count_paper_val (GRAF_NC: another record).  Both methods are
+#           tested zero-shot from the matrix's own checkpoints: a matrix job trains the same weights as the study's
+#           base model of that scene, seed and thread count (the test scenes do not enter training: bit for bit at
+#           20 steps), so the bases are not trained twice.  About 75 s a GRaF job here (84 in all).
 #   bands   GRaF trained on conference_v1 at each of 915 MHz, 1.8, 2.4 and 3 GHz, tested at each; seed 0
 #           (GRAF_BANDS=1.8ghz,2.4ghz: a subset, trained and tested).  With the fast training path (issue 53) a base
 #           trains in 11-16 min here (0.22-0.32 s/step, against 0.33-0.54 before), a test takes 1-2 min.
@@ -28,9 +28,13 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 TRAIN=${GRAF_TRAIN:-.venv/bin/graf-train}
-COMMON=(reliance=false data_root=data torch_threads=2)
-MATRIX=${GRAF_MATRIX:-sweeps/cross_scene_matrix_paper_3000}  # the matrix record (and the checkpoints nc reads)
+COMMON=(reliance=false data_root=data)
+MATRIX=${GRAF_MATRIX:-sweeps/cross_scene_matrix_paper_val}  # the matrix record (and the checkpoints nc reads)
+MATRIX_MODELS=${GRAF_MATRIX_MODELS:-graf_cpu_scenes_ray_weights knn_dl}
+NC=${GRAF_NC:-sweeps/neighbor_count_paper_val}
 NC_L=${GRAF_NC_L:-1,2,4,6,8,10,16}  # the neighbor counts nc tests (GRAF_NC_L=2,4: the Table 5 rise alone)
+declare -A STEPS=([graf_cpu_scenes_ray_weights]=${GRAF_STEPS:-1000} [knn_dl]=${GRAF_KNN_DL_STEPS:-3000})
+declare -A THREADS=([graf_cpu_scenes_ray_weights]=2 [knn_dl]=1)
 BANDS=${GRAF_BANDS:-915mhz,1.8ghz,2.4ghz,3ghz}  # the bands the bands study trains at and tests at
 UNSEEN_FT=${GRAF_UNSEEN_FINETUNE:-none,f05,f10,f20,f50,f100}  # the fine-tuning fractions unseen tests
 UNSEEN_BAND=${GRAF_UNSEEN_BASE_BAND:-2.4ghz,scene}  # the base models unseen starts from
@@ -42,39 +46,42 @@ say() { echo "=== $(date -u +%FT%TZ) $*"; }
 for study in "${STUDIES[@]}"; do
     case $study in
     matrix)
-        for seed in 0 1 2; do  # seed-major: any prefix of the queue covers both training scenes
-            for scene in conference_v1 office_v1; do
-                say "matrix: GRaF scene=$scene seed=$seed"
-                "$TRAIN" experiment=cross_scene_matrix model=graf_cpu_scenes_ray_weights "scene=$scene" "seed=$seed" \
-                    study_steps=3000 "${COMMON[@]}" hydra.sweep.dir=$MATRIX
+        for model in $MATRIX_MODELS; do
+            for seed in 0 1 2; do  # seed-major: any prefix of the queue covers both training scenes
+                for scene in conference_v1 office_v1; do
+                    say "matrix: $model scene=$scene seed=$seed"
+                    "$TRAIN" experiment=cross_scene_matrix "model=$model" "scene=$scene" "seed=$seed" \
+                        "study_steps=${STEPS[$model]}" "torch_threads=${THREADS[$model]}" "${COMMON[@]}" \
+                        hydra.sweep.dir="$MATRIX"
+                done
             done
         done
         ;;
     nc)
-        ckpt="$MATRIX/model=graf_cpu_scenes_ray_weights,reliance=False,scene=\${hydra:runtime.choices.scene},seed=\${seed},study_steps=3000,torch_threads=2/checkpoints/last.ckpt"
-        for scene in conference_v1 office_v1; do
-            for seed in 0 1 2; do
-                f="$MATRIX/model=graf_cpu_scenes_ray_weights,reliance=False,scene=$scene,seed=$seed,study_steps=3000,torch_threads=2/checkpoints/last.ckpt"
-                [ -f "$f" ] || { echo "nc: $f is missing: run the matrix first (bash $0 matrix)" >&2; exit 2; }
+        for model in $MATRIX_MODELS; do
+            run="model=$model,reliance=False,scene=%s,seed=%s,study_steps=${STEPS[$model]},torch_threads=${THREADS[$model]}"
+            for scene in conference_v1 office_v1; do
+                for seed in 0 1 2; do
+                    f="$MATRIX/$(printf "$run" "$scene" "$seed")/checkpoints/last.ckpt"
+                    [ -f "$f" ] || { echo "nc: $f is missing: run the matrix first (bash $0 matrix)" >&2; exit 2; }
+                done
             done
+            ckpt="$MATRIX/$(printf "$run" '${hydra:runtime.choices.scene}' '${seed}')/checkpoints/last.ckpt"
+            say "nc: $model, zero-shot from the matrix's checkpoints"
+            "$TRAIN" experiment=neighbor_count "model=$model" 'scene=conference_v1,office_v1' \
+                finetune.base=null "finetune.init_from=\"$ckpt\"" \
+                'hydra.job.config.override_dirname.exclude_keys=[experiment,data_root,study_size,finetune.base,finetune.init_from]' \
+                "neighbors.L=$NC_L" "torch_threads=${THREADS[$model]}" "${COMMON[@]}" hydra.sweep.dir="$NC"
         done
-        say "nc: GRaF, zero-shot from the matrix's checkpoints"
-        "$TRAIN" experiment=neighbor_count model=graf_cpu_scenes_ray_weights 'scene=conference_v1,office_v1' \
-            finetune.base=null "finetune.init_from=\"$ckpt\"" \
-            'hydra.job.config.override_dirname.exclude_keys=[experiment,data_root,study_size,finetune.base,finetune.init_from]' \
-            "neighbors.L=$NC_L" "${COMMON[@]}" hydra.sweep.dir=sweeps/neighbor_count_paper
-        say "nc: KNN-DL"
-        "$TRAIN" experiment=neighbor_count model=knn_dl 'scene=conference_v1,office_v1' "neighbors.L=$NC_L" \
-            "${COMMON[@]}" hydra.sweep.dir=sweeps/neighbor_count_paper
         ;;
     bands)
         say "bands: GRaF, seed 0"
-        "$TRAIN" experiment=bands seed=0 "band=$BANDS" "eval_band=$BANDS" "${COMMON[@]}" hydra.sweep.dir=sweeps/bands_paper
+        "$TRAIN" experiment=bands seed=0 "band=$BANDS" "eval_band=$BANDS" torch_threads=2 "${COMMON[@]}" hydra.sweep.dir=sweeps/bands_paper
         ;;
     unseen)
         say "unseen layouts: GRaF and KNN-DL, seed 0"
         "$TRAIN" experiment=unseen_layouts 'model=graf_cpu_scenes_ray_weights,knn_dl' seed=0 "finetune=$UNSEEN_FT" \
-            "finetune.base.band=$UNSEEN_BAND" "${COMMON[@]}" \
+            "finetune.base.band=$UNSEEN_BAND" torch_threads=2 "${COMMON[@]}" \
             hydra.sweep.dir=sweeps/unseen_layouts_paper
         ;;
     *)
