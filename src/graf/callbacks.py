@@ -101,10 +101,11 @@ class Preemption(Callback):
     in progress with its state saved.  SIGTERM: Lightning notices the signal (its signal connector sets
     ``trainer.received_sigterm``) and raises ``SIGTERMException`` at the end of that step.  SIGINT: this callback's
     handler, installed for the fit, notes it (a second Ctrl+C stops at once, as Python's own handler does) and
-    raises :class:`TrainingInterrupted` at the end of that step.  Either way this callback first saves
-    ``<dirpath>/last.ckpt`` (the file ``ckpt_path=`` resumes from, optimiser and step count included) and records
-    where it stopped in :attr:`saved`.  graf-train then says how to resume and exits with code 143 (128 + SIGTERM;
-    it writes ``preempted.json``) or 130 (128 + SIGINT)."""
+    raises :class:`TrainingInterrupted` at the end of that step.  A SIGTERM that lands in a validation pass stops
+    after that validation batch, and one at an epoch's end stops there (Lightning's own checks).  Either way this
+    callback first saves ``<dirpath>/last.ckpt`` (the file ``ckpt_path=`` resumes from, optimiser and step count
+    included) and records where it stopped in :attr:`saved`.  graf-train then says how to resume and exits with code
+    143 (128 + SIGTERM; it writes ``preempted.json``) or 130 (128 + SIGINT)."""
 
     def __init__(self, dirpath: str):
         self.dirpath = str(dirpath)
@@ -132,13 +133,27 @@ class Preemption(Callback):
     def on_exception(self, trainer, pl_module, exception: BaseException) -> None:
         self.restore_handler()
 
-    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+    def save(self, trainer) -> None:
+        """``last.ckpt`` once, when a signal has come (the state after the last optimiser step)."""
         if (trainer.received_sigterm or self.interrupted) and self.saved is None:
             path = Path(self.dirpath) / "last.ckpt"
             trainer.save_checkpoint(str(path))
             self.saved = {"checkpoint": str(path), "global_step": int(trainer.global_step)}
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        self.save(trainer)
         if self.interrupted and not trainer.received_sigterm:
             raise TrainingInterrupted(f"SIGINT at step {int(trainer.global_step)}")
+
+    def on_validation_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0) -> None:
+        # Lightning also stops at a SIGTERM after a validation batch (and at an epoch's end): save there too, or a
+        # signal that lands in a validation pass would leave only the newest periodic checkpoint
+        if trainer.state.fn == "fit" and not trainer.sanity_checking and trainer.received_sigterm:
+            self.save(trainer)
+
+    def on_train_epoch_end(self, trainer, pl_module) -> None:
+        if trainer.received_sigterm:
+            self.save(trainer)
 
 
 class AttemptClock(Callback):
