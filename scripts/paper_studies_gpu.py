@@ -20,10 +20,15 @@ started only if the deadline leaves it time, each stopped (SIGTERM: state saved)
 4. **studies**: a queue of jobs run ``--workers`` at a time, in this order: the cross-scene matrix at seed 0
    (GRaF, KNN-DL, NeRF2 on conference_v1 and on office_v1), its seeds 1 and 2 (GRaF, KNN-DL), then the
    neighbor-count groups (one process per method, training scene and seed: its base model, then L = 2, 4, 10 on
-   the two other layouts of its family, then L = 1, 6, 8, 16).  A job not finished by the deadline is
-   stopped; graf-report then writes each study's tables and intervals from the jobs that finished.
+   the two other layouts of its family, then L = 1, 6, 8, 16; ``--nc-ls`` other groups; ``--nc-from-matrix``: no
+   base of its own, each group tests the matrix job's model of its method, scene and seed zero-shot once that job
+   has finished).  A job not finished by the deadline is stopped; graf-report then writes each study's tables and
+   intervals from the jobs that finished.  ``--no-curves --steps graf=1000 knn_dl=3000``: the budgets fixed before
+   the run instead of curves and a choice.
 5. **out**: ``curves.tar.gz``, ``cross_scene_matrix_paper.tar.gz``, ``neighbor_count_paper.tar.gz`` (no
-   checkpoints), ``summary.json`` (each stage's seconds, the choice, the jobs' outcomes) and ``log.txt``.
+   checkpoints), ``summary.json`` (each stage's seconds, the choice, the jobs' outcomes) and ``log.txt``; with
+   ``--weights-back`` also the finished matrix jobs' weights without optimiser state (``weights_*.tar``, each under
+   the 16 MiB a file may come back with), for the neighbor count or a resumed study on the CPU.
 """
 
 from __future__ import annotations
