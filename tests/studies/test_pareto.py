@@ -26,6 +26,33 @@ def test_pareto_front_keeps_only_undominated_points():
     assert pareto_front(rows, "t") == {0, 1, 3, 5}  # 2 is slower and worse than 1; 4 has no time
 
 
+def test_a_reference_method_is_tabled_but_left_out_of_the_fronts(tmp_path):
+    """RF-GS faster and better than every GRaF setting would otherwise be the whole front; as a reference knob it
+    keeps its row and GRaF's own settings are ranked among themselves."""
+    from graf.studies.pareto import collect
+
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        cfg = compose("pareto", overrides=["only_scenes=[rfid_s23_sparse]", "only_points=[base,voxel_4,rf_gs]"])
+    assert list(cfg.reference_knobs) == ["method"]
+    figures = {"base": (40.0, 0.13, 15.9), "voxel_4": (27.0, 0.10, 15.9), "rf_gs": (9.0, 0.01, 21.9)}
+    for point, (fit_s, infer_s, val) in figures.items():
+        folder = tmp_path / "rfid_s23_sparse" / point
+        folder.mkdir(parents=True)
+        record = {
+            "timing": {"fit_s": fit_s, "fit_s_per_step": fit_s / 300, "test_s_per_spectrum": infer_s},
+            "metrics": {"val/psnr": val, "test/psnr": val},
+        }
+        (folder / "results.json").write_text(json.dumps(record))
+    rows = {r["point"]: r for r in collect(tmp_path, cfg)}
+    assert set(rows) == {"base", "voxel_4", "rf_gs"}
+    assert not rows["rf_gs"]["front_infer"] and not rows["rf_gs"]["front_train"]
+    assert rows["voxel_4"]["front_infer"] and rows["voxel_4"]["front_train"]  # as good as base, faster
+    assert not rows["base"]["front_infer"] and not rows["base"]["front_train"]
+    cfg.reference_knobs = []
+    rows = {r["point"]: r for r in collect(tmp_path, cfg)}
+    assert rows["rf_gs"]["front_infer"] and not rows["voxel_4"]["front_infer"]  # ranked, it dominates
+
+
 def test_config_has_five_knobs_on_two_scenes():
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
         cfg = compose("pareto")
