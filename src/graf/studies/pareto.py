@@ -193,7 +193,8 @@ def plot(path: Path, rows: list[dict]) -> None:
 
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
     knobs = list(dict.fromkeys(r["knob"] for r in rows))
-    markers = dict(zip(knobs, "o^sDvP*Xh<>"))
+    # one marker and one colour per knob, the same in every panel
+    markers = {k: (m, plt.get_cmap("tab10")(i % 10)) for i, (k, m) in enumerate(zip(knobs, "o^sDvP*Xh<>"))}
     fig, axes = plt.subplots(len(scenes), 2, figsize=(11, 4.2 * len(scenes)), squeeze=False)
     for i, scene in enumerate(scenes):
         sr = [r for r in rows if r["scene"] == scene]
@@ -225,7 +226,8 @@ def _draw_points(ax, sr: list[dict], cost: str, front: str, markers: dict) -> No
         ax.scatter(
             r[cost],
             r["test_psnr"],
-            marker=markers[r["knob"]],
+            marker=markers[r["knob"]][0],
+            color=markers[r["knob"]][1],
             s=60 if r[front] else 30,
             edgecolors="k" if r[front] else "none",
             label=r["knob"],
