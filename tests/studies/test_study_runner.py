@@ -95,7 +95,7 @@ def test_a_pareto_sweep_runs_each_point_once_records_a_failure_and_resumes(tmp_p
     r = pareto.sweep(cfg)
     assert [c[0] for c in calls] == ["base", "voxel_2", "L_test_3"] and {c[2] for c in calls} == {"1"}
     train, evaluate = calls[0][1], calls[2][1]
-    assert train[1:3] == ["-m", "graf.cli.train"] and "trainer.max_steps=200" in train
+    assert train[1:3] == ["-m", "graf.cli.train"] and "experiment=graf_rfid_s23" in train  # the base: the main job
     assert train[-1] == f"hydra.run.dir={tmp_path / 'rfid_s23_sparse' / 'base'}"
     ckpt = tmp_path / "rfid_s23_sparse" / "base" / "checkpoints" / "last.ckpt"
     assert evaluate[1:4] == ["-m", "graf.cli.evaluate", f"ckpt_path={ckpt}"] and "neighbors.L=3" in evaluate
