@@ -3,7 +3,8 @@
     graf-pareto [out=DIR] [threads=N]
 
 For each scene: one ``graf-train`` run per training point (the base, and each knob changed alone: voxel size
-in wavelengths, rays per step, encoder width and downsampling, precision, training steps), then ``graf-eval``
+in wavelengths, rays per step, encoder width and downsampling, training path, precision, training steps,
+neighbor-feature mode, another method), then ``graf-eval``
 of the base checkpoint per evaluation point (L at test).  Each run is a separate process writing its own
 folder ``<out>/<scene>/<point>/`` (results.json, run.log); a point whose results.json exists is skipped, so a
 killed sweep continues where it stopped, and a failed run is recorded in ``failed.json`` while the others go
