@@ -11,6 +11,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from graf.app.config import CONF_DIR
+from graf.errors import ConfigError
 from graf.studies.pareto import pareto_front
 
 
@@ -51,6 +52,9 @@ def test_a_reference_method_is_tabled_but_left_out_of_the_fronts(tmp_path):
     cfg.reference_knobs = []
     rows = {r["point"]: r for r in collect(tmp_path, cfg)}
     assert rows["rf_gs"]["front_infer"] and not rows["voxel_4"]["front_infer"]  # ranked, it dominates
+    cfg.reference_knobs = ["methd"]  # a misspelt knob would leave everything in the fronts: it stops instead
+    with pytest.raises(ConfigError, match=r"reference_knobs: \['methd'\] is the knob of no point"):
+        collect(tmp_path, cfg)
 
 
 def test_config_has_five_knobs_on_two_scenes():

@@ -35,6 +35,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from graf.app.config import output_dir, task_wrapper
 from graf.app.launch import command
+from graf.errors import ConfigError
 from graf.io import atomic_write_json, atomic_write_text
 from graf.studies.runner import run_command
 
@@ -94,6 +95,16 @@ def _selected(cfg: DictConfig, group: str, only: str) -> dict:
     return items
 
 
+def reference_knobs(cfg: DictConfig) -> set[str]:
+    """The knobs whose points are references outside the fronts; each must be the knob of some point."""
+    reference = set(cfg.get("reference_knobs") or [])
+    points = {**(cfg.get("points") or {}), **(cfg.get("eval_points") or {})}
+    knobs = {p.knob for p in points.values()}
+    if unknown := reference - knobs:
+        raise ConfigError(f"reference_knobs: {sorted(unknown)} is the knob of no point (knobs: {sorted(knobs)})")
+    return reference
+
+
 def collect(out: Path, cfg: DictConfig) -> list[dict]:
     """One row per finished run, fronts marked per scene."""
     rows = []
@@ -130,7 +141,7 @@ def collect(out: Path, cfg: DictConfig) -> list[dict]:
                 scene_rows.append(row)
         # the fronts are GRaF's own settings: a point of a reference knob (another method) is tabled and drawn, not
         # ranked, so that it does not hide GRaF's trade behind it
-        reference = set(cfg.get("reference_knobs") or [])
+        reference = reference_knobs(cfg)
         ranked = [i for i, row in enumerate(scene_rows) if row["knob"] not in reference]
         on = {
             cost: {ranked[j] for j in pareto_front([scene_rows[i] for i in ranked], cost)}
@@ -331,6 +342,7 @@ def _run_scene(
 @task_wrapper
 def sweep(cfg: DictConfig) -> dict:
     """Run every selected scene's points not done before, then write and print the tables."""
+    reference_knobs(cfg)  # a misspelt knob stops here, before any run
     out = Path(cfg.out) if cfg.get("out") else output_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
     env = _child_env(cfg)
