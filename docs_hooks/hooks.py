@@ -181,6 +181,11 @@ def code(path: str) -> str:
     return f"```{lang}\n{_record(ROOT / path).read_text().rstrip()}\n```\n\n*The file `{path}`, as the tests run it.*"
 
 
+def _ahead_in(t: dict) -> str:
+    """A continued curve's point: the figures in which it is ahead of the choice ("" for the choice's own row)."""
+    return "" if t["point"] == "chosen" else ", ".join(k.removeprefix("val_") for k in t["ahead"]) or "none"
+
+
 def choose(path: str) -> str:
     """GRaF's neighbor-feature mode ranked on validation (:func:`graf.reports.published.choose`), per regime and
     over all."""
@@ -189,7 +194,7 @@ def choose(path: str) -> str:
     modes = ["pooled", "ray", "ray_knn", "ray_weights"]
     out = []
     try:
-        choices, waiting = published.choose_per_regime(rows, modes)
+        choices, waiting, beside = published.choose_per_regime(rows, modes, published.continued_regimes())
     except UserError as e:
         raise PluginError(f"docs: {path}: {e}") from e
     for regime, chosen, table in choices:
@@ -202,6 +207,24 @@ def choose(path: str) -> str:
         out.append(f"**{regime or 'all regimes together'}**: chosen `{chosen}`\n\n" + published.md(head, body))
     for regime, missing in waiting.items():
         out.append(f"**{regime}**: in progress, no choice yet (no point of {', '.join(f'`{m}`' for m in missing)})")
+    for regime, parent, chosen, table in beside:
+        body = [
+            [t["regime"], t["step"], f"`{t['mode']}`", t["point"], _f(t["val_psnr"], ".2f"), _f(t["val_ssim"]),
+             _f(t["val_lpips"]), _ahead_in(t)]
+            for t in table
+        ]  # fmt: skip
+        ahead = sorted({t["mode"] for t in table if t["ahead"]})
+        verdict = (
+            f"ahead of `{chosen}` in some figure: {', '.join(f'`{m}`' for m in ahead)}"
+            if ahead
+            else f"no point of a continued curve is ahead of `{chosen}` in any figure"
+        )
+        head = ["regime", "step", "mode", "point", "val PSNR", "val SSIM", "val LPIPS", "ahead of the choice in"]
+        out.append(
+            f"**{regime}** continues `{parent}` (no choice of its own; the rule ranks at the largest step every mode "
+            f"reached): beside `{parent}`'s choice, `{chosen}`, each continued curve's best and last points; "
+            f"{verdict}.\n\n" + published.md(head, body)
+        )
     return "\n\n".join(out) + f"\n\n*Generated from `{path}` by `scripts/choose_graf.py`.*"
 
 

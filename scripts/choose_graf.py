@@ -5,8 +5,11 @@ The rule: among the GRaF modes, at the largest step that every mode has reached 
 each validation figure (PSNR, SSIM, LPIPS; higher PSNR and SSIM, lower LPIPS is better); the chosen mode has
 the best mean rank over the figures of the regimes considered, ties broken by the higher mean PSNR.  It prints
 the choice per regime and over all regimes together (a regime where some mode has no point yet is named and
-left out).  The 150-position studies took regime (b)'s choice, ``cross_family``; the paper-density studies take
-regime (c)'s, ``cross_family_paper``; the main job takes regime (a)'s, ``rfid_sparse``.
+left out).  A regime that ``continues`` another in ``conf/curves.yaml`` (some of its curves sent on to a larger
+budget) makes no choice of its own: beside the other's choice it prints the chosen mode's point and each continued
+curve's best and last points, with the figures in which each is ahead of the choice.  The 150-position studies
+took regime (b)'s choice, ``cross_family``; the paper-density studies take regime (c)'s, ``cross_family_paper``,
+then (d)'s, ``cross_family_val``; the main job takes regime (a)'s, ``rfid_sparse``.
 The rule is :func:`graf.reports.published.choose`, applied per regime by ``choose_per_regime`` (the site's
 table of the choice uses it too).
 
@@ -26,7 +29,7 @@ import sys
 from pathlib import Path
 
 from graf.errors import UserError
-from graf.reports.published import best_step, choose_per_regime, still_gaining
+from graf.reports.published import best_step, choose_per_regime, continued_regimes, still_gaining
 
 
 def main() -> None:
@@ -42,14 +45,16 @@ def main() -> None:
         sys.exit(f"error: {path}: no such curves file (run graf-curves first)")
     with path.open() as f:
         rows = list(csv.DictReader(f))
+    continues = continued_regimes()
+    # a regime that continues another is reported beside that one's choice: --regime of it keeps both
+    regimes = None if args.regime is None else {args.regime, continues.get(args.regime, args.regime)}
     rows = [
         r
         for r in rows
-        if (args.regime is None or r["regime"] == args.regime)
-        and (args.max_step is None or int(r["step"]) <= args.max_step)
+        if (regimes is None or r["regime"] in regimes) and (args.max_step is None or int(r["step"]) <= args.max_step)
     ]
     try:
-        choices, waiting = choose_per_regime(rows, args.modes)
+        choices, waiting, beside = choose_per_regime(rows, args.modes, continues)
     except UserError as e:
         print(f"error: {path}: {e}", file=sys.stderr)
         sys.exit(2)
@@ -65,6 +70,16 @@ def main() -> None:
                 f"{t['val_lpips']:.3f} | {t['reliance']:.2f} | {t['mean_rank']:.2f} |"
             )
         print(f"\nchosen ({regime or 'all regimes together'}): {chosen}")
+    for regime, parent, chosen, table in beside:
+        print(f"\n### {regime}: continues {parent} (no choice of its own; beside {parent}'s choice, {chosen})\n")
+        print("| regime | step | mode | point | val PSNR | val SSIM | val LPIPS | ahead of the choice in |")
+        print("|---|---|---|---|---|---|---|---|")
+        for t in table:
+            ahead = ", ".join(k.removeprefix("val_") for k in t["ahead"]) or "-"
+            print(
+                f"| {t['regime']} | {t['step']} | {t['mode']} | {t['point']} | {t['val_psnr']:.2f} | "
+                f"{t['val_ssim']:.3f} | {t['val_lpips']:.3f} | {ahead if t['point'] != 'chosen' else ''} |"
+            )
     if args.within_db is not None:
         print(f"\n### budgets: the smallest step within {args.within_db} dB of the curve's best validation PSNR\n")
         print("| regime | method | budget (steps) | last step | still gaining > 0.1 dB per doubling |")

@@ -66,3 +66,25 @@ def test_a_regime_in_progress_is_named_with_its_missing_modes_and_kept_out_of_th
     chosen, table = choose_graf.choose([r for r in rows if r["regime"] in ready], ["x", "y"])
     assert chosen == "y"  # the running regime's better x point does not count
     assert {t["regime"] for t in table} == {"done"}
+
+
+def test_a_continuing_regime_makes_no_choice_and_reports_its_curves_beside_its_parents():
+    rows = [
+        _row("d", "x", 1000, 20, 0.7, 0.3),
+        _row("d", "y", 1000, 22, 0.8, 0.2),
+        _row("d30", "x", 1000, 20.5, 0.7, 0.3),
+        _row("d30", "x", 3000, 22.5, 0.75, 0.25),  # its best: ahead of the choice y in PSNR only
+        _row("d30", "x", 9000, 21.0, 0.7, 0.3),
+    ]
+    choices, waiting, beside = choose_graf.choose_per_regime(rows, ["x", "y"], {"d30": "d"})
+    assert waiting == {}  # d30 has no y and is not "in progress" for it
+    assert [(regime, chosen) for regime, chosen, _ in choices] == [("d", "y"), (None, "y")]
+    assert all(t["regime"] == "d" for _, _, table in choices for t in table)  # d30's points never rank
+    [(regime, parent, chosen, table)] = beside
+    assert (regime, parent, chosen) == ("d30", "d", "y")
+    got = [(t["mode"], t["step"], t["point"], t["ahead"]) for t in table]
+    assert got == [("y", 1000, "chosen", []), ("x", 3000, "best", ["val_psnr"]), ("x", 9000, "last", [])]
+
+
+def test_the_curves_config_names_the_30k_regime_a_continuation_of_regime_d():
+    assert choose_graf.continued_regimes() == {"cross_family_val_30k": "cross_family_val"}

@@ -199,28 +199,79 @@ def study_tables(report: dict, rows: list[dict]) -> list[str]:
     return parts
 
 
-def regimes_ready(rows: list[dict], modes: list[str]) -> tuple[list[str], dict[str, list[str]]]:
+def regimes_ready(
+    rows: list[dict], modes: list[str], continues: dict[str, str] | None = None
+) -> tuple[list[str], dict[str, list[str]]]:
     """``rows`` of curves.csv -> (the regimes where every one of ``modes`` has a point, so :func:`choose` can rank
-    them; {regime: the modes still without a point} for the others, curves still in progress)."""
+    them; {regime: the modes still without a point} for the others, curves still in progress).  A regime of
+    ``continues`` (it sends some of another regime's curves on to a larger budget) is neither: it makes no choice of
+    its own (:func:`continued`)."""
     have = defaultdict(set)
     for r in rows:
-        if r["method"] in modes:
+        if r["method"] in modes and r["regime"] not in (continues or {}):
             have[r["regime"]].add(r["method"])
     ready = sorted(reg for reg, ms in have.items() if len(ms) == len(set(modes)))
     waiting = {reg: [m for m in modes if m not in ms] for reg, ms in sorted(have.items()) if reg not in ready}
     return ready, waiting
 
 
-def choose_per_regime(rows: list[dict], modes: list[str]) -> tuple[list[tuple[str | None, str, list[dict]]], dict]:
+def continued_regimes() -> dict[str, str]:
+    """{regime: the regime it continues} from the ``continues`` keys of ``conf/curves.yaml``."""
+    from omegaconf import OmegaConf
+
+    from graf.app.config import CONF_DIR
+
+    regimes = OmegaConf.load(f"{CONF_DIR}/curves.yaml").regimes
+    return {name: str(r.continues) for name, r in regimes.items() if r.get("continues")}
+
+
+def continued(rows: list[dict], regime: str, parent_table: list[dict], chosen: str) -> list[dict]:
+    """Beside the parent regime's choice, the curves ``regime`` continued: the chosen mode's row of the parent's
+    table, then each continued mode's best point (validation PSNR) and last point, each with the figures in which
+    it is ahead of the chosen row (``ahead``: e.g. ``["val_psnr"]``; empty: behind or level in all three).  The
+    rule ranks at the largest step every mode reached, so a continuation reports; it does not choose."""
+    ref = next(t for t in parent_table if t["mode"] == chosen)
+    out = [{**{k: ref[k] for k in ("regime", "step", "mode", "reliance")}, **{k: ref[k] for k, _ in VALIDATION_FIGURES},
+            "point": "chosen", "ahead": []}]  # fmt: skip
+    for mode in dict.fromkeys(r["method"] for r in rows if r["regime"] == regime):
+        pts = sorted((r for r in rows if r["regime"] == regime and r["method"] == mode), key=lambda r: int(r["step"]))
+        best = max(pts, key=lambda r: float(r["val_psnr"]))
+        for label, r in (("best", best), ("last", pts[-1])) if best is not pts[-1] else (("best and last", best),):
+            figs = {k: float(r[k]) for k, _ in VALIDATION_FIGURES}
+            out.append(
+                {
+                    "regime": regime,
+                    "step": int(r["step"]),
+                    "mode": mode,
+                    **figs,
+                    "reliance": float(r["val_reliance_db"] or "nan"),
+                    "point": label,
+                    "ahead": [k for k, higher in VALIDATION_FIGURES if (figs[k] - ref[k]) * (1 if higher else -1) > 0],
+                }
+            )
+    return out
+
+
+def choose_per_regime(
+    rows: list[dict], modes: list[str], continues: dict[str, str] | None = None
+) -> tuple[list[tuple[str | None, str, list[dict]]], dict, list[tuple[str, str, str, list[dict]]]]:
     """:func:`choose` in each regime every mode has reached and over those regimes together (regime None):
-    ([(regime, chosen, table)], {regime in progress: its modes without a point}), what the site and
-    ``scripts/choose_graf.py`` print."""
-    ready, waiting = regimes_ready(rows, modes)
+    ([(regime, chosen, table)], {regime in progress: its modes without a point}, [(continuing regime, the regime
+    it continues, that regime's choice, :func:`continued`'s table)]), what the site and ``scripts/choose_graf.py``
+    print.  ``continues``: {regime: the regime it continues} (:func:`continued_regimes`)."""
+    continues = continues or {}
+    ready, waiting = regimes_ready(rows, modes, continues)
     out = []
     for regime in ready + [None]:
         chosen, table = choose([r for r in rows if r["regime"] in ready and regime in (None, r["regime"])], modes)
         out.append((regime, chosen, table))
-    return out, waiting
+    choices = {regime: (chosen, table) for regime, chosen, table in out}
+    beside = [
+        (regime, parent, choices[parent][0], continued(rows, regime, choices[parent][1], choices[parent][0]))
+        for regime, parent in sorted(continues.items())
+        if parent in choices and any(r["regime"] == regime for r in rows)
+    ]
+    return out, waiting, beside
 
 
 def choose(rows: list[dict], modes: list[str]) -> tuple[str, list[dict]]:
