@@ -181,11 +181,6 @@ def code(path: str) -> str:
     return f"```{lang}\n{_record(ROOT / path).read_text().rstrip()}\n```\n\n*The file `{path}`, as the tests run it.*"
 
 
-def _ahead_in(t: dict) -> str:
-    """A continued curve's point: the figures in which it is ahead of the choice ("" for the choice's own row)."""
-    return "" if t["point"] == "chosen" else ", ".join(k.removeprefix("val_") for k in t["ahead"]) or "none"
-
-
 def choose(path: str) -> str:
     """GRaF's neighbor-feature mode ranked on validation (:func:`graf.reports.published.choose`), per regime and
     over all."""
@@ -210,7 +205,7 @@ def choose(path: str) -> str:
     for regime, parent, chosen, table in beside:
         body = [
             [t["regime"], t["step"], f"`{t['mode']}`", t["point"], _f(t["val_psnr"], ".2f"), _f(t["val_ssim"]),
-             _f(t["val_lpips"]), _ahead_in(t)]
+             _f(t["val_lpips"]), published.ahead_label(t)]
             for t in table
         ]  # fmt: skip
         ahead = sorted({t["mode"] for t in table if t["ahead"]})

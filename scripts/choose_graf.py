@@ -29,7 +29,7 @@ import sys
 from pathlib import Path
 
 from graf.errors import UserError
-from graf.reports.published import best_step, choose_per_regime, continued_regimes, still_gaining
+from graf.reports.published import ahead_label, best_step, choose_per_regime, continued_regimes, still_gaining
 
 
 def main() -> None:
@@ -75,10 +75,9 @@ def main() -> None:
         print("| regime | step | mode | point | val PSNR | val SSIM | val LPIPS | ahead of the choice in |")
         print("|---|---|---|---|---|---|---|---|")
         for t in table:
-            ahead = ", ".join(k.removeprefix("val_") for k in t["ahead"]) or "-"
             print(
                 f"| {t['regime']} | {t['step']} | {t['mode']} | {t['point']} | {t['val_psnr']:.2f} | "
-                f"{t['val_ssim']:.3f} | {t['val_lpips']:.3f} | {ahead if t['point'] != 'chosen' else ''} |"
+                f"{t['val_ssim']:.3f} | {t['val_lpips']:.3f} | {ahead_label(t)} |"
             )
     if args.within_db is not None:
         print(f"\n### budgets: the smallest step within {args.within_db} dB of the curve's best validation PSNR\n")

@@ -88,3 +88,13 @@ def test_a_continuing_regime_makes_no_choice_and_reports_its_curves_beside_its_p
 
 def test_the_curves_config_names_the_30k_regime_a_continuation_of_regime_d():
     assert choose_graf.continued_regimes() == {"cross_family_val_30k": "cross_family_val"}
+
+
+def test_a_continues_key_naming_no_regime_stops_with_the_file_and_key(tmp_path, monkeypatch):
+    import graf.app.config
+    from graf.errors import ConfigError
+
+    (tmp_path / "curves.yaml").write_text("regimes:\n  d: {max_steps: 10}\n  d30: {max_steps: 30, continues: dd}\n")
+    monkeypatch.setattr(graf.app.config, "CONF_DIR", str(tmp_path))
+    with pytest.raises(ConfigError, match=r"curves.yaml: regimes.d30.continues: 'dd' is not another regime"):
+        choose_graf.continued_regimes()

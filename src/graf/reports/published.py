@@ -216,13 +216,37 @@ def regimes_ready(
 
 
 def continued_regimes() -> dict[str, str]:
-    """{regime: the regime it continues} from the ``continues`` keys of ``conf/curves.yaml``."""
+    """{regime: the regime it continues} from the ``continues`` keys of ``conf/curves.yaml`` (one naming no regime
+    there stops with a :class:`~graf.errors.ConfigError`)."""
     from omegaconf import OmegaConf
 
     from graf.app.config import CONF_DIR
+    from graf.errors import ConfigError
 
-    regimes = OmegaConf.load(f"{CONF_DIR}/curves.yaml").regimes
-    return {name: str(r.continues) for name, r in regimes.items() if r.get("continues")}
+    path = f"{CONF_DIR}/curves.yaml"
+    regimes = OmegaConf.load(path).regimes
+    out = {name: str(r.continues) for name, r in regimes.items() if r.get("continues")}
+    for name, parent in out.items():
+        if parent not in regimes or parent == name:
+            raise ConfigError(f"{path}: regimes.{name}.continues: {parent!r} is not another regime of the file")
+    return out
+
+
+def _point(r: dict) -> dict:
+    """A curves.csv row as the choice's tables hold it: regime, step, mode, the validation figures, reliance."""
+    return {
+        "regime": r["regime"],
+        "step": int(r["step"]),
+        "mode": r["method"],
+        **{k: float(r[k]) for k, _ in VALIDATION_FIGURES},
+        "reliance": float(r["val_reliance_db"] or "nan"),  # none: a method that reads no neighbors
+    }
+
+
+def ahead_label(t: dict) -> str:
+    """A row of :func:`continued`'s table: the figures in which it is ahead of the choice ("none"; "" for the
+    choice's own row), as the site and ``scripts/choose_graf.py`` print it."""
+    return "" if t["point"] == "chosen" else ", ".join(k.removeprefix("val_") for k in t["ahead"]) or "none"
 
 
 def continued(rows: list[dict], regime: str, parent_table: list[dict], chosen: str) -> list[dict]:
@@ -231,24 +255,14 @@ def continued(rows: list[dict], regime: str, parent_table: list[dict], chosen: s
     it is ahead of the chosen row (``ahead``: e.g. ``["val_psnr"]``; empty: behind or level in all three).  The
     rule ranks at the largest step every mode reached, so a continuation reports; it does not choose."""
     ref = next(t for t in parent_table if t["mode"] == chosen)
-    out = [{**{k: ref[k] for k in ("regime", "step", "mode", "reliance")}, **{k: ref[k] for k, _ in VALIDATION_FIGURES},
-            "point": "chosen", "ahead": []}]  # fmt: skip
+    out = [{**{k: v for k, v in ref.items() if k != "mean_rank"}, "point": "chosen", "ahead": []}]
     for mode in dict.fromkeys(r["method"] for r in rows if r["regime"] == regime):
         pts = sorted((r for r in rows if r["regime"] == regime and r["method"] == mode), key=lambda r: int(r["step"]))
         best = max(pts, key=lambda r: float(r["val_psnr"]))
         for label, r in (("best", best), ("last", pts[-1])) if best is not pts[-1] else (("best and last", best),):
-            figs = {k: float(r[k]) for k, _ in VALIDATION_FIGURES}
-            out.append(
-                {
-                    "regime": regime,
-                    "step": int(r["step"]),
-                    "mode": mode,
-                    **figs,
-                    "reliance": float(r["val_reliance_db"] or "nan"),
-                    "point": label,
-                    "ahead": [k for k, higher in VALIDATION_FIGURES if (figs[k] - ref[k]) * (1 if higher else -1) > 0],
-                }
-            )
+            t = _point(r)
+            ahead = [k for k, higher in VALIDATION_FIGURES if (t[k] - ref[k]) * (1 if higher else -1) > 0]
+            out.append({**t, "point": label, "ahead": ahead})
     return out
 
 
@@ -304,15 +318,7 @@ def choose(rows: list[dict], modes: list[str]) -> tuple[str, list[dict]]:
         for m in modes:
             r = by[(reg, m)][step]
             psnr[m].append(float(r["val_psnr"]))
-            table.append(
-                {
-                    "regime": reg,
-                    "step": step,
-                    "mode": m,
-                    **{k: float(r[k]) for k, _ in VALIDATION_FIGURES},
-                    "reliance": float(r["val_reliance_db"] or "nan"),  # none: a method that reads no neighbors
-                }
-            )
+            table.append(_point(r))
     score = {m: sum(ranks[m]) / len(ranks[m]) for m in modes}
     chosen = min(modes, key=lambda m: (score[m], -sum(psnr[m]) / len(psnr[m])))
     for t in table:
