@@ -4,9 +4,10 @@
 
 graf-report would re-read the job folders, but a published folder under ``sweeps/`` keeps the report's rows
 (``rows.json``) and the curves' data (``report.json``), not every job's samples.  This redraws from those: the
-trained-on x test-scene heatmaps (``matrix_*.png``), the metric-against-L, -fraction and -spacing curves
-(``vs_*.png``) and the band matrix (``band_matrix.png``).  Tables, rows, intervals and spectra grids are left as
-they are; a figure whose data the folder does not hold is skipped and named.
+trained-on x test-scene heatmaps (``matrix_*.png``; each cell the mean over its seeds, report.json's matrices
+follow), the metric-against-L, -fraction and -spacing curves (``vs_*.png``) and the band matrix
+(``band_matrix.png``).  Tables, rows, intervals and spectra grids are left as they are; a figure whose data the
+folder does not hold is skipped and named.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import json
 import sys
 from pathlib import Path
 
+from graf.io import atomic_write_json
 from graf.reports.figures import band_figure, curve_figure, matrix_figures
 
 CURVES = {  # report.json key -> (x label, file name prefix)
@@ -33,8 +35,12 @@ def redraw(folder: Path) -> list[str]:
     rows = json.loads((folder / "rows.json").read_text())["rows"]
     summary = json.loads((folder / "report.json").read_text())
     done = []
-    if "matrix" in summary:
-        done += matrix_figures(rows, folder)["figures"]
+    if "matrix" in summary:  # its matrices too: each cell the mean over its seeds (report.json's copy follows)
+        m = matrix_figures(rows, folder)
+        done += m["figures"]
+        if summary["matrix"] != m["matrices"]:
+            atomic_write_json(folder / "report.json", {**summary, "matrix": m["matrices"]})
+            done.append("report.json")
     if "band_matrix" in summary:
         band_figure(rows, folder / "band_matrix.png")
         done.append("band_matrix.png")

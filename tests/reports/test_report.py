@@ -4,6 +4,7 @@ in them (handmade results of known values; tests/studies/test_studies.py runs a 
 from __future__ import annotations
 
 import csv
+import json
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,7 @@ from omegaconf import OmegaConf
 from graf.app.config import CONF_DIR
 from graf.errors import ConfigError
 from graf.io import atomic_write_json
+from graf.reports.published import study_tables
 from graf.reports.rows import short_scenes
 from graf.reports.study import make_report, report
 
@@ -89,12 +91,47 @@ def test_cross_scene_matrix_tables_heatmaps_and_spectra(tmp_path):
     assert len(rows) == 3 + 3 + 3 + 3  # graf x 2 training scenes, nerf2, knn: 3 test scenes each
     g = [r for r in rows if r["method"] == "graf" and r["trained_on"] == "b_v1" and r["eval_scene"] == "a_v2"]
     assert len(g) == 1 and float(g[0]["PSNR"]) == 10.5 and g[0]["n_test"] == "30" and g[0]["steps"] == "300"
+    assert g[0]["seeds"] == "1"
     md = (tmp_path / "out" / "report.md").read_text()
-    assert "| b_v1 | a_v2 | graf | 30 | 300 | 0.0891 | 10.50 | 0.105 | 0.895 |" in md
+    assert "| b_v1 | a_v2 | graf | 30 | 1 | 300 | 0.0891 | 10.50 | 0.105 | 0.895 |" in md
     tex = (tmp_path / "out" / "report.tex").read_text()
     assert (
-        r"b\_v1 & a\_v2 & graf & 30 & 300 & 0.0891 & 10.50 & 0.105 & 0.895 &  \\" in tex
+        r"b\_v1 & a\_v2 & graf & 30 & 1 & 300 & 0.0891 & 10.50 & 0.105 & 0.895 &  \\" in tex
     )  # reliance: not in these rows
+
+
+def test_a_cell_of_two_seeds_shows_their_mean_in_every_table_and_heatmap(tmp_path):
+    """Two seeds' jobs in one cell: the table, the heatmap's matrix, the README's tables and the per-pair table
+    show the mean of the two, never the last job's figure (the old generator wrote each job into its cell in
+    turn, so the second seed's 19.0 stood for the cell)."""
+    for seed, psnr in ((0, 21.0), (1, 19.0)):
+        _result(tmp_path / f"s{seed}", "graf", ["a_v1"], [("a_v1", psnr, GHZ24), ("a_v2", psnr - 4, GHZ24)],
+                knn={"a_v1": 15.0, "a_v2": 14.0})  # fmt: skip
+    _result(
+        tmp_path / "b",
+        "graf",
+        ["b_v1"],
+        [("a_v1", 10.0, GHZ24), ("a_v2", 11.0, GHZ24)],
+        knn={"a_v1": 15.0, "a_v2": 14.0},
+    )  # fmt: skip  (a second training scene: a matrix of two rows)
+    s = make_report(tmp_path, tmp_path / "out", REFERENCE)
+    m = s["matrix"]["graf"]
+    assert m["PSNR"]["values"] == [[20.0, 16.0], [10.0, 11.0]] and m["PSNR"]["seeds"] == [[2, 2], [1, 1]]
+    assert m["SSIM"]["values"][0][0] == pytest.approx(0.20)  # each figure its own mean
+    assert s["matrix"]["knn"]["PSNR"]["values"] == [[15.0, 14.0]]
+    assert "mean over 1-2 seeds a cell" in (tmp_path / "out" / "README.md").read_text()
+    rows = list(csv.DictReader((tmp_path / "out" / "report.csv").open()))
+    g = [r for r in rows if r["method"] == "graf" and r["eval_scene"] == "a_v1" and r["trained_on"] == "a_v1"]
+    assert len(g) == 1 and float(g[0]["PSNR"]) == 20.0 and g[0]["seeds"] == "2"
+    readme = (tmp_path / "out" / "README.md").read_text()
+    assert "| graf | a_v1 | 20.00 | 16.00 |" in readme
+    assert "| graf | a_v1 | 19.00" not in readme and "| graf | a_v1 | 21.00" not in readme
+    for seed, psnr in ((0, 21.0), (1, 19.0)):  # the same in the neighbour count's per-pair table
+        _result(tmp_path / "nc" / f"s{seed}", "graf", ["a_v1"], [("a_v2", psnr, GHZ24)], L=4)
+        _result(tmp_path / "nc" / f"t{seed}", "graf", ["a_v1"], [("a_v2", psnr + 1, GHZ24)], L=8)
+    nc = make_report(tmp_path / "nc", tmp_path / "nc_out", REFERENCE)
+    text = "\n".join(study_tables(nc, json.loads((tmp_path / "nc_out" / "rows.json").read_text())["rows"]))
+    assert "| a_v2 | graf | a_v1 | 20.00 | 21.00 |" in text and "the mean over 2 seeds a cell" in text
 
 
 def test_neighbor_count_curve_averages_the_same_family_pairs(tmp_path):
@@ -145,7 +182,7 @@ def test_finetune_fraction_curves_and_band_matrix(tmp_path):
     s = make_report(tmp_path / "ft", tmp_path / "ft", REFERENCE)
     curve = s["vs_fraction"]["bedroom | trained at 2.412 GHz"]["graf"]
     assert {k: v["PSNR"] for k, v in curve.items()} == {0.0: 5.0, 0.2: 12.0, 1.0: 16.0}
-    assert "| f20 | graf | 30 | 300+100 |" in (tmp_path / "ft" / "report.md").read_text()
+    assert "| f20 | graf | 30 | 1 | 300+100 |" in (tmp_path / "ft" / "report.md").read_text()
 
     bands = tmp_path / "bands"
     for i, (th, name) in enumerate(((MHZ915, "915"), (GHZ24, "24"))):

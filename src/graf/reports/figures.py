@@ -13,39 +13,33 @@ import numpy as np
 from graf.io import atomic_write_json
 from graf.metrics.names import REGISTRY
 from graf.plotting import SPECTRUM_CMAP, SPECTRUM_LABEL, shared_limits
-from graf.reports.rows import METRICS, label_hz, short_scenes
+from graf.reports.rows import METRICS, label_hz, matrices, seed_means, seeds_told, short_scenes
 
 LABELS = {m.label: m for m in REGISTRY.values()}
 EXTENT = (0, 360, 0, 90)  # a spectrum's axes in degrees: azimuth 0-360, elevation 0-90
 
 
 def matrix_figures(rows: list[dict], out: Path) -> dict:
-    """Trained-on x test-scene heatmap per method, one figure per metric; returns the matrices."""
-    trained = [r for r in rows if r["steps"] != "0"]
-    methods = sorted({r["method"] for r in trained}) + sorted({r["method"] for r in rows if r["steps"] == "0"})
-    tr = sorted({r["trained_on"] for r in trained})
-    ev = sorted({r["eval_scene"] for r in rows})
-    mats, written = {}, []
+    """Trained-on x test-scene heatmap per method, one figure per metric, each cell the mean over its seeds
+    (:func:`~graf.reports.rows.matrices`); returns the matrices (also written to ``matrix.json``)."""
+    rows = seed_means(rows)
+    mats, written = matrices(rows), []
+    methods = list(mats)
+    told = seeds_told(r["n_seeds"] for r in rows if r["steps"] != "0")
     for key, name, spec in METRICS:
         # one colour scale for every method of the figure (they are compared), one colour bar
         lo, hi = shared_limits([r.get(key) if r.get(key) is not None else np.nan for r in rows])
+        n_rows = max(len(mats[m][name]["rows"]) for m in methods)
         fig, axes = plt.subplots(
             1,
             len(methods),
-            figsize=(3.2 * len(methods) + 1, 0.6 * len(tr) + 2.2),
+            figsize=(3.2 * len(methods) + 1, 0.6 * n_rows + 2.2),
             squeeze=False,
             constrained_layout=True,
         )
         for ax, m in zip(axes[0], methods):
-            baseline = all(r["steps"] == "0" for r in rows if r["method"] == m)
-            ylabels = ["(no training)"] if baseline else tr
-            M = np.full((len(ylabels), len(ev)), np.nan)
-            for r in rows:
-                if r["method"] != m:
-                    continue
-                i = 0 if baseline else tr.index(r["trained_on"])
-                M[i, ev.index(r["eval_scene"])] = r.get(key) if r.get(key) is not None else np.nan
-            mats.setdefault(m, {})[name] = {"rows": ylabels, "cols": ev, "values": M.tolist()}
+            cell = mats[m][name]
+            M, ev, ylabels = np.array(cell["values"], dtype=float), cell["cols"], cell["rows"]
             im = ax.imshow(
                 M, cmap="viridis" if LABELS[name].higher_is_better else "viridis_r", aspect="auto", vmin=lo, vmax=hi
             )
@@ -58,7 +52,7 @@ def matrix_figures(rows: list[dict], out: Path) -> dict:
         reversed_note = "" if LABELS[name].higher_is_better else "\n(map reversed: yellow is better)"
         unit = LABELS[name].axis_label() + reversed_note
         fig.colorbar(im, ax=axes[0].tolist(), shrink=0.9, label=unit)
-        fig.suptitle(f"test {name}: trained on (rows) x tested on (columns), one colour scale")
+        fig.suptitle(f"test {name}: trained on (rows) x tested on (columns), {told}; one colour scale")
         path = out / f"matrix_{name.lower()}.png"
         fig.savefig(path, dpi=110)
         plt.close(fig)

@@ -12,6 +12,7 @@ import math
 from collections import defaultdict
 
 from graf.errors import UserError
+from graf.reports.rows import matrices, seed_means, seeds_told
 
 METRICS = (
     ("test/mse", "MSE", "{:.4f}"),
@@ -43,7 +44,10 @@ def reliance_matrix(rows: list[dict]) -> str:
     for (method, trained), rs in sorted(_group(rel, ("method", "trained_on")).items()):
         cell = {r["eval_scene"]: r["test/reliance_db"] for r in rs}
         body.append([method, trained, *[fmt(cell.get(c), "{:.2f}") for c in cols]])
-    return "**reliance dB** (rows: trained on; columns: tested on)\n\n" + md(["method", "trained on", *cols], body)
+    told = seeds_told(r.get("n_seeds") or 1 for r in rel)
+    return f"**reliance dB** (rows: trained on; columns: tested on; {told})\n\n" + md(
+        ["method", "trained on", *cols], body
+    )
 
 
 def _group(rows: list[dict], keys: tuple[str, ...]) -> dict:
@@ -62,20 +66,27 @@ def per_pair(rows: list[dict]) -> str:
         by_l = {int(r["L"]): r.get("test/psnr") for r in g}
         body.append([scene, method, trained, *[fmt(by_l.get(x), "{:.2f}") for x in ls]])
     header = ["tested on", "method", "trained on", *[f"L = {x}" for x in ls]]
-    return "**PSNR per pair** (zero-shot, each test layout)\n\n" + md(header, body)
+    told = seeds_told(r.get("n_seeds") or 1 for r in rs if r["steps"] != "0")
+    return f"**PSNR per pair** (zero-shot, each test layout; {told})\n\n" + md(header, body)
 
 
 def matrix(report: dict, rows: list[dict] | None = None) -> str:
+    """The trained-on x tested-on tables of each metric, each cell the mean over its seeds: from ``rows`` (a
+    record's rows.json) where given, else from report.json's ``matrix``."""
+    mats = matrices(rows) if rows else report["matrix"]
+    told = seeds_told(r["n_seeds"] for r in seed_means(rows) if r["steps"] != "0") if rows else "from report.json"
     out = []
     for _, name, f in METRICS:
         cols = None
         body = []
-        for method, mats in report["matrix"].items():
-            m = mats[name]
+        for method, mats_m in mats.items():
+            m = mats_m[name]
             cols = m["cols"]
             for r, vals in zip(m["rows"], m["values"]):
-                body.append([method, r, *[fmt(v, f) for v in vals]])
-        out.append(f"**{name}** (rows: trained on; columns: tested on)\n\n" + md(["method", "trained on", *cols], body))
+                body.append([method, r, *[fmt(None if v != v else v, f) for v in vals]])
+        out.append(
+            f"**{name}** (rows: trained on; columns: tested on; {told})\n\n" + md(["method", "trained on", *cols], body)
+        )
     if rows and reliance_matrix(rows):
         out.append(reliance_matrix(rows))
     return "\n\n".join(out)
@@ -103,6 +114,7 @@ def vs_l(report: dict, rows: list[dict]) -> str:
 def unseen(rows: list[dict]) -> str:
     out = []
     keys = sorted({(r["eval_scene"], r["train_band"]) for r in rows if r["steps"] != "0"})
+    told = seeds_told(r.get("n_seeds") or 1 for r in rows if r["steps"] != "0")
     for scene, band in keys:
         sub = [r for r in rows if r["eval_scene"] == scene and r["train_band"] in (band, "-")]
         for ft, title in (("none", "zero-shot"), ("f20", "fine-tuned on 20%")):
@@ -113,7 +125,7 @@ def unseen(rows: list[dict]) -> str:
             ]
             out.append(
                 f"**{scene}**, models trained at {band}, {title} (test neighbors: "
-                f"{'the whole training split' if ft == 'none' else 'the measured 20%'})\n\n"
+                f"{'the whole training split' if ft == 'none' else 'the measured 20%'}; {told})\n\n"
                 + md(["method", "test spectra", "steps", *[n for _, n, _ in METRICS]], body)
             )
         by = defaultdict(dict)
@@ -122,7 +134,7 @@ def unseen(rows: list[dict]) -> str:
                 by[r["method"]]["none" if r["finetune"] == "zero-shot" else r["finetune"]] = r.get("test/psnr")
         fr = [x for x in FRACTIONS[1:] if any(x in v for v in by.values())]
         out.append(
-            f"PSNR vs fine-tuned fraction, **{scene}** (models trained at {band})\n\n"
+            f"PSNR vs fine-tuned fraction, **{scene}** (models trained at {band}; {told})\n\n"
             + md(
                 ["method", *["zero-shot" if x == "none" else x for x in fr]],
                 [[m, *[fmt(v.get(x), "{:.2f}") for x in fr]] for m, v in sorted(by.items())],
@@ -136,6 +148,7 @@ def density(report: dict, rows: list[dict]) -> str:
     split measured, trained from scratch on it; its spacing: the median nearest-neighbor distance of the
     measured positions), and the largest spacing at which each method reaches X dB (report.json)."""
     out = []
+    told = seeds_told(r.get("n_seeds") or 1 for r in rows if r["steps"] != "0")
     for scene in sorted({r["eval_scene"] for r in rows}):
         sub = [r for r in rows if r["eval_scene"] == scene]
         fr = [x for x in FRACTIONS if any(r["finetune"] == x for r in sub)]
@@ -159,7 +172,8 @@ def density(report: dict, rows: list[dict]) -> str:
                     row.append(v)
                 body.append(row)
             out.append(
-                f"**{scene}**: test {name} against the survey (fraction measured, its spacing)\n\n" + md(head, body)
+                f"**{scene}**: test {name} against the survey (fraction measured, its spacing; {told})\n\n"
+                + md(head, body)
             )
         answer = (report.get("spacing_for_psnr") or {}).get(scene) or {}
         if answer:
@@ -185,6 +199,7 @@ def bands(report: dict) -> str:
 def study_tables(report: dict, rows: list[dict]) -> list[str]:
     """Every table a study's record holds, by the keys of its ``report.json``: a train x test matrix, figures
     against L (and per pair), against the survey's density or the fine-tuned fraction, a band matrix."""
+    rows = seed_means(rows)  # a cell's figure is the mean over its seeds, never one seed's run
     parts = []
     if "matrix" in report:
         parts.append(matrix(report, rows))

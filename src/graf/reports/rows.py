@@ -135,6 +135,75 @@ def collect_rows(runs: Path) -> tuple[list[dict], list[Path]]:
     return rows, files
 
 
+FIGURES = tuple(k for k, _, _ in (*METRICS, RELIANCE))  # a row's figures: averaged over a cell's seeds
+
+
+def seed_means(rows: list[dict]) -> list[dict]:
+    """One row per cell (every setting of a row but its job): each figure the mean over the cell's jobs, which are
+    its training seeds (None where no job has it), and ``n_seeds`` their number; the first job names the cell.
+    A table or heatmap of a study shows these, never the last seed's row in its place.  Rows that are already
+    means (with ``n_seeds``) keep their counts."""
+    groups: dict[str, list[dict]] = {}
+    for r in rows:
+        key = json.dumps({k: v for k, v in r.items() if k not in ("job", "n_seeds", *FIGURES)}, sort_keys=True,
+                         default=str)  # fmt: skip
+        groups.setdefault(key, []).append(r)
+    out = []
+    for rs in groups.values():
+        n = sum(int(r.get("n_seeds") or 1) for r in rs)
+        figures = {
+            k: mean(v for r in rs for v in [r.get(k)] * int(r.get("n_seeds") or 1)) for k in FIGURES
+        }  # a mean of means weighted by their seeds
+        out.append({**rs[0], **figures, "n_seeds": n})
+    return out
+
+
+def seeds_told(counts) -> str:
+    """What a table's or figure's cells are, from their rows' ``n_seeds``: "one seed's run a cell", "the mean over
+    3 seeds a cell" or "the mean over 1-3 seeds a cell"."""
+    n = sorted({int(c) for c in counts}) or [1]
+    if n == [1]:
+        return "one seed's run a cell"
+    return f"the mean over {n[0] if len(n) == 1 else f'{n[0]}-{n[-1]}'} seeds a cell"
+
+
+def matrices(rows: list[dict]) -> dict:
+    """``{method: {metric label: {"rows": trained on, "cols": tested on, "values", "seeds"}}}``: the trained-on x
+    test-scene matrix of each method (a baseline's one row: "(no training)"), each cell the mean over the cell's
+    seeds (:func:`seed_means`) and ``seeds`` their number (0: no job).  Two cells at one place (an axis the
+    matrix does not show varies) stop with a :class:`~graf.errors.ConfigError` rather than one hiding the other."""
+    rows = seed_means(rows)
+    trained = [r for r in rows if r["steps"] != "0"]
+    methods = sorted({r["method"] for r in trained}) + sorted({r["method"] for r in rows if r["steps"] == "0"})
+    tr = sorted({r["trained_on"] for r in trained})
+    ev = sorted({r["eval_scene"] for r in rows})
+    out: dict = {}
+    for m in methods:
+        baseline = all(r["steps"] == "0" for r in rows if r["method"] == m)
+        ylabels = ["(no training)"] if baseline else tr
+        values = np.full((len(ylabels), len(ev)), np.nan)
+        seeds = np.zeros((len(ylabels), len(ev)), dtype=int)
+        cells = {}
+        for r in rows:
+            if r["method"] != m:
+                continue
+            i, j = 0 if baseline else tr.index(r["trained_on"]), ev.index(r["eval_scene"])
+            if seeds[i, j]:
+                raise ConfigError(
+                    f"the matrix of {m} has two cells at {ylabels[i]} -> {ev[j]} (a setting the matrix does not "
+                    f"show varies: jobs {cells[i, j]} and {r.get('job')})"
+                )
+            seeds[i, j], cells[i, j] = r["n_seeds"], r.get("job")
+        for key, name, _ in METRICS:
+            v = values.copy()
+            for r in rows:
+                if r["method"] == m:
+                    i, j = 0 if baseline else tr.index(r["trained_on"]), ev.index(r["eval_scene"])
+                    v[i, j] = r.get(key) if r.get(key) is not None else np.nan
+            out.setdefault(m, {})[name] = {"rows": ylabels, "cols": ev, "values": v.tolist(), "seeds": seeds.tolist()}
+    return out
+
+
 def varying_axes(rows: list[dict]) -> list[str]:
     """The settings of :data:`AXES` that take more than one value in the study (baselines' "-" aside)."""
     return [a for a in AXES if len({str(r.get(a)) for r in rows if r["steps"] != "0" or a not in UNTRAINED}) > 1]
@@ -148,12 +217,15 @@ def _sort_key(v):
 
 
 def table(rows: list[dict], axes: list[str]) -> tuple[list[str], list[list]]:
-    """Method x metric rows, sorted by the study's varying axes (the paper's tables: one block per setting)."""
-    header = [*axes, "method", "n_test", "steps", *[n for _, n, _ in (*METRICS, RELIANCE)]]
-    order = sorted(rows, key=lambda r: ([_sort_key(r.get(a)) for a in axes], r["method"] == "knn", r["method"]))
+    """Method x metric rows, sorted by the study's varying axes (the paper's tables: one block per setting): one
+    row per cell, its figures the mean over the cell's seeds (:func:`seed_means`), their number in ``seeds``."""
+    header = [*axes, "method", "n_test", "seeds", "steps", *[n for _, n, _ in (*METRICS, RELIANCE)]]
+    order = sorted(
+        seed_means(rows), key=lambda r: ([_sort_key(r.get(a)) for a in axes], r["method"] == "knn", r["method"])
+    )
     return header, [
         [r.get(a) for a in axes]
-        + [r["method"], r.get("n_test"), r["steps"]]
+        + [r["method"], r.get("n_test"), r["n_seeds"], r["steps"]]
         + [r.get(k) for k, _, _ in (*METRICS, RELIANCE)]
         for r in order
     ]
