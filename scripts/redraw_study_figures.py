@@ -6,8 +6,9 @@ graf-report would re-read the job folders, but a published folder under ``sweeps
 (``rows.json``) and the curves' data (``report.json``), not every job's samples.  This redraws from those: the
 trained-on x test-scene heatmaps (``matrix_*.png``; each cell the mean over its seeds, report.json's matrices
 follow), the metric-against-L, -fraction and -spacing curves (``vs_*.png``) and the band matrix
-(``band_matrix.png``).  Tables, rows, intervals and spectra grids are left as they are; a figure whose data the
-folder does not hold is skipped and named.
+(``band_matrix.png``), and the method x metric tables (``report.md``, ``.csv``, ``.tex``: a row per cell, the
+mean over its seeds).  Rows, intervals and spectra grids are left as they are; a figure whose data the folder does
+not hold is skipped and named.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from pathlib import Path
 
 from graf.io import atomic_write_json
 from graf.reports.figures import band_figure, curve_figure, matrix_figures
+from graf.reports.study import write_tables
 
 CURVES = {  # report.json key -> (x label, file name prefix)
     "vs_L": ("neighbors L at test", "vs_L"),
@@ -34,7 +36,8 @@ def numeric(data: dict) -> dict:
 def redraw(folder: Path) -> list[str]:
     rows = json.loads((folder / "rows.json").read_text())["rows"]
     summary = json.loads((folder / "report.json").read_text())
-    done = []
+    write_tables(rows, summary["axes"], folder)
+    done = ["report.md", "report.csv", "report.tex"]
     if "matrix" in summary:  # its matrices too: each cell the mean over its seeds (report.json's copy follows)
         m = matrix_figures(rows, folder)
         done += m["figures"]

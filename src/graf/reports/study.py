@@ -83,7 +83,7 @@ def to_latex(header, body) -> str:
     return "\n".join(lines + [r"\bottomrule", r"\end{tabular}"]) + "\n"
 
 
-def _write_tables(rows: list[dict], axes: list[str], out: Path) -> None:
+def write_tables(rows: list[dict], axes: list[str], out: Path) -> None:
     """report.md, report.csv and report.tex (method x metric), and rows.csv (every row)."""
     header, body = table(rows, axes)
     atomic_write_bytes(out / "report.md", to_markdown(header, body).encode())
@@ -132,7 +132,7 @@ def make_report(runs: Path, out: Path, reference: dict, compare_with: list[Path]
     rows, files = collect_rows(runs)
     out.mkdir(parents=True, exist_ok=True)
     axes = varying_axes(rows)
-    _write_tables(rows, axes, out)
+    write_tables(rows, axes, out)
     summary = {"runs": str(runs), "n_results": len(files), "n_rows": len(rows), "axes": axes, "figures": []}
     if "L" in axes:
         data = curve(rows, "L", same_family=True)
