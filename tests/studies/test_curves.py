@@ -241,3 +241,62 @@ def test_a_regime_may_have_its_own_evaluation_points():
     own = OmegaConf.create({"max_steps": 10000, "steps": [1000, 3000]})
     assert points(cfg, own, until=False) == [1000, 3000, 10000]  # the budget is always a point
     assert points(cfg, own) == [1000]
+
+
+def test_a_regime_of_own_runs_trains_each_point_from_scratch_over_its_own_steps(tmp_path, monkeypatch):
+    """``each_point: own_run`` (issue 68): every point is a run of its own, its schedule over its own steps (the
+    recipe a study with that budget runs), nothing resumed from the point before; its seconds are its own, and a
+    missing or failed point hides no later one."""
+    from omegaconf import OmegaConf
+
+    from graf.studies import curves as C
+
+    cfg = OmegaConf.create(
+        {
+            "steps": [10, 30],
+            "checkpoint_every": 500,
+            "regimes": {"r": {"max_steps": 100, "each_point": "own_run", "overrides": []}},
+            "methods": {"m": {"overrides": [], "schedule": "model.decay_steps"}},
+        }
+    )
+    cmds = []
+
+    def fake_point(cmd, folder, env, cfg_, out, failed):
+        cmds.append(cmd)
+        step = int(next(a for a in cmd if a.startswith("trainer.max_steps=")).split("=")[1])
+        if step == 30:
+            return False, "boom"  # a failed point: the next one still runs
+        folder.mkdir(parents=True, exist_ok=True)
+        metrics = {"val/psnr": float(step), "val/ssim": 0.5, "val/lpips": 0.3}
+        record = {"global_step": step, "timing": {"fit_s": float(step)}, "metrics": metrics}
+        (folder / "results.json").write_text(json.dumps(record))
+        return True, ""
+
+    monkeypatch.setattr(C, "_run_point", fake_point)
+    failed = C._run_curve(cfg, tmp_path, {}, "r", "m", [], [])
+    schedules = [next(a for a in c if a.startswith("model.decay_steps=")) for c in cmds]
+    assert schedules == ["model.decay_steps=10", "model.decay_steps=30", "model.decay_steps=100"]
+    assert not any(a.startswith("ckpt_path=") for c in cmds for a in c)  # nothing resumed
+    assert [f["step"] for f in failed] == [30]
+    rows, _ = C.collect(tmp_path, cfg)
+    assert [(r["step"], r["fit_s"]) for r in rows] == [(10, 10.0), (100, 100.0)]  # its own seconds, not a sum
+    cfg.regimes.r.each_point = "resume"  # the trajectory's table stops at its first missing point
+    assert [r["step"] for r in C.collect(tmp_path, cfg)[0]] == [10]
+    cfg.regimes.r.each_point = "own-run"
+    with pytest.raises(C.ConfigError, match="regimes.r.each_point: 'own-run' is not one of resume, own_run"):
+        C.collect(tmp_path, cfg)
+
+
+def test_the_studies_and_the_main_job_have_curves_of_their_own_recipe():
+    """The regimes the studies' budgets and the main job's choice are read from train each point as the study or the
+    main job does (issue 68): own runs, the same experiment, batch and validation carve-out as the matrix's jobs."""
+    from omegaconf import OmegaConf
+
+    from graf.app.config import CONF_DIR
+
+    c = OmegaConf.load(CONF_DIR / "curves.yaml")
+    m, main = c.regimes.matrix_recipe_val, c.regimes.main_job
+    assert m.each_point == main.each_point == "own_run"
+    assert {"data.batch_size=4", "data.val_fraction=0.1", "scene=[conference_v1]"} <= set(m.overrides)
+    assert "model.use_scene_index=true" in c.methods.ray_weights.regimes.matrix_recipe_val
+    assert list(main.overrides) == ["experiment=graf_rfid_s23"] and max(main.steps) == main.max_steps

@@ -2,19 +2,21 @@
 
     graf-curves out=sweeps/learning_curves [until=1000] ['only_regimes=[rfid_sparse]'] ['only_methods=[ray]']
 
-For each regime and method, one training trajectory: a ``graf-train`` run per evaluation step of ``steps`` (up to
-the regime's ``max_steps``), into ``<out>/<regime>/<method>/step_<N>/``, each resuming the previous step's
-``checkpoints/last.ckpt`` with a longer ``trainer.max_steps`` (once the next point is done, a point's checkpoint is
-removed unless ``keep_checkpoints=true``: a curve keeps its newest, which a later run resumes; the schedule's length
-is the regime's budget at every point, so the points lie on one run).  Every run validates (``test=false``: the
-curves choose nothing on test data) and measures validation reliance.  KNN, which trains nothing, is validated once
-per regime into ``<out>/<regime>/knn/``.  A point whose results.json exists is skipped, so the command resumes where
-it stopped, and ``until`` runs the curve only so far; a failed run is recorded in ``failed.json`` and ends that
-method's curve (later points need its checkpoint) while the others go on.  A SIGTERM stops the run in progress with
-its state saved (graf-train's ``preempted.json``) and the command with exit code 143; the next invocation resumes
-that point from its own checkpoint (the stopped attempt's training seconds still count in ``fit_s``).  Each run also
-saves its checkpoint every ``checkpoint_every`` steps, so a run killed outright (SIGKILL, a lost machine) resumes
-from its newest one, and the seconds its saved steps cost (written in the checkpoint by
+For each regime and method, one training trajectory (``each_point: resume``, the default): a ``graf-train`` run per
+evaluation step of ``steps`` (up to the regime's ``max_steps``), into ``<out>/<regime>/<method>/step_<N>/``, each
+resuming the previous step's ``checkpoints/last.ckpt`` with a longer ``trainer.max_steps`` (once the next point is
+done, a point's checkpoint is removed unless ``keep_checkpoints=true``: a curve keeps its newest, which a later run
+resumes; the schedule's length is the regime's budget at every point, so the points lie on one run). A regime with
+``each_point: own_run`` trains each point from scratch instead, its schedule over the point's own steps: the recipe a
+study with that budget runs, so a budget chosen on such a curve is the one that was validated. Every run validates
+(``test=false``: the curves choose nothing on test data) and measures validation reliance. KNN, which trains nothing,
+is validated once per regime into ``<out>/<regime>/knn/``. A point whose results.json exists is skipped, so the
+command resumes where it stopped, and ``until`` runs the curve only so far; a failed run is recorded in
+``failed.json`` and ends that method's curve (later points need its checkpoint) while the others go on. A SIGTERM
+stops the run in progress with its state saved (graf-train's ``preempted.json``) and the command with exit code 143;
+the next invocation resumes that point from its own checkpoint (the stopped attempt's training seconds still count in
+``fit_s``). Each run also saves its checkpoint every ``checkpoint_every`` steps, so a run killed outright (SIGKILL, a
+lost machine) resumes from its newest one, and the seconds its saved steps cost (written in the checkpoint by
 ``graf.callbacks.AttemptClock``) count too; the steps after it are trained again.
 
 After every run: ``curves.csv``, ``curves.md``, ``results.json`` (``rows``: regime, method, step, val_psnr,
@@ -91,12 +93,17 @@ def collect(out: Path, cfg: DictConfig) -> tuple[list[dict], dict]:
         f = out / rname / "knn" / "results.json"
         if f.exists():
             knn[rname] = val_figures(json.loads(f.read_text()))
+        own = own_runs(regime, rname)
         for mname in cfg.methods:
             fit_s = 0.0
             for step in points(cfg, regime, until=False):
                 f = out / rname / mname / f"step_{step}" / "results.json"
                 if not f.exists():
+                    if own:  # runs of their own: a later point does not need this one
+                        continue
                     break
+                if own:  # a point's seconds are its own run's, not the curve's so far
+                    fit_s = 0.0
                 r = json.loads(f.read_text())
                 t = r.get("timing") or {}
                 # an attempt whose seconds are unknown (killed with a checkpoint older than AttemptClock) makes the
@@ -120,6 +127,19 @@ def collect(out: Path, cfg: DictConfig) -> tuple[list[dict], dict]:
                     }
                 )
     return rows, knn
+
+
+EACH_POINT = ("resume", "own_run")  # a regime's each_point: how its points are trained (conf/curves.yaml)
+
+
+def own_runs(regime: DictConfig, rname: str) -> bool:
+    """Whether the regime's points are runs of their own (``each_point: own_run``: each trains from scratch with a
+    schedule over its own steps, the recipe a study of that budget runs) rather than one trajectory resumed from
+    point to point with the schedule over the regime's budget (``resume``, the default)."""
+    mode = str(regime.get("each_point") or "resume")
+    if mode not in EACH_POINT:
+        raise ConfigError(f"curves.yaml: regimes.{rname}.each_point: {mode!r} is not one of {', '.join(EACH_POINT)}")
+    return mode == "own_run"
 
 
 def preempted_runs(folder: Path) -> list[dict]:
@@ -335,18 +355,19 @@ def _run_curve(cfg: DictConfig, out: Path, env: dict, rname: str, mname: str, ba
     outputs rewritten after each; the failures, updated (a failed point ends the curve)."""
     regime, method = cfg.regimes[rname], cfg.methods[mname]
     extra = list((method.get("regimes") or {}).get(rname) or [])
+    own = own_runs(regime, rname)
     prev = None
     for step in points(cfg, regime):
         folder = out / rname / mname / f"step_{step}"
         if (folder / "results.json").exists():
-            prev = folder
+            prev = None if own else folder
             continue
         cmd = [
             *TRAIN,
             *base,
             *method.overrides,
             *extra,
-            f"{method.schedule}={int(regime.max_steps)}",
+            f"{method.schedule}={step if own else int(regime.max_steps)}",
             f"trainer.max_steps={step}",
             f"callbacks.model_checkpoint.every_n_train_steps={min(step, int(cfg.checkpoint_every))}",
             f"hydra.run.dir={folder}",
@@ -360,15 +381,20 @@ def _run_curve(cfg: DictConfig, out: Path, env: dict, rname: str, mname: str, ba
         ok, tail = _run_point(cmd, folder, env, cfg, out, failed)
         if not ok:
             failed.append({"regime": rname, "method": mname, "step": step, "log": tail})
-            log.error("%s / %s step %d failed (the curve stops here):\n%s", rname, mname, step, tail)
             atomic_write_json(out / "failed.json", failed)
+            if own:  # the other points are runs of their own: they go on
+                log.error("%s / %s step %d failed:\n%s", rname, mname, step, tail)
+                continue
+            log.error("%s / %s step %d failed (the curve stops here):\n%s", rname, mname, step, tail)
             break
         if not cfg.get("keep_checkpoints"):  # the curve resumes from its newest last.ckpt only
             _remove_checkpoints(folder, prev)
+            if own:  # nothing resumes from a run of its own once it is done
+                shutil.rmtree(folder / "checkpoints", ignore_errors=True)
         # a point that now succeeded is no longer a failure (an earlier attempt's record goes)
         failed = [f for f in failed if (f["regime"], f["method"], f["step"]) != (rname, mname, step)]
         atomic_write_json(out / "failed.json", failed)
-        prev = folder
+        prev = None if own else folder
         rows, knn = collect(out, cfg)
         write_outputs(out, rows, knn, failed)
     return failed
