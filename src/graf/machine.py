@@ -14,16 +14,13 @@ MIN_LOAD_WINDOW_S = 0.25  # /proc counts CPU time in ticks of 10 ms: a shorter w
 
 
 def cpu_seconds() -> tuple[float, float] | None:
-    """``(busy CPU seconds of the whole machine, CPU seconds of this process)`` since boot / start; None where
-    neither /proc nor psutil answers."""
+    """``(busy CPU seconds of the whole machine, CPU seconds of this process and its descendants)`` since boot /
+    start; None where neither /proc nor psutil answers."""
     try:
         with open("/proc/stat") as f:
             fields = [int(x) for x in f.readline().split()[1:]]
         busy = fields[0] + fields[1] + fields[2] + sum(fields[5:8])  # user nice system (idle iowait) irq softirq steal
-        with open("/proc/self/stat") as f:
-            stat = f.read().rsplit(")", 1)[1].split()
-        own = int(stat[11]) + int(stat[12])  # utime stime (fields 14, 15)
-        return busy / _TICK, own / _TICK
+        return busy / _TICK, own_ticks(os.getpid()) / _TICK
     except (OSError, ValueError, IndexError):
         try:
             import psutil  # where there is no /proc
@@ -33,6 +30,36 @@ def cpu_seconds() -> tuple[float, float] | None:
             return t.user + t.system + getattr(t, "nice", 0.0), p.user + p.system
         except Exception:
             return None
+
+
+def _stat(pid: int) -> list[str]:
+    with open(f"/proc/{pid}/stat") as f:
+        return f.read().rsplit(")", 1)[1].split()
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    try:
+        for tid in os.listdir(f"/proc/{pid}/task"):
+            with open(f"/proc/{pid}/task/{tid}/children") as f:
+                out += [int(c) for c in f.read().split()]
+    except OSError:  # gone, or a kernel without the children files: its children are not told apart
+        pass
+    return out
+
+
+def own_ticks(pid: int) -> int:
+    """CPU ticks of process ``pid`` and of its descendants, live (``/proc/<pid>/task/*/children``) and finished
+    (``cutime``, ``cstime``): a compile it runs (GRaF's kernels are built at first use) or its data-loading workers
+    are its own work, not another process's load."""
+    stat = _stat(pid)
+    total = sum(int(x) for x in stat[11:15])  # utime stime cutime cstime (fields 14-17)
+    for child in _children(pid):
+        try:
+            total += own_ticks(child)
+        except (OSError, ValueError, IndexError):  # a child that ended between the listing and the read
+            pass
+    return total
 
 
 def other_cores(since: tuple[float, tuple[float, float]], now: tuple[float, tuple[float, float]]) -> float | None:
@@ -51,8 +78,9 @@ def reading() -> tuple[float, tuple[float, float] | None]:
 
 class LoadMonitor:
     """The other processes' load, kept fresh by a daemon thread that reads :func:`cpu_seconds` every
-    ``interval`` seconds (two small files: nothing measurable); :meth:`other` is their cores over the last two
-    intervals, None until then.  One per process (:func:`monitor`), started at first use."""
+    ``interval`` seconds (two small files and this process's children: nothing measurable); :meth:`other` is their
+    cores, measured from CPU time (never guessed from the load average), None until two windows are read.  One per
+    process (:func:`monitor`), started at first use."""
 
     def __init__(self, interval: float = 0.25):
         self.interval = float(interval)
@@ -62,12 +90,25 @@ class LoadMonitor:
 
     def _run(self) -> None:
         while True:
-            self.readings = (self.readings + [reading()])[-3:]
+            self.readings = (self.readings + [reading()])[-5:]
             time.sleep(self.interval)
 
     def other(self) -> float | None:
+        """The other processes' cores in the *quieter* of the last two windows of two intervals each (0.5 s): a
+        load that has just ended (a burst of CPU work, an install's compile) reads as quiet at once, and only a
+        load that lasted both windows lowers anything.  None until the first window is read."""
         r = self.readings
-        return other_cores(r[0], r[-1]) if len(r) >= 3 else None
+        if len(r) < 3:
+            return None
+        loads = [
+            x for x in (other_cores(r[-3], r[-1]), other_cores(r[0], r[2]) if len(r) == 5 else None) if x is not None
+        ]
+        return min(loads) if loads else None
+
+    def window_s(self) -> float:
+        """The seconds :meth:`other` looked back over."""
+        r = self.readings
+        return r[-1][0] - r[0][0] if len(r) >= 2 else 0.0
 
 
 _monitor: list = []

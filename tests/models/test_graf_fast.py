@@ -256,7 +256,53 @@ def test_serial_phases_take_the_cores_other_processes_leave(monkeypatch):
         def other(self):
             return self.cores
 
+        def window_s(self):
+            return 1.0
+
     monkeypatch.setattr(inference, "available_cores", lambda: 2)
     for other, threads, expect in ((None, 2, 2), (0.4, 2, 2), (1.0, 2, 1), (1.9, 2, 1), (0.0, 1, 1), (3.5, 2, 1)):
         monkeypatch.setattr(inference, "monitor", lambda o=other: Load(o))
         assert inference.serial_threads(threads) == expect
+
+
+def test_load_is_measured_from_cpu_time_and_a_burst_that_ended_reads_as_quiet():
+    """Other processes' load (issue 68): CPU time over two half-second windows, the quieter one counting, so a
+    burst of CPU work that has just ended (an install's compile) lowers nothing; a load lasting both does."""
+    from graf.machine import LoadMonitor
+
+    m = LoadMonitor.__new__(LoadMonitor)  # no thread: readings set by hand, (wall s, (machine busy s, own busy s))
+    burst_then_quiet = [(0.0, (0.0, 0.0)), (0.25, (0.5, 0.0)), (0.5, (1.0, 0.0)), (0.75, (1.0, 0.0)), (1.0, (1.0, 0))]
+    m.readings = burst_then_quiet  # 2 cores busy in the first window, none in the last
+    assert m.other() == 0.0 and m.window_s() == 1.0
+    m.readings = [(0.25 * i, (0.5 * i, 0.0)) for i in range(5)]  # 2 cores busy all along: a real load
+    assert m.other() == 2.0
+    m.readings = [(0.25 * i, (0.5 * i, 0.5 * i)) for i in range(5)]  # all of it this process's own work
+    assert m.other() == 0.0
+    m.readings = m.readings[:2]
+    assert m.other() is None  # no window read yet: the threads set stay
+
+
+def test_a_processs_children_count_as_its_own_work_not_as_other_load():
+    """A compile GRaF runs at first use, or a data-loading worker, is this process's work: its CPU time is counted
+    as its own (graf.machine.own_ticks), whether the child still runs or has been waited for."""
+    import os
+    import subprocess
+    import sys
+
+    from graf.machine import own_ticks
+
+    burn = "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.6: pass\n"
+    before = own_ticks(os.getpid())
+    subprocess.run([sys.executable, "-c", burn], check=True)  # waited for: its time is in cutime
+    waited = own_ticks(os.getpid())
+    assert waited - before >= 0.5 * os.sysconf("SC_CLK_TCK")
+    child = subprocess.Popen([sys.executable, "-c", burn + "time.sleep(5)\n"])  # still running: read through /proc
+    try:
+        time.sleep(0.3)
+        deadline = time.monotonic() + 10
+        while own_ticks(os.getpid()) - waited < 0.5 * os.sysconf("SC_CLK_TCK") and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert own_ticks(os.getpid()) - waited >= 0.5 * os.sysconf("SC_CLK_TCK")
+    finally:
+        child.kill()
+        child.wait()

@@ -140,19 +140,24 @@ def fused_ray_pass(model: nn.Module, x: torch.Tensor, tokens: torch.Tensor, key_
 
 def serial_threads(threads: int | None = None) -> int:
     """torch threads for a spectrum's serial phases: ``threads`` (default ``torch.get_num_threads()``) less the
-    cores other processes are using (rounded), at least 1; ``threads`` while they use less than
+    cores other processes are using (measured from CPU time: :meth:`graf.machine.LoadMonitor.other`; rounded), at
+    least 1; ``threads`` while they use less than
     :data:`BUSY_CORES` (a different thread count can change a result's last bits: a quiet machine keeps one)."""
     threads = torch.get_num_threads() if threads is None else int(threads)
-    other = monitor().other()
+    m = monitor()
+    other = m.other()
     if other is None or other < BUSY_CORES:  # a quiet machine: the threads set (the same rounding every call)
         return threads
     fewer = max(1, min(threads, round(available_cores() - other)))
     if fewer < threads and not _told:
         _told.append(True)
         log.info(
-            "other processes are using %.1f of %d cores: GRaF's encoder runs on %d of the %d threads set (once told)",
+            "measured: other processes used %.2f of %d cores in each of the last two half-second windows (%.1f s of "
+            "CPU time read from /proc; this process and its children left out): GRaF's encoder runs on %d of the %d "
+            "threads set (once told)",
             other,
             available_cores(),
+            m.window_s(),
             fewer,
             threads,
         )
