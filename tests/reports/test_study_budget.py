@@ -142,3 +142,21 @@ def test_a_finished_job_of_another_length_is_kept_with_a_warning(tmp_path, caplo
         ft = OmegaConf.create({"trainer": {"max_steps": 3000}, "finetune": {"init_from": "base.ckpt"}})
         warn_other_length(ft, tmp_path, {"training": {"max_steps": 50}})  # fine-tuning sets its steps later
     assert caplog.text == ""
+
+
+def test_every_study_budget_is_the_step_its_curve_s_rule_gives():
+    """Each budget of ``study_size=paper`` names its curve (``study_budget_curves``), and is the step the studies' rule
+    reads off it (the smallest step within BUDGET_WITHIN_DB of the curve's best validation PSNR) in the published
+    curves: a budget typed into the config that its curve does not give fails here."""
+    from graf.reports.published import BUDGET_WITHIN_DB
+
+    paper = OmegaConf.load(CONF_DIR / "study_size" / "paper.yaml")
+    rows = list(csv.DictReader(CURVES.open()))
+    assert set(paper.study_budgets) == set(paper.study_budget_curves)  # no budget without its curve
+    for model, budget in paper.study_budgets.items():
+        where = paper.study_budget_curves[model]
+        step = best_step(rows, where.curve, where.regime, BUDGET_WITHIN_DB)
+        assert step is not None, f"{model}: no curve {where.curve} in regime {where.regime} of {CURVES}"
+        assert budget == step, (
+            f"study_budgets.{model} = {budget}, but its curve ({where.regime}, {where.curve}) gives {step}"
+        )

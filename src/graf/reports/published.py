@@ -21,6 +21,7 @@ METRICS = (
     ("test/ssim", "SSIM", "{:.3f}"),
 )
 FRACTIONS = ("-", "none", "f05", "f10", "f20", "f50", "f100")
+BUDGET_WITHIN_DB = 0.1  # the studies' budget rule: the smallest step within this of a curve's best validation PSNR
 VALIDATION_FIGURES = (("val_psnr", True), ("val_ssim", True), ("val_lpips", False))  # (key, higher is better)
 
 
