@@ -15,8 +15,10 @@ import sys
 
 import pytest
 
+from graf.app.config import check_bool, check_int
 from graf.cli import evaluate as graf_eval
 from graf.cli import train as graf_train
+from graf.errors import ConfigError
 from graf.models.base import SpectrumModule
 from graf.models.graf import GRaFModule
 from graf.models.knn_dl import KNNDLModule
@@ -77,6 +79,10 @@ def test_graf_bench_refuses_such_a_seed_before_it_runs(monkeypatch, capsys, tmp_
         (("model=graf_cpu", "model.lr=-1"), "model.lr=-1: must be a finite number > 0 (a learning rate)"),
         (("model=graf_cpu", "model.lr_decay=0"), "model.lr_decay=0: must be in (0, 1]"),
         (("model=nerf2_cpu", "model.lr=nan"), "model.lr=nan: must be a finite number > 0 (a learning rate)"),
+        # train_pieces ran as int(2.5) = 2 and -1 as torch's threads; fast_training=maybe as true
+        (("model=graf_cpu", "model.train_pieces=2.5"), "model.train_pieces=2.5: must be a whole number >= 1 or null"),
+        (("model=graf_cpu", "model.train_pieces=-1"), "model.train_pieces=-1: must be a whole number >= 1 or null"),
+        (("model=graf_cpu", "model.fast_training=maybe"), "model.fast_training=maybe: must be true or false"),
         (("neighbors.L=2.5",), "neighbors.L=2.5: must be an integer"),  # it ran as L = 2, recorded as 2.5
         (("neighbors=fixed", "neighbors.L=2.5"), "neighbors.L=2.5: must be an integer"),
         (("neighbors.L_train=[3,10.5]",), "neighbors.L_train=[3, 10.5]: must be a list of integers"),
@@ -97,6 +103,25 @@ def test_a_value_out_of_its_range_is_the_constructors_own_line(monkeypatch, caps
 def test_every_method_refuses_a_learning_rate_that_is_not_finite_and_positive(model, lr):
     with pytest.raises(ValueError, match=r"^model\.lr=.*: must be a finite number > 0"):
         model(lr=lr, **({"max_rank": 10} if model is KNNDLModule else {}))  # KNN-DL's home: null, a run's L
+
+
+@pytest.mark.parametrize("value", [0, -1, 2.5, True, "3", [2]])
+def test_check_int_refuses_what_is_not_a_whole_number_in_range(value):
+    with pytest.raises(ConfigError, match=r"^model\.train_pieces=.*: must be a whole number >= 1 or null$"):
+        check_int(value, "model.train_pieces", low=1, none=True)
+
+
+@pytest.mark.parametrize("value", ["maybe", "no", 1, 0, None])
+def test_check_bool_refuses_what_is_not_true_or_false(value):
+    with pytest.raises(ConfigError, match=r"^bench\.compete=.*: must be true or false$"):
+        check_bool(value, "bench.compete")
+
+
+def test_checked_values_pass_as_they_are():
+    assert check_int(3, "k") == 3 and check_int(None, "k", none=True) is None and check_int(0, "k", low=0) == 0
+    assert check_bool(False, "k") is False and check_bool(True, "k") is True
+    model = GRaFModule(train_pieces=2, fast_training=False, fast_inference=True)
+    assert (model.train_pieces, model.fast_training, model.fast_inference) == (2, False, True)
 
 
 # ---------------------------------------------------------------------------------------------- 2. Ctrl+C

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import time
 from pathlib import Path
 
@@ -192,6 +193,31 @@ def test_unknown_models_and_scenes_are_config_errors(bench_cfg):
         bench(bench_cfg("bench.models=[nope]"))
     with pytest.raises(ConfigError, match=r"\+band@bands.office"):
         bench(bench_cfg("+scene_catalog@scenes.office=office_v1"))
+
+
+@pytest.mark.parametrize(
+    "override, says",
+    [
+        ("threads=0", "threads=0: must be a whole number >= 1 or null"),  # torch's traceback
+        ("threads=1.5", "threads=1.5: must be a whole number >= 1 or null"),
+        ("bench.compete=maybe", "bench.compete=maybe: must be true or false"),  # it ran as true
+        ("quick=no", "quick=no: must be true or false"),
+        ("quick=false bench.spectra=2.5", "bench.spectra=2.5: must be a whole number >= 1"),
+    ],
+)
+def test_threads_and_switches_are_checked_before_anything_runs(bench_cfg, override, says):
+    with pytest.raises(ConfigError, match=f"^{re.escape(says)}$"):
+        bench(bench_cfg(*override.split()))
+
+
+def test_graf_bench_threads_0_is_one_line_and_exit_code_2(monkeypatch, capsys, tmp_path):
+    from graf.cli.studies import bench as graf_bench
+    from tests.app.test_entry_points import _main
+
+    code, _, err = _main(monkeypatch, capsys, graf_bench.main, "threads=0", f"hydra.run.dir={tmp_path}")
+    lines = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("[")]
+    assert code == 2 and "Traceback" not in err, err
+    assert lines[0] == "error: threads=0: must be a whole number >= 1 or null", err
 
 
 def test_the_load_meter_sees_a_competing_process_and_the_row_is_flagged():

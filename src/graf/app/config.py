@@ -18,7 +18,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from graf.config_home import CONF_DIR as CONF_HOME_DIR
-from graf.errors import ConfigError, is_user_error, user_message
+from graf.errors import ConfigError, as_override, is_user_error, user_message
 
 log = logging.getLogger("graf")
 
@@ -88,6 +88,25 @@ def with_baselines_switch(cfg: DictConfig) -> DictConfig:
     with open_dict(cfg):
         cfg.baselines = off[-1]
     return cfg
+
+
+def check_int(value, key: str, low: int | None = 1, none: bool = False) -> int | None:
+    """``value``, the setting ``key``, when it is a whole number of at least ``low`` (None allowed when ``none``);
+    else a :class:`ConfigError` naming both.  Checked, never cast: 2.5, true and "3" are refused."""
+    if value is None and none:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int) or (low is not None and value < low):
+        what = "a whole number" + ("" if low is None else f" >= {low}") + (" or null" if none else "")
+        raise ConfigError(f"{key}={as_override(value)}: must be {what}")
+    return value
+
+
+def check_bool(value, key: str) -> bool:
+    """``value``, the setting ``key``, when it is true or false (a YAML or command-line boolean); else a
+    :class:`ConfigError` naming both (a string such as "maybe" or "no" is refused, never read as true)."""
+    if not isinstance(value, bool):
+        raise ConfigError(f"{key}={as_override(value)}: must be true or false")
+    return value
 
 
 def study_budget(budgets, model: str | None, default) -> int:

@@ -84,7 +84,15 @@ import lightning as L
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from graf.app.config import CONF_DIR, band_choices, check_run_settings, output_dir, task_wrapper
+from graf.app.config import (
+    CONF_DIR,
+    band_choices,
+    check_bool,
+    check_int,
+    check_run_settings,
+    output_dir,
+    task_wrapper,
+)
 from graf.errors import ConfigError
 from graf.run.build import build_datamodule, model_config_for_neighbors
 from graf.sim.simulate import simulate
@@ -223,13 +231,12 @@ def _selected(cfg: DictConfig, group: str, only_key: str) -> list[str]:
 def bench(cfg: DictConfig) -> dict:
     """graf-bench: one row per (scene, model) of ``cfg`` (module doc), written after each; the result."""
     check_run_settings(cfg)  # a seed numpy refuses, before anything runs
-    if cfg.get("threads") is not None:
-        torch.set_num_threads(int(cfg.threads))
-    quick = bool(cfg.get("quick", False))
-    spectra = 1 if quick else int(cfg.bench.spectra)
-    steps = 1 if quick else int(cfg.bench.train_steps)
-    if spectra < 1 or steps < 1:
-        raise ConfigError("bench.spectra and bench.train_steps must be at least 1")
+    if check_int(cfg.get("threads"), "threads", none=True) is not None:  # torch refused 0 with a traceback
+        torch.set_num_threads(cfg.threads)
+    quick = check_bool(cfg.get("quick", False), "quick")
+    check_bool(cfg.bench.get("compete", False), "bench.compete")  # a string such as "no" ran as true
+    spectra = 1 if quick else check_int(cfg.bench.spectra, "bench.spectra")
+    steps = 1 if quick else check_int(cfg.bench.train_steps, "bench.train_steps")
     autocast(cfg, torch.device("cpu"))  # an unknown precision is refused before anything runs
     scene_keys, model_keys = _selected(cfg, "scenes", "scenes"), _selected(cfg, "models", "models")
     for key in scene_keys:

@@ -149,8 +149,8 @@ class GRaFModule(SpectrumModule):
         self.residual, self.use_scene_index = bool(residual), bool(use_scene_index)
         self.loss_name, self.length_unit = loss, float(length_unit)
         self.sample_spacing, self.ray_window = float(voxel_wavelengths), int(ray_window)
-        self.fast_inference, self.fast_training = bool(fast_inference), bool(fast_training)
-        self.train_pieces = None if train_pieces is None else int(train_pieces)  # None: torch's threads
+        self.fast_inference, self.fast_training = fast_inference, fast_training  # checked: true or false
+        self.train_pieces = train_pieces  # checked: a positive int, or None: torch's threads
         self._ray_tables: dict = {}  # geometry only: per scene geometry and band, never stale
         self.eval_cache = EvalCache()  # weights-dependent tables of evaluation (see _cached)
         self.base = KNNBase(weighting) if self.residual else NoBase()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
+from graf.app.config import check_bool, check_int
 from graf.models.graf.features.residual import WEIGHTINGS
 from graf.models.schedule import check_rates
 
@@ -34,3 +35,6 @@ def check_settings(hp: Mapping) -> None:
     if hp["attention"] not in ATTENTION_KERNELS:
         raise ValueError(f"model.attention must be one of {ATTENTION_KERNELS}, got {hp['attention']!r}")
     check_rates(hp["lr"], hp["lr_decay"])
+    for key in ("fast_inference", "fast_training"):  # checked, not cast: a string "no" is no true
+        check_bool(hp[key], f"model.{key}")
+    check_int(hp["train_pieces"], "model.train_pieces", low=1, none=True)  # null: torch's threads
