@@ -107,3 +107,44 @@ def test_knn_dl_rank_scale_is_the_largest_l_of_the_runs_neighbors(compose_cfg, n
     built = build(cfg)
     assert built.neighbors.max_L == rank
     assert built.model.hparams.max_rank == rank and built.cfg.model.max_rank == rank  # the config recorded
+
+
+def test_a_sigterm_stops_a_command_in_every_stage_but_training_at_once_saying_what_was_kept():
+    """SIGTERM (issue 68): outside training the command stops at once with the stage and what was kept (exit code
+    143, as a pre-empted training); in training the handler leaves it to Lightning, which stops after the step in
+    progress and saves it."""
+    from graf.errors import is_preempted
+    from graf.interrupts import Terminated, _on_sigterm, stage
+
+    with stage("testing", lambda: "training had finished at step 3"):
+        with pytest.raises(Terminated, match="stopped by SIGTERM during testing; training had finished at step 3") as e:
+            _on_sigterm(signal.SIGTERM, None)
+    assert is_preempted(e.value) and e.value.said_kept
+    with stage("set-up"):  # no stage says what was kept: the command adds its output folder
+        with pytest.raises(Terminated) as e:
+            _on_sigterm(signal.SIGTERM, None)
+    assert str(e.value) == "stopped by SIGTERM during set-up" and not e.value.said_kept
+    with stage("training", lambda: "results.json was not written"):
+        assert _on_sigterm(signal.SIGTERM, None) is None  # Lightning's connector stops the fit at the step's end
+
+
+@pytest.mark.slow  # about 20 s: a real graf-train, signalled while it tests
+def test_a_sigterm_while_graf_train_tests_stops_it_with_143_and_the_way_to_test_the_checkpoint(tmp_path):
+    exe = str(Path(sys.executable).parent / "graf-train")
+    out = tmp_path / "run"
+    args = ["experiment=graf_rfid_s23", "trainer.max_steps=3", "model.rays_per_step=64", "data.batch_size=2",
+            "logger=none", "plot_count=0", f"hydra.run.dir={out}"]  # fmt: skip
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    p = subprocess.Popen([exe, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    ckpt = out / "checkpoints" / "last.ckpt"
+    deadline = time.time() + 300
+    while time.time() < deadline and not ckpt.exists() and p.poll() is None:  # written when the 3 steps are done
+        time.sleep(0.05)
+    assert ckpt.exists(), "training never finished"
+    time.sleep(1.0)  # into validation and testing
+    p.send_signal(signal.SIGTERM)
+    _, stderr = p.communicate(timeout=120)
+    assert p.returncode == 143, stderr[-3000:]
+    assert "stopped by SIGTERM during testing; training had finished at step 3" in stderr
+    assert f"ckpt_path={ckpt}" in stderr and not (out / "results.json").exists()
+    assert "Traceback" not in stderr

@@ -14,7 +14,7 @@ from graf.app.config import CONF_PATH, output_dir
 from graf.app.overrides import check_overrides, modernize
 from graf.console import filter_known_warnings
 from graf.errors import ConfigError, is_user_error, user_message
-from graf.interrupts import INTERRUPTED_EXIT_CODE, ignore_further, interrupted_line, stage
+from graf.interrupts import INTERRUPTED_EXIT_CODE, Terminated, ignore_further, install_sigterm, interrupted_line, stage
 
 __all__ = ["CONF_PATH", "cli_errors", "graf_command"]
 
@@ -29,6 +29,7 @@ def cli_errors(main):
     @functools.wraps(main)
     def wrapped(cfg: DictConfig, *args, **kwargs):
         filter_known_warnings()
+        install_sigterm()
         multirun = in_multirun()
         try:
             with users_environment(), stage(str(cfg.get("task_name") or "the command")):
@@ -45,7 +46,10 @@ def cli_errors(main):
             if hasattr(exc, "exit_code"):  # a run stopped on purpose (pre-emption, Ctrl+C): its own code
                 if ctrl_c:
                     ignore_further()
-                print(str(exc), file=sys.stderr)
+                said = str(exc)
+                if isinstance(exc, Terminated) and not exc.said_kept:
+                    said += f"; output folder: {output_dir(cfg)}"
+                print(said, file=sys.stderr)
                 sys.exit(int(exc.exit_code))
             if not is_user_error(exc) or full_error():
                 raise
