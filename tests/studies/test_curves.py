@@ -168,8 +168,60 @@ def test_a_checkpoint_interval_under_one_step_stops_with_one_line(tmp_path):
         text=True,
         timeout=120,
     )
-    assert p.returncode != 0 and "checkpoint_every=0: must be a positive number of steps" in p.stderr
+    assert p.returncode == 2 and "checkpoint_every=0: must be a whole number >= 1" in p.stderr
     assert "Traceback" not in p.stderr
+
+
+def _curves_cfg(*overrides: str):
+    """conf/curves.yaml as graf-curves composes it, with these overrides."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from graf.app.config import CONF_DIR
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="curves", overrides=list(overrides))
+    GlobalHydra.instance().clear()
+    return cfg
+
+
+@pytest.mark.parametrize(
+    "override, says",
+    [
+        ("until=-1", "until=-1: must be a whole number >= 1 or null"),  # it ran nothing and said nothing
+        ("until=2.5", "until=2.5: must be a whole number >= 1 or null"),
+        ("threads=0", "threads=0: must be a whole number >= 1 or null"),
+        ("steps=abc", "steps=abc: must be a list of step counts, such as [100,1000]"),  # a traceback
+        ("steps=[100,abc]", "steps[1]=abc: must be a whole number >= 1"),
+        ("only_regimes=main_job", "only_regimes=main_job: must be a list, such as [main_job]"),
+        ("only_methods=[nope]", "only_methods: unknown keys ['nope'] (known: "),
+        (
+            "regimes.cross_family_val_30k.continues=nowhere",
+            "curves.yaml: regimes.cross_family_val_30k.continues: 'nowhere' is not another regime of the file",
+        ),
+    ],
+)
+def test_a_wrong_setting_stops_graf_curves_before_any_run_with_one_line(override, says):
+    from graf.errors import ConfigError
+    from graf.studies.curves_settings import check_settings
+
+    with pytest.raises(ConfigError) as info:
+        check_settings(_curves_cfg(override))
+    assert str(info.value).startswith(says) and "\n" not in str(info.value)
+
+
+def test_the_shipped_curves_config_passes_its_checks_and_graf_curves_checks_first(tmp_path, monkeypatch):
+    from graf.errors import ConfigError
+    from graf.studies import curves as C
+    from graf.studies.curves_settings import check_settings
+
+    check_settings(_curves_cfg())
+    check_settings(_curves_cfg("until=1000", "threads=2", "only_regimes=[main_job]"))
+    monkeypatch.setattr(C, "run_command", lambda *a, **k: pytest.fail("a run started"))
+    with pytest.raises(ConfigError, match="until=-1"):
+        C.curves(_curves_cfg("until=-1", f"out={tmp_path / 'out'}", f"paths.output_dir={tmp_path}"))
+    assert not (tmp_path / "out").exists()
 
 
 def test_a_points_device_is_short_in_the_table():

@@ -231,16 +231,18 @@ def regimes_ready(
     return ready, waiting
 
 
-def continued_regimes() -> dict[str, str]:
-    """{regime: the regime it continues} from the ``continues`` keys of ``conf/curves.yaml`` (one naming no regime
-    there stops with a :class:`~graf.errors.ConfigError`)."""
+def continued_regimes(regimes=None, path: str = "curves.yaml") -> dict[str, str]:
+    """{regime: the regime it continues} from the ``continues`` keys of ``regimes`` (graf-curves' config, checked at
+    its start), by default ``conf/curves.yaml``'s (the site's); one naming no other regime there stops with a
+    :class:`~graf.errors.ConfigError` naming ``path``."""
     from omegaconf import OmegaConf
 
     from graf.app.config import CONF_DIR
     from graf.errors import ConfigError
 
-    path = f"{CONF_DIR}/curves.yaml"
-    regimes = OmegaConf.load(path).regimes
+    if regimes is None:
+        path = f"{CONF_DIR}/curves.yaml"
+        regimes = OmegaConf.load(path).regimes
     out = {name: str(r.continues) for name, r in regimes.items() if r.get("continues")}
     for name, parent in out.items():
         if parent not in regimes or parent == name:

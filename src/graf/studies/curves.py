@@ -43,6 +43,7 @@ from graf.errors import ConfigError, Preempted
 from graf.io import atomic_write_json, atomic_write_text
 from graf.reports.table import to_csv
 from graf.run.evaluation import short_device
+from graf.studies.curves_settings import check_settings, subset
 from graf.studies.runner import run_command
 
 log = logging.getLogger("graf")
@@ -54,15 +55,6 @@ FIGURES = (("val/psnr", "val_psnr", "PSNR (dB)"), ("val/ssim", "val_ssim", "SSIM
 PREEMPTED_RUNS = "preempted_runs.json"  # a point's pre-empted attempts (their preempted.json records)
 TRAIN = command("graf-train")  # graf-train in a subprocess (graf.app.launch)
 QUIET = ["logger=none", "plot_count=0", "baselines=null", "test=false", "trainer.enable_progress_bar=false"]
-
-
-def _subset(items: dict, keep, what: str) -> dict:
-    if keep is None:
-        return dict(items)
-    unknown = set(keep) - set(items)
-    if unknown:
-        raise ConfigError(f"{what}: unknown keys {sorted(unknown)} (known: {sorted(items)})")
-    return {k: v for k, v in items.items() if k in set(keep)}
 
 
 def val_figures(result: dict) -> dict:
@@ -305,17 +297,16 @@ def plot(path: Path, rows: list[dict], knn: dict) -> None:
 def curves(cfg: DictConfig) -> dict:
     """Run every selected regime's KNN line and methods' curves as far as ``until``, then write and print the
     tables (resumable: a finished point is skipped)."""
+    check_settings(cfg)
     out = Path(cfg.out) if cfg.get("out") else output_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ)
     if cfg.get("threads"):
-        env["OMP_NUM_THREADS"] = str(int(cfg.threads))
-    if int(cfg.checkpoint_every) < 1:  # 0 would switch the periodic saves, and the curve's resume chain, off
-        raise ConfigError(f"checkpoint_every={cfg.checkpoint_every}: must be a positive number of steps")
-    common = [f"data_root={cfg.data_root}"] + ([f"torch_threads={int(cfg.threads)}"] if cfg.get("threads") else [])
+        env["OMP_NUM_THREADS"] = str(cfg.threads)
+    common = [f"data_root={cfg.data_root}"] + ([f"torch_threads={cfg.threads}"] if cfg.get("threads") else [])
     failed_file = out / "failed.json"
     failed = json.loads(failed_file.read_text()) if failed_file.exists() else []
-    for rname, regime in _subset(cfg.regimes, cfg.get("only_regimes"), "only_regimes").items():
+    for rname, regime in subset(cfg.regimes, cfg.get("only_regimes"), "only_regimes").items():
         base = [*regime.overrides, *common, *QUIET, *(cfg.get("extra_overrides") or [])]
         knn_dir = out / rname / "knn"
         if not (knn_dir / "results.json").exists():
@@ -338,7 +329,7 @@ def regime_methods(cfg: DictConfig, rname: str) -> list[str]:
     those it does not list; each skipped one named in the log."""
     keep = []
     listed = cfg.regimes[rname].get("methods")
-    for mname, method in _subset(cfg.methods, cfg.get("only_methods"), "only_methods").items():
+    for mname, method in subset(cfg.methods, cfg.get("only_methods"), "only_methods").items():
         if listed is not None and mname not in listed:
             log.info("%s: no %s curve (the regime's methods: %s)", rname, mname, ", ".join(listed))
             continue
