@@ -282,3 +282,46 @@ def test_a_long_command_is_wrapped_into_lines_that_read_as_the_same_command():
     assert all(x.endswith(" \\") for x in lines[:-1]) and all(x.startswith("    ") for x in lines[1:])
     assert " ".join(x.removesuffix(" \\").strip() for x in lines) == command
     assert wrap("graf-bench") == "graf-bench"
+
+
+def _claims_command(monkeypatch, capsys, *args):
+    """graf-claims' exit code and stderr's lines (the log's own lines left out)."""
+    from graf.cli import claims as graf_claims
+    from tests.app.test_entry_points import _main
+
+    code, _, err = _main(monkeypatch, capsys, graf_claims.main, *args)
+    return code, [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("[")], err
+
+
+def test_a_users_claims_file_is_read_or_refused_in_one_line_never_replaced_by_graf_own(tmp_path, monkeypatch, capsys):
+    """A claims.yaml in a --config-dir (which graf's own file of that name hides from Hydra) or claims=<file>: a
+    malformed one stops with one line naming it, a good one is the ledger's (with its records and method), and a
+    records folder that does not exist stops too; nothing of an earlier ledger in ``out`` is lost."""
+    out = tmp_path / "ledger"
+    out.mkdir()
+    (out / "claims.csv").write_text("an earlier ledger\n")
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "claims.yaml").write_text("claims:\n  - id: x\n    kind: [unclosed\n")
+    run = ("out=" + str(out), f"hydra.run.dir={tmp_path / 'logs'}")
+    for args in (("--config-dir", str(bad)), (f"claims={bad / 'claims.yaml'}",)):
+        code, lines, err = _claims_command(monkeypatch, capsys, *args, *run)
+        assert code == 2 and "Traceback" not in err, err
+        assert lines[0].startswith(f"error: {bad / 'claims.yaml'}: not a readable claims file ("), err
+    lacking = tmp_path / "lacking.yaml"
+    lacking.write_text("claims:\n  - id: x\n    kind: value\n    record: r.json\n")
+    code, lines, _ = _claims_command(monkeypatch, capsys, f"claims={lacking}", *run)
+    assert code == 2 and lines[0] == f"error: {lacking}: claim 'x' (kind value) lacks key, paper_value"
+    code, lines, _ = _claims_command(monkeypatch, capsys, f"records={tmp_path / 'nowhere'}", *run)
+    assert code == 2 and lines[0].startswith(f"error: records={tmp_path / 'nowhere'}: no such folder"), lines
+    assert (out / "claims.csv").read_text() == "an earlier ledger\n"  # nothing written by a refused command
+    good = tmp_path / "good"
+    good.mkdir()
+    (tmp_path / "r.json").write_text(json.dumps({"figure": 2.5}))
+    claim = "{id: mine, kind: value, record: r.json, key: figure, paper_value: 2.0, claim: '${method} says'}"
+    (good / "claims.yaml").write_text(f"records: {tmp_path}\nmethod: m1\nclaims:\n  - {claim}\n")
+    code, lines, err = _claims_command(monkeypatch, capsys, "--config-dir", str(good), *run)
+    assert code is None, err
+    with open(out / "claims.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["id"], r["claim"], r["verdict"]) for r in rows] == [("mine", "m1 says", "holds")]
