@@ -57,6 +57,32 @@ def test_a_reference_method_is_tabled_but_left_out_of_the_fronts(tmp_path):
         collect(tmp_path, cfg)
 
 
+@pytest.mark.parametrize(
+    "override, says",
+    [
+        # a string was split into letters: no knob was a reference (reference_knobs=method), or a traceback
+        ("reference_knobs=method", "reference_knobs=method: must be a list of knobs, such as [method]"),
+        ("only_points=base", "only_points=base: must be a list of points, such as [base]"),
+        ("only_points=[base,voxl_4]", "only_points: ['voxl_4'] is no point of the config (points: ["),
+        ("only_scenes=[rfid_s23]", "only_scenes: ['rfid_s23'] is no scene of the config (scenes: ['"),
+        ("only_scenes=[base]", "only_scenes: ['base'] is no scene"),  # a point's name is no scene either
+        ("threads=0", "threads=0: must be a whole number >= 1 or null"),
+    ],
+)
+def test_a_wrong_setting_stops_graf_pareto_before_any_run_with_one_line(tmp_path, monkeypatch, override, says):
+    from graf.studies import pareto
+
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        cfg = compose("pareto", overrides=[override, f"out={tmp_path / 'out'}", f"paths.output_dir={tmp_path}"])
+    monkeypatch.setattr(pareto, "run_command", lambda *a, **k: pytest.fail("a run started"))
+    with pytest.raises(ConfigError) as info:
+        pareto.sweep(cfg)
+    assert str(info.value).startswith(says) and "\n" not in str(info.value)
+    assert not (tmp_path / "out").exists()
+    if override.startswith("only_points=[base,"):  # every known point is listed
+        assert all(p in str(info.value) for p in [*cfg.points, *cfg.eval_points])
+
+
 def test_config_has_five_knobs_on_two_scenes():
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
         cfg = compose("pareto")

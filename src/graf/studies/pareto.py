@@ -31,11 +31,11 @@ import os
 import time
 from pathlib import Path
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from graf.app.config import output_dir, task_wrapper
+from graf.app.config import check_int, output_dir, task_wrapper
 from graf.app.launch import command
-from graf.errors import ConfigError
+from graf.errors import ConfigError, as_override
 from graf.io import atomic_write_json, atomic_write_text
 from graf.studies.runner import run_command
 
@@ -84,20 +84,31 @@ def pareto_front(rows: list[dict], cost: str, score: str = "val_psnr") -> set[in
     return front
 
 
+ONLY = {"only_scenes": ("scene", ("scenes",)), "only_points": ("point", ("points", "eval_points"))}
+
+
 def _selected(cfg: DictConfig, group: str, only: str) -> dict:
+    """The entries of ``group`` whose keys the list ``only`` (``only_scenes``, ``only_points``) names (null: all);
+    a name of no scene (point) stops with one line listing the known ones."""
     items = dict(cfg.get(group) or {})
     keep = cfg.get(only)
-    if keep is not None:
-        unknown = set(keep) - set(items) - set(cfg.get("eval_points") or {}) - set(cfg.get("points") or {})
-        if unknown:
-            raise ValueError(f"{only}: unknown keys {sorted(unknown)}")
-        items = {k: v for k, v in items.items() if k in set(keep)}
-    return items
+    if keep is None:
+        return items
+    what, groups = ONLY[only]
+    if not isinstance(keep, (list, ListConfig)):  # only_points=base was read letter by letter
+        raise ConfigError(f"{only}={as_override(keep)}: must be a list of {what}s, such as [{keep}]")
+    known = sorted({k for g in groups for k in cfg.get(g) or {}})
+    if unknown := set(keep) - set(known):
+        raise ConfigError(f"{only}: {sorted(unknown)} is no {what} of the config ({what}s: {known})")
+    return {k: v for k, v in items.items() if k in set(keep)}
 
 
 def reference_knobs(cfg: DictConfig) -> set[str]:
     """The knobs whose points are references outside the fronts; each must be the knob of some point."""
-    reference = set(cfg.get("reference_knobs") or [])
+    listed = cfg.get("reference_knobs") or []
+    if not isinstance(listed, (list, ListConfig)):  # reference_knobs=method was read letter by letter
+        raise ConfigError(f"reference_knobs={as_override(listed)}: must be a list of knobs, such as [{listed}]")
+    reference = set(listed)
     points = {**(cfg.get("points") or {}), **(cfg.get("eval_points") or {})}
     knobs = {p.knob for p in points.values()}
     if unknown := reference - knobs:
@@ -267,7 +278,7 @@ def _child_env(cfg: DictConfig) -> dict:
     """The environment of every run: this one, with ``threads`` and an absolute ``GRAF_DATA_ROOT``."""
     env = dict(os.environ)
     if cfg.get("threads"):
-        env["OMP_NUM_THREADS"] = str(int(cfg.threads))
+        env["OMP_NUM_THREADS"] = str(cfg.threads)
     env["GRAF_DATA_ROOT"] = str(Path(cfg.data_root).resolve())
     return env
 
@@ -342,7 +353,10 @@ def _run_scene(
 @task_wrapper
 def sweep(cfg: DictConfig) -> dict:
     """Run every selected scene's points not done before, then write and print the tables."""
-    reference_knobs(cfg)  # a misspelt knob stops here, before any run
+    reference_knobs(cfg)  # a misspelt knob stops here, before any run; so do a misspelt scene or point
+    _selected(cfg, "scenes", "only_scenes")
+    _selected(cfg, "points", "only_points")
+    check_int(cfg.get("threads"), "threads", none=True)
     out = Path(cfg.out) if cfg.get("out") else output_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
     env = _child_env(cfg)
