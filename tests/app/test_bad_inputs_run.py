@@ -231,3 +231,28 @@ def test_a_run_resuming_the_interrupted_run_in_its_folder_is_let_in(tmp_path, ca
         tmp_path, run, capsys, hydra={"run": {"dir": str(run)}, "job": {"name": "evaluate"}}, ckpt_path=str(last)
     )
     assert "interrupted training run" in line
+
+
+def test_a_run_folder_in_use_is_locked_and_a_second_run_into_it_stops_with_one_line(tmp_path):
+    """Two runs into one folder (issue 68): the second stops with one line naming the first's process, instead of
+    both finishing and only the later one's results remaining; the lock goes with the process that held it."""
+    import time
+
+    from graf.app.output_folder import LOCK_NAME, lock_folder
+
+    hold = "import sys, time\nfrom pathlib import Path\nfrom graf.app.output_folder import lock_folder\n"
+    hold += "assert lock_folder(Path(sys.argv[1])) is None\nprint('held', flush=True)\ntime.sleep(30)\n"
+    p = subprocess.Popen([sys.executable, "-c", hold, str(tmp_path)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert p.stdout.readline().strip() == "held"
+        why = lock_folder(tmp_path)
+        assert why is not None and f"another run (process {p.pid}) is writing into it" in why
+        assert str(tmp_path / LOCK_NAME) in why
+    finally:
+        p.kill()
+        p.wait()
+    deadline = time.monotonic() + 10
+    while lock_folder(tmp_path) is not None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert lock_folder(tmp_path) is None  # the holder is gone: free; held now by this process, again: still ours
+    assert lock_folder(tmp_path) is None

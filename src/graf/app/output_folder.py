@@ -5,7 +5,9 @@ or full disk, a name too long) or that holds an interrupted training run ends th
 run's folder, opens its log and writes ``.hydra/`` before the command's own code runs, so a folder it cannot use
 ended in Hydra's traceback, and a new run in the folder of an interrupted one (``checkpoints/last.ckpt``, no
 ``results.json``) overwrote that run's config and then its checkpoint.  A run that resumes that checkpoint
-(graf-train with ``ckpt_path=`` inside the folder) is let in.
+(graf-train with ``ckpt_path=`` inside the folder) is let in.  A folder another run is writing into is refused too:
+each run holds a lock on its folder (:func:`lock_folder`, ``.graf.lock``) until it ends, so a second run into it
+stops with one line instead of both finishing with only the later one's results left.
 """
 
 from __future__ import annotations
@@ -21,6 +23,51 @@ from omegaconf import DictConfig, OmegaConf
 from graf.app.command import fail
 
 NAME_MAX = 255  # the longest file name most file systems take (bytes)
+LOCK_NAME = ".graf.lock"  # in a run's (or a multirun's) folder while it runs: the holder's process id
+_HELD: list[int] = []  # the lock files' descriptors this process holds, until it ends
+
+
+def _ancestors() -> set[int]:
+    """This process's parent, its parent's, ... (from /proc; empty where there is none)."""
+    out, pid = set(), os.getpid()
+    while pid > 1:
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                pid = int(f.read().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
+            break
+        out.add(pid)
+    return out
+
+
+def lock_folder(folder: Path) -> str | None:
+    """Hold ``folder/.graf.lock`` (an exclusive ``flock``, released when this process ends, however it ends) and
+    write this process's id into it; why not (None: held, or nothing to hold).  A lock held by a process this one
+    descends from (a command that runs graf-train into its own folder) or a data-parallel rank other than 0 (they
+    share rank 0's folder) takes nothing.  Where ``flock`` does not exist nothing is locked."""
+    if any(os.environ.get(k, "0") not in ("", "0") for k in ("RANK", "LOCAL_RANK", "SLURM_PROCID")):
+        return None
+    try:
+        import fcntl
+    except ImportError:  # not a POSIX system
+        return None
+    path = folder / LOCK_NAME
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        holder = os.read(fd, 32).decode(errors="replace").strip()
+        os.close(fd)
+        if holder.isdigit() and int(holder) in _ancestors() | {os.getpid()}:  # ours already, or an ancestor's
+            return None
+        return (
+            f"another run (process {holder or '?'}) is writing into it ({path}): wait for it to end, or give this "
+            "run another folder"
+        )
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()}\n".encode())
+    _HELD.append(fd)
+    return None
 
 
 def folder_problem(folder: Path) -> str | None:
@@ -84,7 +131,8 @@ def interrupted_run(config: DictConfig, folder: Path) -> str | None:
 
 def check_output_folder(config: DictConfig, key: str, resumable: bool) -> None:
     """End the command with one line (exit code 2) when the folder at ``key`` (``hydra.run.dir``,
-    ``hydra.sweep.dir``) cannot be written, or (``resumable``: a single run) holds an interrupted run."""
+    ``hydra.sweep.dir``) cannot be written, (``resumable``: a single run) holds an interrupted run, or is another
+    running command's (:func:`lock_folder`); else hold it for this command."""
     try:
         value = OmegaConf.select(config, key)
     except Exception:  # an interpolation only Hydra's run resolves: left to it
@@ -92,7 +140,7 @@ def check_output_folder(config: DictConfig, key: str, resumable: bool) -> None:
     if value is None:
         return
     folder = Path(str(value))
-    why = folder_problem(folder) or (interrupted_run(config, folder) if resumable else None)
+    why = folder_problem(folder) or lock_folder(folder) or (interrupted_run(config, folder) if resumable else None)
     if why:
         fail(f"{key}={folder}: cannot be this run's output folder: {why}")
 

@@ -259,7 +259,7 @@ def _assemble(path: Path, parts: Path, chunks, scene, band: Band, positions, ant
     if len(spectra) != n:
         raise DataFormatError(parts, f"chunks hold {len(spectra)} spectra, expected {n}")
     train_idx, test_idx = scene.split(n)
-    tmp = path.with_name(f".{path.name}.tmp")
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")  # two runs tracing one scene never share it
     with h5py.File(tmp, "w", track_order=False) as f:
         kw = dict(track_times=False)
         f.create_dataset(

@@ -22,6 +22,7 @@ and ``restore`` the rebuilt ones', so a caller can check the two match (``tests/
 from __future__ import annotations
 
 import hashlib
+import os
 import sys
 from pathlib import Path
 
@@ -80,7 +81,7 @@ def slim(src: str | Path, dst: str | Path) -> str:
         digest = spectra_sha256(original)
         rebuilt, ties = rebuild_spectra(f["channels"][()], f["antenna_positions"][()], float(f.attrs["wavelength"]))
         keep = np.union1d(ties, np.flatnonzero(rebuilt.ravel() != original.ravel()))
-        tmp = dst.with_name(f".{dst.name}.tmp")
+        tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
         dst.parent.mkdir(parents=True, exist_ok=True)
         with h5py.File(tmp, "w", track_order=False) as g:
             _copy(f, g, skip=("spectra",))
@@ -107,7 +108,7 @@ def restore(src: str | Path, dst: str | Path) -> dict:
             flat[np.cumsum(f["tie_index"][()].astype(np.int64))] = f["tie_value"][()]
         expected = f.attrs.get("spectra_sha256")
         digest = spectra_sha256(spectra)
-        tmp = dst.with_name(f".{dst.name}.tmp")
+        tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
         dst.parent.mkdir(parents=True, exist_ok=True)
         with h5py.File(tmp, "w", track_order=False) as g:
             g.create_dataset(

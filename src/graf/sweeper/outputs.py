@@ -17,6 +17,7 @@ from __future__ import annotations
 import csv
 import io
 import logging
+import os
 import warnings
 from pathlib import Path
 
@@ -178,7 +179,7 @@ def write_figures(study: optuna.Study, out: Path, names: list[str]) -> list[str]
             fig = ax.figure if hasattr(ax, "figure") else ax.flat[0].figure
             fig.set_size_inches(8, 5)
             fig.tight_layout()
-            tmp = out / f".{name}.png.tmp"
+            tmp = out / f".{name}.{os.getpid()}.png.tmp"
             fig.savefig(tmp, dpi=110, format="png")
             tmp.replace(out / f"{name}.png")
             plt.close(fig)
