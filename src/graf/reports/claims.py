@@ -28,8 +28,8 @@ record is missing is "not reproduced (no record)".
 
 The claims are ``conf/claims.yaml``'s, or the user's own file: ``claims=<file>``, or a ``claims.yaml`` in a config
 folder of the user's (``--config-dir``), which graf's own file of that name would otherwise hide
-(:func:`claims_file`).  A file that cannot be read, or a claim lacking what its kind reads, stops the command with
-one line naming the file and the problem, as does a ``records`` folder that does not exist.
+(:func:`graf.reports.ledger.read_claims`).  A file that cannot be read, or a claim lacking what its kind reads,
+stops the command with one line naming the file and the problem, as does a ``records`` folder that does not exist.
 
 The ledger is ``claims.csv`` (the machine form) and ``results.json`` in ``out``, and the page to read, ``claims.md``
 (the docs page includes it), with a forest plot ``<id>.png`` per claim with intervals (:mod:`graf.reports.ledger`; a
@@ -45,13 +45,12 @@ import json
 import logging
 from pathlib import Path
 
-from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
+from omegaconf import DictConfig
 
-from graf.app.config import CONF_DIR, override_key, task_wrapper
+from graf.app.config import task_wrapper
 from graf.errors import ConfigError
 from graf.io import atomic_write_bytes, atomic_write_json
-from graf.reports.ledger import VERDICTS, write_page
+from graf.reports.ledger import VERDICTS, check_claim, check_claims, check_records, read_claims, write_page
 from graf.reports.rows import short_scenes
 from graf.reports.statistics import HIGHER_IS_BETTER
 
@@ -286,104 +285,6 @@ JUDGES = {
     "change": judge_change,
     "transfer": judge_transfer,
 }
-# what each kind reads from its claim (besides id and kind): a claim lacking one is refused, not a KeyError
-NEEDS = {
-    "paired": ("record", "method", "reference", "metric"),
-    "value": ("record", "key", "paper_value"),
-    "difference": ("record", "key", "paper_value"),
-    "change": ("record", "method", "L_from", "L_to", "metric"),
-    "transfer": ("record", "method", "metric"),
-    "note": ("reason",),
-}
-
-
-def check_claim(claim, where: str = "claims", number: int | None = None) -> None:
-    """Refuse, in one line naming ``where`` (the claims file) and the claim, a claim the ledger cannot read: not a
-    mapping, no id, a kind it does not know, or a setting its kind reads left out."""
-    which = f"claim {number}" if number is not None else "a claim"
-    if not isinstance(claim, dict):
-        raise ConfigError(f"{where}: {which} is not a mapping of settings (id, kind, record, ...): {claim!r}")
-    if claim.get("id") in (None, ""):
-        raise ConfigError(f"{where}: {which} has no id")
-    kind = claim.get("kind")
-    if kind not in NEEDS:
-        raise ConfigError(f"{where}: claim {claim['id']!r}: kind must be one of {list(NEEDS)}, got {kind!r}")
-    missing = [k for k in NEEDS[kind] if claim.get(k) in (None, "")]
-    if kind == "change" and claim.get("tolerance") is None and claim.get("paper_value") is None:
-        missing.append("paper_value (or tolerance)")
-    if missing:
-        raise ConfigError(f"{where}: claim {claim['id']!r} (kind {kind}) lacks {', '.join(missing)}")
-
-
-def check_claims(claims, where: str = "claims") -> None:
-    """Refuse, in one line naming ``where``, claims the ledger cannot read: not a list, a claim
-    :func:`check_claim` refuses, or an id used twice."""
-    if not isinstance(claims, list) or not claims:
-        raise ConfigError(f"{where}: claims must be a non-empty list (each claim with id, kind, ...), got {claims!r}")
-    for number, claim in enumerate(claims, 1):
-        check_claim(claim, where, number)
-    ids = [c["id"] for c in claims]
-    dup = sorted({str(i) for i in ids if ids.count(i) > 1})
-    if dup:
-        raise ConfigError(f"{where}: claim ids used twice: {dup}")
-
-
-def claims_file(cfg: DictConfig) -> Path | None:
-    """The user's own claims file, or None for ``conf/claims.yaml``: ``claims=<file>`` (a path given for the
-    setting), else a ``claims.yaml`` in a config folder of the user's (``--config-dir``, ``hydra.searchpath``) of a
-    run of graf-claims' own config: Hydra finds graf's file of that name first and would silently use it instead."""
-    given = cfg.get("claims")
-    if isinstance(given, str):
-        return Path(given)
-    if not HydraConfig.initialized() or HydraConfig.get().job.config_name != "claims":
-        return None
-    for source in HydraConfig.get().runtime.config_sources:
-        folder = Path(source.path)
-        if source.schema == "file" and folder.resolve() != CONF_DIR.resolve() and (folder / "claims.yaml").is_file():
-            return folder / "claims.yaml"
-    return None
-
-
-def read_claims(cfg: DictConfig) -> tuple[DictConfig, list[dict], str]:
-    """``(cfg, claims, where)``: the run's config and its claims, from :func:`claims_file` when the user gave one
-    (its settings beside ``claims``, such as ``records`` and ``method``, apply unless the command line sets them),
-    else from ``cfg.claims``; ``where`` names their file.  A file that cannot be read as YAML, or holds no list of
-    claims, is refused in one line naming it; its claims are then checked (:func:`check_claims`)."""
-    path = claims_file(cfg)
-    where = "claims" if path is None else str(path)
-    if path is not None:
-        if not path.is_file():
-            raise ConfigError(f"claims={path}: no such claims file")
-        try:
-            node = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
-        except Exception as exc:  # noqa: BLE001 - the YAML parser's or OmegaConf's own, said with the file
-            raise ConfigError(f"{path}: not a readable claims file ({_one_line(exc)})") from None
-        node = {"claims": node} if isinstance(node, list) else node
-        if not isinstance(node, dict) or not isinstance(node.get("claims"), list):
-            raise ConfigError(f"{path}: holds no list of claims (a 'claims:' list, each claim with id, kind, ...)")
-        given = {override_key(o) for o in HydraConfig.get().overrides.task} if HydraConfig.initialized() else set()
-        cfg = cfg.copy()
-        with open_dict(cfg):
-            for key, value in node.items():
-                if key == "claims" or (key not in ("defaults", "hydra") and key not in given):
-                    cfg[key] = value
-    try:
-        claims = OmegaConf.to_container(cfg.claims, resolve=True) if isinstance(cfg.claims, ListConfig) else cfg.claims
-    except Exception as exc:  # noqa: BLE001 - an interpolation the file's claims make that does not resolve
-        raise ConfigError(f"{where}: {_one_line(exc)}") from None
-    check_claims(claims, where)
-    return cfg, claims, where
-
-
-def _one_line(exc: BaseException) -> str:
-    return " ".join(str(exc).split())
-
-
-def check_records(root: Path) -> None:
-    """Refuse a ``records`` folder that does not exist: every claim would be "not reproduced" for want of it."""
-    if not root.is_dir():
-        what = "is a file, not a folder" if root.exists() else "no such folder"
-        raise ConfigError(f"records={root}: {what} (the folder the claims' record paths are relative to)")
 
 
 def judge(claim: dict, root: Path) -> dict:
