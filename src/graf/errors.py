@@ -28,6 +28,11 @@ class ConfigError(UserError):
     """A configuration that cannot run as given; the message says what to set."""
 
 
+class PluginError(UserError):
+    """A plugin's registered function (a metric, a study axis) failed or returned what graf cannot use; the message
+    names it and its plugin module (:func:`graf.plugins.call_registered`)."""
+
+
 class WriteError(UserError):
     """A file that cannot be written where the user asked (a full disk, a read-only folder); the message names it."""
 

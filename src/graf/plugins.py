@@ -8,19 +8,28 @@ when it is first imported, before any command reads its registries.  A plugin mo
 - a method: a :class:`graf.models.base.SpectrumModule` subclass (the :class:`graf.models.base.Method` interface)
   with a config file in a folder given to Hydra (``hydra.searchpath=[file://DIR]``) as ``model/<name>.yaml``.
 
-A plugin that cannot be imported stops graf with one line naming it.
+A plugin that cannot be imported stops graf with one line naming it and its error, exit code 2
+(``HYDRA_FULL_ERROR=1``: the traceback).  A registered function that raises (a metric's, a study axis's) stops
+the command with one line naming what it computes and its plugin module (:func:`call_registered`).  The modules
+loaded are :data:`LOADED`: a checkpoint of a plugin's method names a class of one of them
+(:func:`graf.models.base.checkpoint_class`).
 """
 
 from __future__ import annotations
 
+import functools
 import importlib
 import os
+import sys
 
 ENV = "GRAF_PLUGINS"
+LOADED: list[str] = []  # the plugin modules imported, in order
 
 
 def load_plugins(names: str | None = None) -> list[str]:
-    """Import the modules of ``names`` (default: the ``GRAF_PLUGINS`` environment variable); their names."""
+    """Import the modules of ``names`` (default: the ``GRAF_PLUGINS`` environment variable); their names.  One
+    that cannot be imported ends the process with one line and exit code 2 (graf is being imported: no command
+    has started that could say it)."""
     names = os.environ.get(ENV, "") if names is None else names
     loaded = []
     for name in (n.strip() for n in names.split(",")):
@@ -29,8 +38,52 @@ def load_plugins(names: str | None = None) -> list[str]:
         try:
             importlib.import_module(name)
         except Exception as exc:  # noqa: BLE001 - a plugin's own error, named with the plugin
-            raise SystemExit(
-                f"error: {ENV}: plugin {name!r} could not be imported: {type(exc).__name__}: {exc}"
-            ) from None
+            if os.environ.get("HYDRA_FULL_ERROR") == "1":
+                raise
+            print(
+                f"error: {ENV}: plugin module {name!r} could not be imported: {type(exc).__name__}: {one_line(exc)}\n"
+                "(HYDRA_FULL_ERROR=1 shows the full traceback)",
+                file=sys.stderr,
+            )
+            raise SystemExit(2) from None
         loaded.append(name)
+        if name not in LOADED:
+            LOADED.append(name)
     return loaded
+
+
+def one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split())
+
+
+def is_plugin_module(module: str) -> bool:
+    """``module`` is one of the plugins loaded (:data:`LOADED`) or a submodule of one."""
+    return any(module == name or module.startswith(name + ".") for name in LOADED)
+
+
+def plugin_of(fn) -> str | None:
+    """The module a registered function comes from when it is not graf's own (a plugin's, a script's), or None."""
+    while isinstance(fn, functools.partial):
+        fn = fn.func
+    module = getattr(fn, "__module__", None) or type(fn).__module__
+    return None if module == "graf" or module.startswith("graf.") else module
+
+
+def registered(what: str, fn) -> str:
+    """``what`` with the plugin module of ``fn`` where it is not graf's: ``metric 'peak' (plugin module mine)``."""
+    module = plugin_of(fn)
+    return f"{what} (plugin module {module})" if module else what
+
+
+def call_registered(what: str, fn, *args):
+    """``fn(*args)``: a registered function (a metric's ``per_spectrum``, a study axis's reader).  When it is not
+    graf's own (:func:`plugin_of`), an error it raises becomes one line naming ``what`` and its plugin module
+    (:class:`graf.errors.PluginError`, exit code 2); graf's own keep their traceback (a bug of graf's)."""
+    try:
+        return fn(*args)
+    except Exception as exc:
+        from graf.errors import PluginError  # here: graf.errors imports Hydra, which graf's import does not need
+
+        if plugin_of(fn) is None or isinstance(exc, PluginError):
+            raise
+        raise PluginError(f"{registered(what, fn)} failed: {type(exc).__name__}: {one_line(exc)}") from exc

@@ -19,6 +19,9 @@ import torch
 from torch import Tensor
 from torchmetrics import Metric, MetricCollection
 
+from graf.errors import PluginError
+from graf.plugins import call_registered, registered
+
 from .functional import mse_per_sample, psnr_per_sample, ssim_per_sample
 from .lpips import get_lpips_model, lpips_distance
 from .names import REGISTRY, check_metric_names
@@ -193,16 +196,29 @@ class SpectrumLPIPS(_SpectrumMean):
 
 class RegisteredMean(_SpectrumMean):
     """The mean of a registered metric's per-spectrum function (:class:`graf.metrics.names.Metric`
-    ``per_spectrum``) over the non-empty spectra seen."""
+    ``per_spectrum``) over the non-empty spectra seen.  A plugin's function that raises, or returns anything but
+    one value per spectrum (``[N]``: a ``[N, 1]`` or a scalar would be broadcast into wrong values), stops the run
+    with one line naming the metric and its plugin module (:func:`graf.plugins.call_registered`)."""
 
     def __init__(self, metric: RegisteredMetric, **kwargs: Any) -> None:
         super().__init__(**kwargs)
         self.fn = metric.per_spectrum  # (its direction: the registry's, read by the reports)
+        self.metric_name = metric.name
 
     def _per_sample(self, pred: Tensor, target: Tensor) -> Tensor:
         if pred.ndim == 4:
             pred, target = pred[:, 0], target[:, 0]
-        return self.fn(pred, target)
+        what = f"metric {self.metric_name!r}"
+        values = call_registered(what, self.fn, pred, target)
+        n = int(pred.shape[0])
+        shape = tuple(values.shape) if isinstance(values, Tensor) else None
+        if shape != (n,):
+            got = f"shape {list(shape)}" if shape is not None else f"a {type(values).__name__}"
+            raise PluginError(
+                f"{registered(what, self.fn)}: per_spectrum returned {got} for {n} spectra of shape "
+                f"{list(pred.shape)}; it must return a tensor of shape [{n}], one value per spectrum"
+            )
+        return values
 
 
 def _build(metric: RegisteredMetric, data_range: float) -> Metric:

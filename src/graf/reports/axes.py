@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from graf.metrics.names import too_late
+from graf.plugins import call_registered
 
 
 def band_label(hz) -> str:
@@ -40,8 +41,17 @@ class Axis:
     of_evaluation: Callable[[dict, dict], Any] | None = None
     untrained: str | None = None
 
+    def job_value(self, result: dict) -> Any:
+        """The axis's value for a job (``of_job``); a plugin's reader that raises is one line naming the axis and
+        its plugin module (:func:`graf.plugins.call_registered`)."""
+        return call_registered(f"study axis {self.name!r}", self.of_job, result)
+
+    def evaluation_value(self, result: dict, evaluation: dict) -> Any:
+        """The axis's value for one evaluation of a job (``of_evaluation``), as :meth:`job_value`."""
+        return call_registered(f"study axis {self.name!r}", self.of_evaluation, result, evaluation)
+
     def value(self, result: dict, evaluation: dict) -> Any:
-        return self.of_evaluation(result, evaluation) if self.of_evaluation else self.of_job(result)
+        return self.evaluation_value(result, evaluation) if self.of_evaluation else self.job_value(result)
 
 
 def trained_on(result: dict) -> tuple[list[str], list[float]]:

@@ -63,7 +63,7 @@ def collect_spectra(runs: Path) -> tuple[dict, list]:
         tested = {ev["eval_scene"]: ev for ev in evaluations(result)}  # a cross-band job tests at another band
         for (eval_scene, method), values in by_eval.items():
             ev = tested.get(eval_scene, {"eval_scene": eval_scene})
-            at = {a.name: a.of_evaluation(result, ev) for a in AXES if a.of_evaluation is not None}
+            at = {a.name: a.evaluation_value(result, ev) for a in AXES if a.of_evaluation is not None}
             key = tuple(at[c] if c in at else str(settings.get(c)) for c in CELL)
             runs_of = out[key][method]
             if method != trained:  # a baseline: the same in every job of the cell (nothing trained)

@@ -67,7 +67,7 @@ def job_settings(result: dict, job: str) -> dict:
     out = {"job": job}
     for a in AXIS_LIST:
         if a.of_evaluation is None:
-            out[a.name] = a.of_job(result)
+            out[a.name] = a.job_value(result)
         if a.name == "finetune":  # where the fine-tuned model's test neighbors came from, beside its fraction
             out["test_pool"] = (result.get("finetune") or {}).get("test_pool", "")
     # the survey's density: median nearest-neighbor distance of the measured training positions (m)
@@ -103,7 +103,7 @@ def rows_of(result: dict, job: str) -> list[dict]:
     for ev in evaluations(result):
         base = {
             **common,
-            **{a.name: a.of_evaluation(result, ev) for a in AXIS_LIST if a.of_evaluation is not None},
+            **{a.name: a.evaluation_value(result, ev) for a in AXIS_LIST if a.of_evaluation is not None},
             "within_scene": bool(ev.get("within_scene")),
             "n_test": ev.get("n_test"),
         }
