@@ -301,6 +301,7 @@ def test_a_regime_of_own_runs_trains_each_point_from_scratch_over_its_own_steps(
     missing or failed point hides no later one."""
     from omegaconf import OmegaConf
 
+    from graf.errors import ConfigError
     from graf.studies import curves as C
 
     cfg = OmegaConf.create(
@@ -335,7 +336,7 @@ def test_a_regime_of_own_runs_trains_each_point_from_scratch_over_its_own_steps(
     cfg.regimes.r.each_point = "resume"  # the trajectory's table stops at its first missing point
     assert [r["step"] for r in C.collect(tmp_path, cfg)[0]] == [10]
     cfg.regimes.r.each_point = "own-run"
-    with pytest.raises(C.ConfigError, match="regimes.r.each_point: 'own-run' is not one of resume, own_run"):
+    with pytest.raises(ConfigError, match="regimes.r.each_point: 'own-run' is not one of resume, own_run"):
         C.collect(tmp_path, cfg)
 
 
