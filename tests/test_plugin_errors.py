@@ -94,3 +94,38 @@ def test_a_metric_of_one_value_per_spectrum_is_averaged_as_before():
     pred = torch.full((2, 90, 360), 0.25)
     metric.update(pred, torch.ones(2, 90, 360))
     assert float(metric.compute()) == pytest.approx(0.25)
+
+
+def test_a_checkpoint_of_a_plugins_method_names_a_class_graf_loads(tmp_path, monkeypatch):
+    """graf-eval takes the class from the checkpoint: a plugin's method (its module loaded by GRAF_PLUGINS, or a
+    submodule of it) is loaded; a module no plugin loaded is not imported, and a class that is no method is
+    refused, each in one line."""
+    from graf import plugins
+    from graf.models.base import CheckpointError, checkpoint_class
+
+    package = tmp_path / "tiny_plugin_68"
+    package.mkdir()
+    method = (
+        "from graf.models.base import SpectrumModule\nclass Tiny(SpectrumModule):\n    pass\nclass NotOne:\n    pass\n"
+    )
+    (package / "__init__.py").write_text(method)
+    (package / "more.py").write_text(method)
+    marker = tmp_path / "imported"
+    (tmp_path / "unloaded_68.py").write_text(f"open({str(marker)!r}, 'w').close()\n" + method)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(plugins, "LOADED", [])
+    for name in ("tiny_plugin_68", "tiny_plugin_68.more"):
+        monkeypatch.delitem(sys.modules, name, raising=False)
+    assert plugins.load_plugins("tiny_plugin_68") == ["tiny_plugin_68"]
+    assert checkpoint_class("tiny_plugin_68.Tiny", "a.ckpt").__name__ == "Tiny"
+    assert checkpoint_class("tiny_plugin_68.more.Tiny", "a.ckpt").__module__ == "tiny_plugin_68.more"  # a submodule
+    with pytest.raises(CheckpointError, match=r"a.ckpt: names tiny_plugin_68.NotOne, which is not one of graf's"):
+        checkpoint_class("tiny_plugin_68.NotOne", "a.ckpt")
+    with pytest.raises(CheckpointError, match=r"tiny_plugin_68.Gone, which this version of graf or of its plugin"):
+        checkpoint_class("tiny_plugin_68.Gone", "a.ckpt")
+    with pytest.raises(CheckpointError) as info:
+        checkpoint_class("unloaded_68.Tiny", "a.ckpt")
+    assert "load the plugin that defines it (GRAF_PLUGINS=unloaded_68); not imported" in str(info.value)
+    assert "\n" not in str(info.value) and not marker.exists()
+    for name in ("tiny_plugin_68", "tiny_plugin_68.more"):
+        sys.modules.pop(name, None)

@@ -16,7 +16,7 @@ Checkpoints are read safely (:func:`read_checkpoint`, :func:`safe_loading`): wei
 and numbers), with an allow-list of the few other types a checkpoint of this project may hold
 (:data:`CHECKPOINT_TYPES`).  A file that holds anything else (a crafted pickle whose objects would run code as they
 are loaded) is refused with one line, and nothing in it runs; the class a checkpoint names is imported only when it
-is one of graf's methods (:func:`checkpoint_class`).
+is one of graf's methods or of a plugin's (:func:`checkpoint_class`).
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ import collections
 import math
 import pickle
 import re
+import sys
 import typing
 import warnings
 from pathlib import Path
@@ -41,6 +42,7 @@ from graf.data.fingerprint import register_scene
 from graf.errors import UserError
 from graf.metrics import spectrum_metrics
 from graf.models.schedule import exponential_record, run_steps, schedule_length
+from graf.plugins import is_plugin_module
 
 
 class CheckpointError(UserError):
@@ -117,18 +119,43 @@ def read_checkpoint(path, lightning: bool = True) -> dict:
     return ckpt
 
 
+def _imported_class(name: str):
+    """The object ``name`` names in a module already imported (nothing imported, nothing run), or None."""
+    parts = name.split(".")
+    for i in range(len(parts) - 1, 0, -1):
+        module = sys.modules.get(".".join(parts[:i]))
+        if module is not None:
+            obj = module
+            for attr in parts[i:]:
+                obj = getattr(obj, attr, None)
+            return obj
+    return None
+
+
 def checkpoint_class(target, path) -> type:
-    """The method class a checkpoint names (``checkpoint["graf"]["target"]``): imported only when it is one of
-    graf's (a crafted file naming another module must not make graf import it), and a :class:`SpectrumModule`."""
+    """The method class a checkpoint names (``checkpoint["graf"]["target"]``), a :class:`SpectrumModule`: one of
+    graf's, one of a plugin's (a module ``GRAF_PLUGINS`` loaded, or a submodule of one: :mod:`graf.plugins`), or
+    one in a module already imported (a script's own).  Any other module is not imported (a crafted file naming
+    one must not make graf run its code): refused in one line saying how to load it."""
     name = str(target)
-    if not name.startswith("graf."):
-        raise CheckpointError(f"{path}: names the class {name!r}, which is not one of graf's methods")
-    try:
-        cls = get_class(name)
-    except Exception:
-        raise CheckpointError(f"{path}: names the class {name}, which this version of graf does not have") from None
+    module = name.rpartition(".")[0]
+    prefixes = [".".join(name.split(".")[:i]) for i in range(1, name.count(".") + 1)]
+    if name.startswith("graf.") or any(is_plugin_module(p) for p in prefixes):
+        try:
+            cls = get_class(name)
+        except Exception:
+            raise CheckpointError(
+                f"{path}: names the class {name}, which this version of graf or of its plugin does not have"
+            ) from None
+    else:
+        cls = _imported_class(name)
+        if cls is None:
+            raise CheckpointError(
+                f"{path}: names the class {name!r}, which is not one of graf's methods nor of a plugin loaded: load "
+                f"the plugin that defines it (GRAF_PLUGINS={module}); not imported"
+            )
     if not (isinstance(cls, type) and issubclass(cls, SpectrumModule)):
-        raise CheckpointError(f"{path}: names {name}, which is not one of graf's methods")
+        raise CheckpointError(f"{path}: names {name}, which is not one of graf's methods (a SpectrumModule)")
     return cls
 
 

@@ -30,7 +30,7 @@ from graf.data.datamodule import SpectrumDataModule
 from graf.data.fingerprint import eval_scene_index, find_scene, next_index, register_scene
 from graf.data.neighbors import NeighborSelector
 from graf.errors import ConfigError
-from graf.models.base import read_checkpoint
+from graf.models.base import checkpoint_class, read_checkpoint
 
 log = logging.getLogger("graf")
 
@@ -229,11 +229,10 @@ def check_per_scene(cfg: DictConfig, datamodule, evaluations: list, trains: bool
     (graf-eval ``ckpt_path``, ``finetune=none``).  Fine-tuning it on a new scene trains it there, and is allowed."""
     path = (cfg.get("finetune") or {}).get("init_from") or cfg.get("ckpt_path")
     saved = (read_checkpoint(path).get("graf") or {}).get("target") if path and not trains else None
-    if saved is not None and not str(saved).startswith("graf."):
-        return  # not one of graf's classes: loading the checkpoint refuses it, and nothing is imported here
     target = str(saved or (cfg.get("model") or {}).get("_target_") or "")
-    try:  # a class that cannot be imported is reported where the model is made
-        per_scene = bool(target) and getattr(hydra.utils.get_class(target), "per_scene", False)
+    try:  # a class that cannot be imported (or, a checkpoint's, is refused) is reported where the model is made
+        cls = checkpoint_class(saved, path) if saved is not None else hydra.utils.get_class(target)
+        per_scene = bool(target) and getattr(cls, "per_scene", False)
     except Exception:
         return
     if not per_scene:
