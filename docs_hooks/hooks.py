@@ -60,6 +60,7 @@ from mkdocs.structure.files import File
 
 from graf.errors import UserError
 from graf.reports import published
+from graf.reports import table as headline_table
 
 ROOT = Path(__file__).resolve().parents[1]
 SWEEPS = ROOT / "sweeps"
@@ -224,8 +225,8 @@ def choose(path: str) -> str:
 
 
 def headline(path: str) -> str:
-    """The main job's headline table (:func:`graf.reports.published.headline`), the README's too."""
-    return published.headline(json.loads(_record(ROOT / path).read_text()), path)
+    """The main job's headline table (:func:`graf.reports.table.headline`), the README's too."""
+    return headline_table.headline(json.loads(_record(ROOT / path).read_text()), path)
 
 
 def page_file(path: str) -> str:

@@ -11,7 +11,7 @@ import json
 import sys
 from pathlib import Path
 
-from graf.reports.published import ACCURATE, HEADLINE, markers, with_headline
+from graf.reports.table import ACCURATE, HEADLINE, markers, with_headline
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -2,7 +2,7 @@
 the graf-report markers) from each folder's own ``report.json``, ``rows.json`` and ``intervals.json``, without
 reading the jobs again (:func:`graf.reports.readme.block`; ``graf-report runs=FOLDER readme_only=true`` does the
 same for one folder), and the main job's table in ``sweeps/main_job/README.md`` from its ``results.json``
-(:func:`graf.reports.published.with_headline`):
+(:func:`graf.reports.table.with_headline`):
 
     python scripts/record_readmes.py                      # the main job, every sweeps/*/ with report.json + README
     python scripts/record_readmes.py sweeps/bands_paper   # these folders (a README is made where there is none)
@@ -17,8 +17,8 @@ from pathlib import Path
 
 from graf.errors import UserError
 from graf.io import atomic_write_text
-from graf.reports.published import HEADLINE, with_headline
 from graf.reports.readme import block, with_block
+from graf.reports.table import HEADLINE, with_headline
 
 ROOT = Path(__file__).resolve().parents[1]
 MAIN_JOB = ROOT / "sweeps" / "main_job" / "README.md"

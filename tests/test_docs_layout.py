@@ -415,7 +415,7 @@ def test_the_readme_headline_is_the_published_main_job_record():
     table Home and Getting started include: the three cannot disagree."""
     import json
 
-    from graf.reports.published import HEADLINE, HEADLINE_MARKERS, headline, with_headline
+    from graf.reports.table import HEADLINE, HEADLINE_MARKERS, headline, with_headline
 
     record = json.loads((ROOT / HEADLINE).read_text())
     readme = (ROOT / "README.md").read_text()

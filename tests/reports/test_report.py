@@ -223,7 +223,9 @@ def test_a_published_study_s_figures_are_redrawn_from_its_own_records(tmp_path):
     p = subprocess.run([sys.executable, str(root / "scripts" / "redraw_study_figures.py"), str(out), str(tmp_path)],
                        capture_output=True, text=True, timeout=120)  # fmt: skip
     assert p.returncode == 0, p.stderr[-2000:]
-    assert (out / "vs_L.png").stat().st_size > 5000 and f"{out}: report.md, report.csv, report.tex, vs_L.png" in p.stdout
+    assert (
+        out / "vs_L.png"
+    ).stat().st_size > 5000 and f"{out}: report.md, report.csv, report.tex, vs_L.png" in p.stdout
     assert "not a graf-report folder" in p.stdout  # tmp_path itself holds no report
     assert {f: (out / f).read_bytes() for f in records} == records
 

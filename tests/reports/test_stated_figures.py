@@ -10,7 +10,6 @@ from pathlib import Path
 import pytest
 
 from graf.errors import UserError
-from graf.reports.published import HEADLINE, markers, with_headline
 from graf.reports.readme import (
     END,
     START,
@@ -25,6 +24,7 @@ from graf.reports.readme import (
     supplement,
     with_block,
 )
+from graf.reports.table import HEADLINE, markers, with_headline
 
 ROOT = Path(__file__).resolve().parents[2]
 OWNED_ELSEWHERE = ("claims", "learning_curves")  # READMEs of records other commands write

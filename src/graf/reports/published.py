@@ -13,6 +13,7 @@ from collections import defaultdict
 
 from graf.errors import UserError
 from graf.reports.rows import matrices, seed_means, seeds_told
+from graf.reports.table import fmt, md  # noqa: F401  (the views' markdown, read from here by the site and readme)
 
 METRICS = (
     ("test/mse", "MSE", "{:.4f}"),
@@ -23,16 +24,6 @@ METRICS = (
 FRACTIONS = ("-", "none", "f05", "f10", "f20", "f50", "f100")
 BUDGET_WITHIN_DB = 0.1  # the studies' budget rule: the smallest step within this of a curve's best validation PSNR
 VALIDATION_FIGURES = (("val_psnr", True), ("val_ssim", True), ("val_lpips", False))  # (key, higher is better)
-
-
-def md(header: list[str], body: list[list]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in body]
-    return "\n".join(lines)
-
-
-def fmt(v, f: str) -> str:
-    return "-" if v is None else f.format(v)
 
 
 def reliance_matrix(rows: list[dict]) -> str:
@@ -373,43 +364,3 @@ def still_gaining(rows: list[dict], method: str, regime: str, per_doubling_db: f
         return None
     (s0, p0), (s1, p1) = pts[-2], pts[-1]
     return (p1 - p0) / math.log2(s1 / s0) > per_doubling_db
-
-
-HEADLINE = "sweeps/main_job/results.json"  # the main job's published record: the one headline table
-ACCURATE = "sweeps/main_job_accurate/results.json"  # experiment=graf_rfid_s23_accurate: the accurate variant
-
-
-def markers(source: str = HEADLINE) -> tuple[str, str]:
-    """The README's markers around the table generated from the record ``source``."""
-    return f"<!-- headline: generated from {source}; do not edit -->", "<!-- /headline -->"
-
-
-HEADLINE_MARKERS = markers(HEADLINE)
-
-
-def headline(record: dict, source: str = HEADLINE) -> str:
-    """The main job's table (the README's, Home's and Getting started's, so the three cannot disagree): GRaF and
-    each baseline tested beside it, test PSNR, SSIM, LPIPS (arrows: which way is better), reliance and validation
-    PSNR, from its ``results.json`` (``source``: the record's path, named under the table)."""
-    rows = [(record["method"], record["metrics"])]
-    rows += [(name, b["metrics"]) for name, b in (record.get("baselines") or {}).items()]
-    head = ["method", "PSNR (dB) ↑", "SSIM ↑", "LPIPS ↓", "reliance (dB)", "val PSNR (dB) ↑"]
-    keys = (("test/psnr", "{:.2f}"), ("test/ssim", "{:.3f}"), ("test/lpips", "{:.3f}"),
-            ("test/reliance_db", "{:.2f}"), ("val/psnr", "{:.2f}"))  # fmt: skip
-    body = [[f"`{name}`", *(fmt(m.get(k), f) for k, f in keys)] for name, m in rows]
-    fit = (record.get("timing") or {}).get("fit_s")
-    took = f", {fit / 60:.1f} min of training" if fit else ""
-    where = f"{record['scene']}, {record['n_test']} test spectra, {record['global_step']:,} training steps{took}"
-    return md(head, body) + f"\n\n*{where}; generated from `{source}`.*"
-
-
-def with_headline(text: str, record: dict, source: str = HEADLINE) -> str:
-    """``text`` (the README) with the block between :func:`markers` of ``source`` replaced by :func:`headline`."""
-    start, end = markers(source)
-    if start not in text:
-        raise UserError(f"no headline block ({start} ... {end}) to fill")
-    before, rest = text.split(start, 1)
-    if end not in rest:
-        raise UserError(f"the headline block of {source} has no end marker {end}")
-    _, after = rest.split(end, 1)
-    return f"{before}{start}\n{headline(record, source)}\n{end}{after}"

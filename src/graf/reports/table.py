@@ -33,7 +33,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, ListConfig
 
 from graf.app.config import output_dir, task_wrapper
-from graf.errors import PREEMPTED_EXIT_CODE, ConfigError, is_preempted
+from graf.errors import PREEMPTED_EXIT_CODE, ConfigError, UserError, is_preempted
 from graf.io import atomic_write_bytes, atomic_write_json
 
 log = logging.getLogger("graf")
@@ -341,3 +341,54 @@ class SweepTable(Callback):
                 config.hydra.job.num,
             )
             raise SystemExit(PREEMPTED_EXIT_CODE)
+
+
+def md(header: list[str], body: list[list]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in body]
+    return "\n".join(lines)
+
+
+def fmt(v, f: str) -> str:
+    return "-" if v is None else f.format(v)
+
+
+# --- the main job's headline table (the README's, Home's and Getting started's: one generator) ---
+HEADLINE = "sweeps/main_job/results.json"  # the main job's published record: the one headline table
+ACCURATE = "sweeps/main_job_accurate/results.json"  # experiment=graf_rfid_s23_accurate: the accurate variant
+
+
+def markers(source: str = HEADLINE) -> tuple[str, str]:
+    """The README's markers around the table generated from the record ``source``."""
+    return f"<!-- headline: generated from {source}; do not edit -->", "<!-- /headline -->"
+
+
+HEADLINE_MARKERS = markers(HEADLINE)
+
+
+def headline(record: dict, source: str = HEADLINE) -> str:
+    """The main job's table (the README's, Home's and Getting started's, so the three cannot disagree): GRaF and
+    each baseline tested beside it, test PSNR, SSIM, LPIPS (arrows: which way is better), reliance and validation
+    PSNR, from its ``results.json`` (``source``: the record's path, named under the table)."""
+    rows = [(record["method"], record["metrics"])]
+    rows += [(name, b["metrics"]) for name, b in (record.get("baselines") or {}).items()]
+    head = ["method", "PSNR (dB) ↑", "SSIM ↑", "LPIPS ↓", "reliance (dB)", "val PSNR (dB) ↑"]
+    keys = (("test/psnr", "{:.2f}"), ("test/ssim", "{:.3f}"), ("test/lpips", "{:.3f}"),
+            ("test/reliance_db", "{:.2f}"), ("val/psnr", "{:.2f}"))  # fmt: skip
+    body = [[f"`{name}`", *(fmt(m.get(k), f) for k, f in keys)] for name, m in rows]
+    fit = (record.get("timing") or {}).get("fit_s")
+    took = f", {fit / 60:.1f} min of training" if fit else ""
+    where = f"{record['scene']}, {record['n_test']} test spectra, {record['global_step']:,} training steps{took}"
+    return md(head, body) + f"\n\n*{where}; generated from `{source}`.*"
+
+
+def with_headline(text: str, record: dict, source: str = HEADLINE) -> str:
+    """``text`` (the README) with the block between :func:`markers` of ``source`` replaced by :func:`headline`."""
+    start, end = markers(source)
+    if start not in text:
+        raise UserError(f"no headline block ({start} ... {end}) to fill")
+    before, rest = text.split(start, 1)
+    if end not in rest:
+        raise UserError(f"the headline block of {source} has no end marker {end}")
+    _, after = rest.split(end, 1)
+    return f"{before}{start}\n{headline(record, source)}\n{end}{after}"
