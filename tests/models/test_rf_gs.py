@@ -409,3 +409,70 @@ def test_the_studies_list_it_where_a_per_scene_method_belongs():
     # at the base budget: no schedule of its own, so it decays over the run's steps as the base GRaF does
     assert list(pareto.points.rf_gs.overrides) == ["model=rf_gs"] and "method" in pareto.reference_knobs
     assert not any(o.startswith(("model.decay_steps", "trainer.max_steps")) for o in pareto.base)
+
+
+# ---------------------------------------------------------------------------------------------- limits, identity
+def test_a_gaussian_count_beyond_the_memory_is_refused_before_it_is_allocated(monkeypatch, capsys, tmp_path):
+    """Two million Gaussians: one line naming the setting, the count and the estimate (from the parameter
+    tensors' rows), before any tensor of that size is made; at the command line exit code 2."""
+    from types import SimpleNamespace
+
+    from graf.models.rf_gs import gaussians, module
+    from graf.models.rf_gs.gaussians import GaussianField
+
+    field = GaussianField(3, 2, 16, 4, 3.0, 0.1, 0.5, 60.0, 45.0, 1e-3)
+    row = sum(p[0].numel() * p.element_size() for p in field.per_gaussian())  # one Gaussian's row, in bytes
+    assert gaussians.gaussian_bytes(16, 0) == gaussians.TRAINING_COPIES * row
+    monkeypatch.setattr(module.psutil, "virtual_memory", lambda: SimpleNamespace(available=8 * 10**9))
+    made = []
+    monkeypatch.setattr(GaussianField, "reset", lambda self, n: made.append(n))
+    with pytest.raises(ConfigError) as info:
+        RFGSModule(**{**SMALL, "num_gaussians": 2_000_000, "max_gaussians": 2_000_000})
+    need = 2_000_000 * gaussians.gaussian_bytes(16, 16)
+    assert str(info.value) == (
+        f"model.num_gaussians=2000000: needs at least {need / 1e9:.1f} GB (2,000,000 Gaussians x "
+        f"{gaussians.gaussian_bytes(16, 16):,} bytes: their parameters at model.width=16, with gradients and Adam's "
+        "moments, and 16 spectra rendered at once, model.chunk_spectra), more than the 8.0 GB this machine has "
+        "free; lower it"
+    )
+    assert made == []  # refused before the Gaussians were drawn
+    with pytest.raises(ConfigError, match=r"^model\.max_gaussians=2000000: needs at least"):  # densification's cap
+        RFGSModule(**{**SMALL, "max_gaussians": 2_000_000})
+    RFGSModule(**{**SMALL, "max_gaussians": 2_000_000, "densify_every": 0})  # never densified: never reached
+    out = tmp_path / "run"
+    args = ("model=rf_gs", "model.num_gaussians=2000000", "model.max_gaussians=2000000", *QUICK, f"hydra.run.dir={out}")
+    code, _, err = run_main(monkeypatch, capsys, graf_train.main, *args)
+    lines = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("[")]
+    assert code == 2 and "Traceback" not in err and lines[0].startswith("error: model.num_gaussians=2000000: "), err
+
+
+def test_a_checkpoint_tested_on_another_folder_of_its_scene_name_says_what_differs(
+    compose_cfg, make_scene, monkeypatch, capsys
+):
+    """Trained on nerf2 from one folder, tested on nerf2 from another: the message names both folders and
+    content fingerprints and what differs, not "was not trained on nerf2"."""
+    trained, other = make_scene(n=16, name="here"), make_scene(n=16, name="there", seed=1)
+    common = ("model=rf_gs", "scene=nerf2", "band=915mhz", "neighbors=fixed", "neighbors.L=2", "baselines={}")
+    small = ("model.num_gaussians=16", "model.max_gaussians=16", "model.width=16", "model.depth=1", "plot_count=0")
+    cfg = compose_cfg("train", (*common, *small, f"scene.nerf2.path={trained}", "trainer.max_steps=1"))
+    train(cfg)
+    ckpt = Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt"
+    capsys.readouterr()
+    code, _, err = run_main(
+        monkeypatch,
+        capsys,
+        graf_eval.main,
+        f"ckpt_path={ckpt}",
+        *[a for a in common if a != "model=rf_gs" and a != "baselines={}"],
+        f"scene.nerf2.path={other}",
+        *QUICK,
+        f"hydra.run.dir={Path(cfg.paths.output_dir).parent / 'other_folder'}",
+    )
+    lines = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("[")]
+    assert code == 2 and "Traceback" not in err, err
+    line = lines[0]
+    assert line.startswith(
+        "error: RFGSModule is a per-scene method, and the nerf2 given here is not the nerf2 it was trained on "
+        "(its transmitter positions and spectra differ): here "
+    ), line
+    assert f"here {other} (content fingerprint " in line and f"trained on {trained} (content fingerprint " in line

@@ -29,8 +29,10 @@ def _sha(*arrays) -> str:
 
 
 def scene_fingerprint(data, frequency_hz: float) -> dict:
-    """``{"digest", "gateway", "positions", "spectra", "band_hz", "n"}`` of a :class:`SpectrumSet` at a band
-    (sha256 hex digests; ``digest`` joins the others).  The content digests are computed once per set."""
+    """``{"digest", "gateway", "positions", "spectra", "band_hz", "n", "source"}`` of a :class:`SpectrumSet` at a
+    band (sha256 hex digests; ``digest`` joins the others).  The content digests are computed once per set.
+    ``source`` (where the set was read from) is no part of its identity: a message names it when two scenes of
+    one name differ (:func:`differences`)."""
     parts = getattr(data, "_content_digests", None)
     if parts is None:
         parts = {
@@ -43,7 +45,23 @@ def scene_fingerprint(data, frequency_hz: float) -> dict:
         data._content_digests = parts
     band_hz = float(frequency_hz)
     digest = hashlib.sha256(f"{parts['gateway']}|{parts['positions']}|{parts['spectra']}|{band_hz:.6f}".encode())
-    return {"digest": digest.hexdigest(), **parts, "band_hz": band_hz, "n": int(len(data.ids))}
+    out = {"digest": digest.hexdigest(), **parts, "band_hz": band_hz, "n": int(len(data.ids))}
+    return {**out, "source": str(data.source)} if getattr(data, "source", None) else out
+
+
+PARTS = {"gateway": "gateway pose", "positions": "transmitter positions", "spectra": "spectra", "band_hz": "band"}
+
+
+def describe(fingerprint: dict) -> str:
+    """A scene as a message names it: ``/data/a (content fingerprint 3f2a9c1b04de, 480 spectra)``."""
+    where = fingerprint.get("source") or "a folder the checkpoint does not record"
+    return f"{where} (content fingerprint {str(fingerprint.get('digest'))[:12]}, {fingerprint.get('n')} spectra)"
+
+
+def differences(a: dict, b: dict) -> str:
+    """What differs between two fingerprints, in words: ``its transmitter positions and spectra differ``."""
+    parts = [words for key, words in PARTS.items() if a.get(key) != b.get(key) and a.get(key) and b.get(key)]
+    return f"its {' and '.join(parts)} differ" if parts else "its content differs"
 
 
 def find_scene(table: dict, name: str, fingerprint: dict) -> str | None:

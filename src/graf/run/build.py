@@ -27,7 +27,7 @@ from graf.app.config import (
 )
 from graf.console import is_terminal
 from graf.data.datamodule import SpectrumDataModule
-from graf.data.fingerprint import eval_scene_index, find_scene, next_index, register_scene
+from graf.data.fingerprint import describe, differences, eval_scene_index, find_scene, next_index, register_scene
 from graf.data.neighbors import NeighborSelector
 from graf.errors import ConfigError
 from graf.models.base import checkpoint_class, read_checkpoint
@@ -177,8 +177,9 @@ def build(cfg: DictConfig, trains: bool = True) -> BuiltRun:
         given = [eval_scene_index(table, d.name, fp) for d, fp in zip(datamodule.sets, datamodule.fingerprints())]
         datamodule.set_scene_indices([k for k, _ in given])
         datamodule.scene_index_source = given[0][1]
-    evaluations = eval_datamodules(cfg, datamodule, table, seen=table if trains or not known else known)
-    check_per_scene(cfg, datamodule, evaluations, trains)
+    seen = table if trains or not known else known
+    evaluations = eval_datamodules(cfg, datamodule, table, seen=seen)
+    check_per_scene(cfg, datamodule, evaluations, trains, seen)
     for ev in evaluations:
         if ev.datamodule is not datamodule:
             check_bands(cfg, table, ev.datamodule, source or "the model")
@@ -222,11 +223,13 @@ def check_not_validation_only(cfg: DictConfig, configs: list) -> None:
             )
 
 
-def check_per_scene(cfg: DictConfig, datamodule, evaluations: list, trains: bool) -> None:
+def check_per_scene(cfg: DictConfig, datamodule, evaluations: list, trains: bool, seen: dict | None = None) -> None:
     """Refuse, in one line, a run that trains a per-scene method (its class says ``per_scene = True``: RF Gaussian
     splatting, whose Gaussians live in one scene's frame) on several scenes, or tests it on a scene it was not
-    trained on (a zero-shot test).  The class is the checkpoint's when the run tests one without training
-    (graf-eval ``ckpt_path``, ``finetune=none``).  Fine-tuning it on a new scene trains it there, and is allowed."""
+    trained on (a zero-shot test); a scene of the name of one it was trained on (``seen``: the model's scenes by
+    content) but other data (another NeRF2 folder) is named with both folders and content fingerprints.  The class
+    is the checkpoint's when the run tests one without training (graf-eval ``ckpt_path``, ``finetune=none``).
+    Fine-tuning it on a new scene trains it there, and is allowed."""
     path = (cfg.get("finetune") or {}).get("init_from") or cfg.get("ckpt_path")
     saved = (read_checkpoint(path).get("graf") or {}).get("target") if path and not trains else None
     target = str(saved or (cfg.get("model") or {}).get("_target_") or "")
@@ -242,6 +245,16 @@ def check_per_scene(cfg: DictConfig, datamodule, evaluations: list, trains: bool
     if trains and len(names) > 1:
         raise ConfigError(f"{method} is a per-scene method: train it on one scene, not on {', '.join(names)}")
     unseen = [ev.eval_scene for ev in evaluations if not ev.within_scene]
+    for ev in (ev for ev in evaluations if not ev.within_scene):
+        same = [v for k, v in (seen or {}).items() if k.split("#")[0] == ev.eval_scene and v.get("fingerprint")]
+        if same:  # trained on a scene of this name, but other data: say which, and what differs
+            here, theirs = ev.datamodule.fingerprints()[0], same[0]["fingerprint"]
+            raise ConfigError(
+                f"{method} is a per-scene method, and the {ev.eval_scene} given here is not the {ev.eval_scene} it "
+                f"was trained on ({differences(theirs, here)}): here {describe(here)}, trained on {describe(theirs)}; "
+                "test it on the data it was trained on, or train it on this (finetune=... finetune.init_from=CKPT "
+                "fine-tunes it)"
+            )
     if unseen:
         raise ConfigError(
             f"{method} is a per-scene method and was not trained on {', '.join(unseen)}: it cannot be tested there "

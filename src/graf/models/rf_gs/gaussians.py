@@ -33,11 +33,50 @@ import math
 import torch
 from torch import nn
 
+from graf.errors import ConfigError
 from graf.geometry.encoding import PositionalEncoding
+from graf.geometry.grid import N_AZIMUTH, N_ELEVATION
 from graf.models.rf_gs.rasterizer import ELEVATION_EDGES
 
 OFFSETS = 5  # per Gaussian: elevation, azimuth, log width (elevation, azimuth), amplitude
 PER_GAUSSIAN = ("elevation", "azimuth", "log_sigma", "amplitude", "head_weight", "head_bias")
+VALUE_BYTES = 4  # float32, every per-Gaussian parameter and what rendering makes of it
+TRAINING_COPIES = 4  # a parameter row in training: the weights, their gradients and Adam's two moments
+# values per Gaussian per spectrum rendered at once: its elevation and azimuth profiles, offsets, deformed values
+RENDER_VALUES = N_ELEVATION + N_AZIMUTH + 2 * OFFSETS
+
+
+def row_shapes(width: int) -> dict[str, tuple[int, ...]]:
+    """The shape of one Gaussian's row of each per-Gaussian parameter (:data:`PER_GAUSSIAN`) at this head width."""
+    return {
+        "elevation": (),
+        "azimuth": (),
+        "log_sigma": (2,),
+        "amplitude": (),
+        "head_weight": (OFFSETS, int(width)),
+        "head_bias": (OFFSETS,),
+    }
+
+
+def gaussian_bytes(width: int, spectra: int) -> int:
+    """The memory one Gaussian takes, at the least, in a model rendering ``spectra`` spectra at once: its rows of
+    the parameters (:func:`row_shapes`) :data:`TRAINING_COPIES` times over, and its :data:`RENDER_VALUES` per
+    spectrum (what autograd keeps besides is not counted)."""
+    row = sum(math.prod(shape) for shape in row_shapes(width).values())
+    return VALUE_BYTES * (TRAINING_COPIES * row + int(spectra) * RENDER_VALUES)
+
+
+def check_gaussian_memory(key: str, count: int, width: int, spectra: int, available: int, where: str) -> None:
+    """Refuse, in one line naming the setting ``key``, a Gaussian count whose memory (:func:`gaussian_bytes`) is
+    more than the ``available`` bytes of ``where`` (the machine's memory, a GPU's), before anything is allocated."""
+    need = int(count) * gaussian_bytes(width, spectra)
+    if need > available:
+        raise ConfigError(
+            f"model.{key}={count}: needs at least {need / 1e9:.1f} GB ({count:,} Gaussians x "
+            f"{gaussian_bytes(width, spectra):,} bytes: their parameters at model.width={width}, with gradients and "
+            f"Adam's moments, and {spectra} spectra rendered at once, model.chunk_spectra), more than the "
+            f"{available / 1e9:.1f} GB {where} has free; lower it"
+        )
 
 
 class GaussianField(nn.Module):
@@ -82,13 +121,14 @@ class GaussianField(nn.Module):
         """Draw n fresh Gaussians and head rows (see the module docstring)."""
         n = int(n)
         lo, hi = ELEVATION_EDGES
+        rows = {name: (n, *shape) for name, shape in row_shapes(self.width).items()}
         fresh = {
-            "elevation": lo + (hi - lo) * torch.rand(n),
-            "azimuth": 360.0 * torch.rand(n),
-            "log_sigma": torch.full((n, 2), math.log(self.init_sigma)),
-            "amplitude": torch.full((n,), self.init_amplitude),
-            "head_weight": torch.randn(n, OFFSETS, self.width) * self.head_init,
-            "head_bias": torch.zeros(n, OFFSETS),
+            "elevation": lo + (hi - lo) * torch.rand(rows["elevation"]),
+            "azimuth": 360.0 * torch.rand(rows["azimuth"]),
+            "log_sigma": torch.full(rows["log_sigma"], math.log(self.init_sigma)),
+            "amplitude": torch.full(rows["amplitude"], self.init_amplitude),
+            "head_weight": torch.randn(rows["head_weight"]) * self.head_init,
+            "head_bias": torch.zeros(rows["head_bias"]),
         }
         device = next(self.trunk.parameters()).device
         self._replace({name: value.to(device) for name, value in fresh.items()})

@@ -22,6 +22,11 @@ to ``max_gaussians`` in all.  The optimiser's moments follow the rows (children 
 before it loads (a load pre-hook, so Lightning's ``load_from_checkpoint``, a resume and ``finetune.init_from``
 alike), and the loaded model predicts as the saved one did.
 
+**Memory**: a Gaussian count (``num_gaussians``; ``max_gaussians`` when densification may reach it) whose memory
+(:func:`.gaussians.gaussian_bytes`: the parameter rows with gradients and Adam's moments, and ``chunk_spectra``
+spectra's profiles) is more than the machine has free is refused in one line naming the setting, the count and the
+estimate, before anything is allocated; on a GPU, against its free memory when training starts (:meth:`setup`).
+
 **Per scene** (``per_scene = True``): one scene's field in that scene's frame; :func:`graf.run.build.build`
 refuses, in one line, a run that trains it on several scenes or tests it on a scene it was not trained on.
 """
@@ -30,6 +35,7 @@ from __future__ import annotations
 
 import math
 
+import psutil
 import torch
 import torch.nn.functional as F
 
@@ -37,7 +43,7 @@ from graf.config_home import defaults_from
 from graf.geometry.encoding import normalize_positions
 from graf.models.base import SpectrumModule
 from graf.models.knn.weights import idw_weights
-from graf.models.rf_gs.gaussians import GaussianField, split_plan, split_rows
+from graf.models.rf_gs.gaussians import GaussianField, check_gaussian_memory, split_plan, split_rows
 from graf.models.rf_gs.rasterizer import SIGMA_LIMIT, render
 from graf.models.schedule import check_rates, exponential_record, run_steps, schedule_length
 
@@ -83,6 +89,14 @@ def check_settings(s: dict) -> None:
             f"model.sigma_min / init_sigma / sigma_max = {s['sigma_min']} / {s['init_sigma']} / {s['sigma_max']}: "
             f"must satisfy sigma_min <= init_sigma <= sigma_max <= {SIGMA_LIMIT:g} deg and sigma_min < sigma_max"
         )
+    check_memory(s, psutil.virtual_memory().available, "this machine")
+
+
+def check_memory(s: dict, available: int, where: str) -> None:
+    """Refuse a Gaussian count the memory ``where`` has free cannot hold (:func:`.gaussians.check_gaussian_memory`),
+    before it is allocated: ``num_gaussians``, and ``max_gaussians`` where densification may reach it."""
+    for key in ("num_gaussians", "max_gaussians") if s["densify_every"] else ("num_gaussians",):
+        check_gaussian_memory(key, s[key], s["width"], s["chunk_spectra"], available, where)
 
 
 def follow_rows(optimizer: torch.optim.Optimizer, moved: dict, index: torch.Tensor) -> None:
@@ -173,6 +187,15 @@ class RFGSModule(SpectrumModule):
     @property
     def method(self) -> str:
         return "rf-gs" if self.base == "none" else f"rf-gs-{self.base}"
+
+    def setup(self, stage: str) -> None:
+        """On an accelerator that says how much memory it has free (a GPU), refuse a Gaussian count it cannot hold
+        (:func:`check_memory`), before the Gaussians are moved there (the machine's memory was checked when the
+        module was made)."""
+        device = self.trainer.strategy.root_device if getattr(self, "_trainer", None) is not None else None
+        free = getattr(torch.get_device_module(device), "mem_get_info", None) if device is not None else None
+        if free is not None and device.type != "cpu":
+            check_memory(dict(self.hparams), free(device)[0], f"{device.type} device {device}")
 
     # ------------------------------------------------------------------ rendering
     def gaussians(self, batch: dict) -> dict[str, torch.Tensor]:
