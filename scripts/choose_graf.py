@@ -18,18 +18,32 @@ choice within its time: ``--regime rfid_sparse --max-step 300``); ``--within-db 
 the smallest step within D dB of its curve's best validation PSNR, and whether the curve still gains more than
 0.1 dB per doubling of steps (the rule of regime ``cross_family_val``: then it goes on to 30,000).
 
+``--leads-knn REGIME`` applies the main job's rule instead (:func:`graf.reports.published.leading_knn`, stated in
+``conf/experiment/graf_rfid_s23.yaml``): of the points of REGIME that lead its KNN line in all three validation
+figures, the highest validation PSNR (within 0.1 dB: the fewest steps); the KNN line is read from the
+``results.json`` beside the curves file.
+
     python scripts/choose_graf.py [sweeps/learning_curves/curves.csv] [--modes pooled ray ray_knn ray_weights]
+    python scripts/choose_graf.py --leads-knn main_job
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import json
 import sys
 from pathlib import Path
 
 from graf.errors import UserError
-from graf.reports.published import ahead_label, best_step, choose_per_regime, continued_regimes, still_gaining
+from graf.reports.published import (
+    ahead_label,
+    best_step,
+    choose_per_regime,
+    continued_regimes,
+    leading_knn,
+    still_gaining,
+)
 
 
 def main() -> None:
@@ -39,12 +53,15 @@ def main() -> None:
     ap.add_argument("--regime", default=None, help="only this regime")
     ap.add_argument("--max-step", type=int, default=None, help="only the points at or below this many steps")
     ap.add_argument("--within-db", type=float, default=None, help="print each method's budget within this many dB")
+    ap.add_argument("--leads-knn", default=None, metavar="REGIME", help="the main job's rule on this regime")
     args = ap.parse_args()
     path = Path(args.curves)
     if not path.is_file():
         sys.exit(f"error: {path}: no such curves file (run graf-curves first)")
     with path.open() as f:
         rows = list(csv.DictReader(f))
+    if args.leads_knn:
+        sys.exit(main_job_choice(rows, path, args.leads_knn))
     continues = continued_regimes()
     # a regime that continues another is reported beside that one's choice: --regime of it keeps both
     regimes = None if args.regime is None else {args.regime, continues.get(args.regime, args.regime)}
@@ -91,6 +108,29 @@ def main() -> None:
                     f"| {regime} | {m} | {best_step(rows, m, regime, args.within_db)} | {last} | "
                     f"{'n/a' if gaining is None else 'yes' if gaining else 'no'} |"
                 )
+
+
+def main_job_choice(rows: list[dict], path: Path, regime: str) -> int:
+    """Print the main job's rule on ``regime`` (every point, whether it leads KNN in all three figures, the choice)."""
+    knn = json.loads((path.parent / "results.json").read_text()).get("knn", {}).get(regime)
+    if knn is None:
+        print(f"error: {path.parent / 'results.json'}: no KNN line of regime {regime}", file=sys.stderr)
+        return 2
+    try:
+        chosen, table = leading_knn(rows, knn, regime)
+    except UserError as e:
+        print(f"error: {path}: {e}", file=sys.stderr)
+        return 2
+    print(f"### {regime}: the main job's rule (KNN: PSNR {knn['val/psnr']:.2f}, SSIM {knn['val/ssim']:.3f}, "
+          f"LPIPS {knn['val/lpips']:.3f})\n")  # fmt: skip
+    print("| mode | step | val PSNR | val SSIM | val LPIPS | leads KNN in all three |")
+    print("|---|---|---|---|---|---|")
+    for t in table:
+        print(f"| {t['mode']} | {t['step']} | {t['val_psnr']:.2f} | {t['val_ssim']:.3f} | {t['val_lpips']:.3f} | "
+              f"{'yes' if t['leads'] else 'no'} |")  # fmt: skip
+    none = "\nchosen: none leads KNN in all three"
+    print(f"\nchosen: {chosen['mode']} at {chosen['step']} steps" if chosen else none)
+    return 0
 
 
 if __name__ == "__main__":

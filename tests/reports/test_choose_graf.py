@@ -98,3 +98,30 @@ def test_a_continues_key_naming_no_regime_stops_with_the_file_and_key(tmp_path, 
     monkeypatch.setattr(graf.app.config, "CONF_DIR", str(tmp_path))
     with pytest.raises(ConfigError, match=r"curves.yaml: regimes.d30.continues: 'dd' is not another regime"):
         choose_graf.continued_regimes()
+
+
+def test_the_main_jobs_rule_takes_the_best_point_that_leads_knn_in_all_three_figures():
+    """The main job's rule (conf/experiment/graf_rfid_s23.yaml): a point ahead in PSNR but behind in LPIPS is out;
+    of the points ahead in all three, the highest PSNR, the fewest steps within 0.1 dB; none: None."""
+    from graf.reports.published import leading_knn
+
+    def row(mode, step, psnr, ssim, lpips):
+        return {"regime": "m", "method": mode, "step": str(step), "val_psnr": str(psnr), "val_ssim": str(ssim),
+                "val_lpips": str(lpips), "val_reliance_db": "1.0"}  # fmt: skip
+
+    knn = {"val/psnr": 15.0, "val/ssim": 0.64, "val/lpips": 0.243}
+    rows = [
+        row("ray_weights", 300, 16.5, 0.66, 0.254),  # ahead in PSNR and SSIM, behind in LPIPS: out
+        row("ray_knn", 300, 17.30, 0.70, 0.230),
+        row("ray_knn", 500, 17.35, 0.71, 0.220),  # within 0.1 dB of the best: the fewer steps win
+        row("pooled", 500, 14.0, 0.40, 0.800),
+        {**row("ray", 100, 99.0, 0.99, 0.01), "regime": "other"},  # another regime: not read
+    ]
+    chosen, table = leading_knn(rows, knn, "m")
+    assert (chosen["mode"], chosen["step"]) == ("ray_knn", 300)
+    assert [(t["mode"], t["step"], t["leads"]) for t in table] == [
+        ("pooled", 500, False), ("ray_knn", 300, True), ("ray_knn", 500, True), ("ray_weights", 300, False)
+    ]  # fmt: skip
+    assert leading_knn(rows[:1], knn, "m")[0] is None
+    with pytest.raises(UserError, match="no KNN line"):
+        leading_knn(rows, {"val/psnr": 15.0}, "m")

@@ -364,3 +364,28 @@ def still_gaining(rows: list[dict], method: str, regime: str, per_doubling_db: f
         return None
     (s0, p0), (s1, p1) = pts[-2], pts[-1]
     return (p1 - p0) / math.log2(s1 / s0) > per_doubling_db
+
+
+def leading_knn(
+    rows: list[dict], knn: dict, regime: str, within_db: float = BUDGET_WITHIN_DB
+) -> tuple[dict | None, list]:
+    """The main job's rule (``conf/experiment/graf_rfid_s23.yaml``), on the points of ``regime`` (curves.csv rows)
+    and its KNN line (``knn``: curves' results.json ``knn[regime]``): the points that lead KNN in all three
+    validation figures (higher PSNR and SSIM, lower LPIPS); of those, the highest validation PSNR, and among the
+    points within ``within_db`` of it the fewest steps.  (the chosen point or None, every point with ``leads``)."""
+    line = {"val_psnr": knn.get("val/psnr"), "val_ssim": knn.get("val/ssim"), "val_lpips": knn.get("val/lpips")}
+    if any(v is None for v in line.values()):
+        raise UserError(f"curves: regime {regime} has no KNN line with PSNR, SSIM and LPIPS")
+    table = []
+    for r in rows:
+        if r["regime"] != regime or r["val_psnr"] in ("", None):
+            continue
+        p = _point(r)
+        p["leads"] = all(p[k] > line[k] if up else p[k] < line[k] for k, up in VALIDATION_FIGURES)
+        table.append(p)
+    table.sort(key=lambda p: (p["mode"], p["step"]))
+    lead = [p for p in table if p["leads"]]
+    if not lead:
+        return None, table
+    top = max(p["val_psnr"] for p in lead)
+    return min((p for p in lead if p["val_psnr"] >= top - within_db), key=lambda p: (p["step"], -p["val_psnr"])), table
