@@ -10,6 +10,7 @@ subclass :class:`UserError` beside :class:`ConfigError`.
 from __future__ import annotations
 
 import collections.abc
+import errno
 import re
 import types
 import typing
@@ -37,6 +38,27 @@ class WriteError(UserError):
     """A file that cannot be written where the user asked (a full disk, a read-only folder); the message names it."""
 
 
+DISK_FULL = ("No space left on device", "Disk quota exceeded")  # how a failed write says it when no errno is kept
+
+
+def disk_full(exc: BaseException, folder=None) -> str | None:
+    """A full disk (or quota) behind ``exc``, met by a writer that is not graf's own (a checkpoint's ``torch.save``,
+    a logger's file): the line to end on, naming the run's output ``folder`` where given and the file being written
+    where the error kept it (None: not a full disk).  Follows the exception's causes, since a library may wrap the
+    OSError (torch's stream writer reports it as text)."""
+    seen, where = set(), f" of {folder}" if folder else ""
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            writing = f", writing {exc.filename}" if exc.filename else ""
+            return f"no space is left on the disk{where} ({exc.strerror}{writing}); the files written before are kept"
+        if any(m in str(exc) for m in DISK_FULL):
+            said = str(exc).strip()[:200]
+            return f"no space is left on the disk{where} ({said}); the files written before are kept"
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
 PREEMPTED_EXIT_CODE = 143  # 128 + SIGTERM: what a shell reports for a job ended by SIGTERM
 
 
@@ -56,9 +78,9 @@ def is_user_error(exc: BaseException) -> bool:
     """Errors in what the user gave (data, config values, checkpoints), whose message says what is wrong:
     :class:`graf.errors.UserError` (``ConfigError``, ``DataFormatError``, ``CheckpointError``,
     ``NoNeighborsError``), a mandatory config value left unset, and a constructor refusing a config value
-    (Hydra's instantiation error)."""
+    (Hydra's instantiation error), and a full disk met by a writer that is not graf's own (:func:`disk_full`)."""
 
-    return isinstance(exc, (UserError, MissingMandatoryValue, InstantiationException))
+    return isinstance(exc, (UserError, MissingMandatoryValue, InstantiationException)) or disk_full(exc) is not None
 
 
 def user_message(exc: BaseException, cfg=None) -> str:
@@ -66,6 +88,18 @@ def user_message(exc: BaseException, cfg=None) -> str:
     around it (``Error in call to target ...``), with the config node it came from.  Given the run's config, a
     setting of that node that is not of the type its constructor takes is named with its value
     (:func:`mistyped_setting`): ``neighbors.L=abc: must be an integer``, not ``invalid literal for int()``."""
+    full = (
+        None
+        if isinstance(exc, UserError)
+        else disk_full(
+            exc,
+            OmegaConf.select(cfg, "paths.output_dir", default=None, throw_on_resolution_failure=False)
+            if cfg is not None
+            else None,
+        )
+    )
+    if full:
+        return full
 
     cause = exc.__cause__ if isinstance(exc, InstantiationException) else None
     if cause is not None and str(cause):

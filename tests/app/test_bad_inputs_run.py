@@ -256,3 +256,27 @@ def test_a_run_folder_in_use_is_locked_and_a_second_run_into_it_stops_with_one_l
         time.sleep(0.05)
     assert lock_folder(tmp_path) is None  # the holder is gone: free; held now by this process, again: still ours
     assert lock_folder(tmp_path) is None
+
+
+def test_a_disk_that_fills_mid_run_ends_on_one_line_naming_the_file():
+    """A full disk met by a writer that is not graf's own atomic one (a checkpoint's torch.save, a logger): a user
+    error of one line naming the file (issue 68), found through a library's wrapping; other OSErrors stay bugs."""
+    from graf.errors import disk_full, is_user_error, user_message
+
+    full = OSError(errno.ENOSPC, "No space left on device", "/run/checkpoints/last.ckpt")
+    try:
+        try:
+            raise full
+        except OSError as e:
+            raise RuntimeError("checkpoint could not be saved") from e
+    except RuntimeError as wrapped:
+        assert is_user_error(wrapped)
+        assert user_message(wrapped) == (
+            "no space is left on the disk (No space left on device, writing /run/checkpoints/last.ckpt); the files "
+            "written before are kept"
+        )
+        cfg = OmegaConf.create({"paths": {"output_dir": "/run"}})
+        assert user_message(wrapped, cfg).startswith("no space is left on the disk of /run (")
+    torch_said = RuntimeError("[enforce fail at inline_container.cc:664] . unexpected pos ... No space left on device")
+    assert disk_full(torch_said).startswith("no space is left on the disk ([enforce fail")
+    assert disk_full(OSError(errno.EIO, "I/O error")) is None and not is_user_error(OSError(errno.EIO, "I/O error"))
