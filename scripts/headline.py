@@ -1,6 +1,7 @@
 """Write the main job's headline tables into the README (between their headline markers) from the published
 records ``sweeps/main_job/results.json`` and, where the README has its block, the accurate variant's
-``sweeps/main_job_accurate/results.json``: ``python scripts/headline.py`` (``--check``: exit 1 if the README
+``sweeps/main_job_accurate/results.json``, and the default tests' timed run (``sweeps/test_timing/results.json``,
+``scripts/time_tests.py``): ``python scripts/headline.py`` (``--check``: exit 1 if the README
 differs).
 The site's pages include the same table through ``<!-- gen: headline -->``; tests/test_docs_layout.py checks
 that the README's is up to date."""
@@ -11,9 +12,35 @@ import json
 import sys
 from pathlib import Path
 
+from graf.errors import UserError
 from graf.reports.table import ACCURATE, HEADLINE, markers, with_headline
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+TEST_TIMING = "sweeps/test_timing/results.json"  # scripts/time_tests.py's record of the README's test command
+TEST_TIMING_MARKERS = (f"<!-- test-timing: generated from {TEST_TIMING}; do not edit -->", "<!-- /test-timing -->")
+
+
+def test_timing(record: dict) -> str:
+    """The README's words for the default tests' timed run (its record: :data:`TEST_TIMING`)."""
+    minutes, seconds = divmod(round(float(record["wall_s"])), 60)
+    m = record.get("machine") or {}
+    busy = record.get("other_load_cores")
+    quiet = "" if busy is None else (", the machine quiet" if busy < 0.2 else f", beside {busy:.1f} busy cores")
+    return (
+        f"the default tests {minutes} min {seconds} s ({record.get('pytest_closing')}; {m.get('cores')}-core "
+        f"{m.get('cpu')}, {record.get('date')}, commit {record.get('commit')}{quiet}; `{TEST_TIMING}`)"
+    )
+
+
+def with_test_timing(text: str, record: dict) -> str:
+    """``text`` (the README) with its test-timing block (inline, between :data:`TEST_TIMING_MARKERS`) regenerated."""
+    start, end = TEST_TIMING_MARKERS
+    if start not in text or end not in text.split(start, 1)[1]:
+        raise UserError(f"no test-timing block ({start} ... {end}) to fill")
+    before, rest = text.split(start, 1)
+    return f"{before}{start}{test_timing(record)}{end}{rest.split(end, 1)[1]}"
 
 
 def main(argv: list[str]) -> int:
@@ -22,6 +49,8 @@ def main(argv: list[str]) -> int:
     new = with_headline(text, json.loads((ROOT / HEADLINE).read_text()))
     if markers(ACCURATE)[0] in new:
         new = with_headline(new, json.loads((ROOT / ACCURATE).read_text()), ACCURATE)
+    if TEST_TIMING_MARKERS[0] in new:  # the default tests' timed run (scripts/time_tests.py)
+        new = with_test_timing(new, json.loads((ROOT / TEST_TIMING).read_text()))
     if "--check" in argv:
         return 0 if new == text else 1
     readme.write_text(new)
