@@ -190,7 +190,9 @@ def choose(path: str) -> str:
     modes = ["pooled", "ray", "ray_knn", "ray_weights"]
     out = []
     try:
-        choices, waiting, beside = published.choose_per_regime(rows, modes, published.continued_regimes())
+        choices, waiting, beside = published.choose_per_regime(
+            rows, modes, published.continued_regimes(), published.own_run_regimes()
+        )
     except UserError as e:
         raise PluginError(f"docs: {path}: {e}") from e
     for regime, chosen, table in choices:

@@ -42,6 +42,7 @@ from graf.reports.published import (
     choose_per_regime,
     continued_regimes,
     leading_knn,
+    own_run_regimes,
     still_gaining,
 )
 
@@ -71,7 +72,7 @@ def main() -> None:
         if (regimes is None or r["regime"] in regimes) and (args.max_step is None or int(r["step"]) <= args.max_step)
     ]
     try:
-        choices, waiting, beside = choose_per_regime(rows, args.modes, continues)
+        choices, waiting, beside = choose_per_regime(rows, args.modes, continues, own_run_regimes())
     except UserError as e:
         print(f"error: {path}: {e}", file=sys.stderr)
         sys.exit(2)

@@ -11,16 +11,13 @@ from __future__ import annotations
 import math
 from collections import defaultdict
 
-from graf.errors import UserError
-from graf.reports.rows import matrices, seed_means, seeds_told
+from omegaconf import OmegaConf
+
+from graf.app import config as app_config
+from graf.errors import ConfigError, UserError
+from graf.reports.rows import METRICS, matrices, seed_means, seeds_told  # METRICS: the registry's, in its order
 from graf.reports.table import fmt, md  # noqa: F401  (the views' markdown, read from here by the site and readme)
 
-METRICS = (
-    ("test/mse", "MSE", "{:.4f}"),
-    ("test/lpips", "LPIPS", "{:.3f}"),
-    ("test/psnr", "PSNR", "{:.2f}"),
-    ("test/ssim", "SSIM", "{:.3f}"),
-)
 FRACTIONS = ("-", "none", "f05", "f10", "f20", "f50", "f100")
 BUDGET_WITHIN_DB = 0.1  # the studies' budget rule: the smallest step within this of a curve's best validation PSNR
 VALIDATION_FIGURES = (("val_psnr", True), ("val_ssim", True), ("val_lpips", False))  # (key, higher is better)
@@ -222,23 +219,29 @@ def regimes_ready(
     return ready, waiting
 
 
+def curves_regimes() -> tuple:
+    """(``conf/curves.yaml``'s regimes, the file's path)."""
+    path = f"{app_config.CONF_DIR}/curves.yaml"
+    return OmegaConf.load(path).regimes, path
+
+
 def continued_regimes(regimes=None, path: str = "curves.yaml") -> dict[str, str]:
     """{regime: the regime it continues} from the ``continues`` keys of ``regimes`` (graf-curves' config, checked at
     its start), by default ``conf/curves.yaml``'s (the site's); one naming no other regime there stops with a
     :class:`~graf.errors.ConfigError` naming ``path``."""
-    from omegaconf import OmegaConf
-
-    from graf.app.config import CONF_DIR
-    from graf.errors import ConfigError
-
     if regimes is None:
-        path = f"{CONF_DIR}/curves.yaml"
-        regimes = OmegaConf.load(path).regimes
+        regimes, path = curves_regimes()
     out = {name: str(r.continues) for name, r in regimes.items() if r.get("continues")}
     for name, parent in out.items():
         if parent not in regimes or parent == name:
             raise ConfigError(f"{path}: regimes.{name}.continues: {parent!r} is not another regime of the file")
     return out
+
+
+def own_run_regimes() -> set[str]:
+    """The regimes whose points are runs of their own (``each_point: own_run``): they read a study's budget or the
+    main job's choice (:func:`leading_knn`), and take no part in ranking GRaF's modes."""
+    return {name for name, r in curves_regimes()[0].items() if r.get("each_point") == "own_run"}
 
 
 def _point(r: dict) -> dict:
@@ -276,13 +279,15 @@ def continued(rows: list[dict], regime: str, parent_table: list[dict], chosen: s
 
 
 def choose_per_regime(
-    rows: list[dict], modes: list[str], continues: dict[str, str] | None = None
+    rows: list[dict], modes: list[str], continues: dict[str, str] | None = None, skip: set[str] = frozenset()
 ) -> tuple[list[tuple[str | None, str, list[dict]]], dict, list[tuple[str, str, str, list[dict]]]]:
     """:func:`choose` in each regime every mode has reached and over those regimes together (regime None):
     ([(regime, chosen, table)], {regime in progress: its modes without a point}, [(continuing regime, the regime
     it continues, that regime's choice, :func:`continued`'s table)]), what the site and ``scripts/choose_graf.py``
-    print.  ``continues``: {regime: the regime it continues} (:func:`continued_regimes`)."""
+    print.  ``continues``: {regime: the regime it continues} (:func:`continued_regimes`); ``skip``: regimes left
+    out (:func:`own_run_regimes`)."""
     continues = continues or {}
+    rows = [r for r in rows if r["regime"] not in skip]
     ready, waiting = regimes_ready(rows, modes, continues)
     out = []
     for regime in ready + [None]:
