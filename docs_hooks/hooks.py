@@ -66,7 +66,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SWEEPS = ROOT / "sweeps"
 API_NAV = "API reference"
 DIRECTIVE = re.compile(
-    r"^<!-- gen: (study|search|include|code|page|choose|curve_facts|layout|headline|records) (\S+) -->$", re.M
+    r"^<!-- gen: (study|search|include|code|page|choose|leads_knn|curve_facts|layout|headline|records) (\S+) -->$", re.M
 )
 RESULTS_NAV = "Results"  # the navigation's section whose pages hide the table of contents (WIDE_PAGES)
 WIDE_PAGES: set[str] = set()  # filled by on_config
@@ -180,6 +180,24 @@ def code(path: str) -> str:
     """A source file of the repository as a fenced block (``tests/plugins/toy_plugin.py``: the worked examples)."""
     lang = {".py": "python", ".yaml": "yaml", ".sh": "bash"}.get(Path(path).suffix, "")
     return f"```{lang}\n{_record(ROOT / path).read_text().rstrip()}\n```\n\n*The file `{path}`, as the tests run it.*"
+
+
+def leads_knn(regime: str) -> str:
+    """The main job's rule on a regime's points (:func:`graf.reports.published.leading_knn`): each point, whether it
+    leads the regime's KNN line in all three validation figures, and the choice."""
+    curves = SWEEPS / "learning_curves"
+    with open(_record(curves / "curves.csv"), newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    knn = json.loads(_record(curves / "results.json").read_text()).get("knn", {}).get(regime)
+    if knn is None:
+        raise PluginError(f"docs: sweeps/learning_curves/results.json has no KNN line of regime {regime}")
+    chosen, table = published.leading_knn(rows, knn, regime)
+    body = [[f"`{t['mode']}`", t["step"], _f(t["val_psnr"], ".2f"), _f(t["val_ssim"]), _f(t["val_lpips"]),
+             "yes" if t["leads"] else "no"] for t in table]  # fmt: skip
+    body.append(["KNN (line)", "-", _f(knn["val/psnr"], ".2f"), _f(knn["val/ssim"]), _f(knn["val/lpips"]), "-"])
+    said = f"chosen: `{chosen['mode']}` at {chosen['step']} steps" if chosen else "no point leads KNN in all three"
+    head = ["mode", "steps", "val PSNR", "val SSIM", "val LPIPS", "leads KNN in all three"]
+    return f"**{regime}**: {said}\n\n" + published.md(head, body)
 
 
 def choose(path: str) -> str:
@@ -312,8 +330,8 @@ def on_page_markdown(markdown: str, page, config, files) -> str:
     def expand(m: re.Match) -> str:
         kind, arg = m.group(1), m.group(2)
         makers = {"study": study, "search": search, "include": include, "code": code, "page": page_file,
-                  "choose": choose, "curve_facts": curve_facts.block, "layout": layout, "headline": headline,
-                  "records": records_page}  # fmt: skip
+                  "choose": choose, "leads_knn": leads_knn, "curve_facts": curve_facts.block, "layout": layout,
+                  "headline": headline, "records": records_page}  # fmt: skip
         text = makers[kind](arg)
         return text if kind == "code" else site_checks.fit_tables(text, width)
 

@@ -6,7 +6,7 @@ run's folder, opens its log and writes ``.hydra/`` before the command's own code
 ended in Hydra's traceback, and a new run in the folder of an interrupted one (``checkpoints/last.ckpt``, no
 ``results.json``) overwrote that run's config and then its checkpoint.  A run that resumes that checkpoint
 (graf-train with ``ckpt_path=`` inside the folder) is let in.  A folder another run is writing into is refused too:
-each run holds a lock on its folder (:func:`lock_folder`, ``.graf.lock``) until it ends, so a second run into it
+each run holds a lock on its folder (:func:`lock_folder`, ``.graf-run.lock``) until it ends, so a second run into it
 stops with one line instead of both finishing with only the later one's results left.
 """
 
@@ -23,7 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from graf.app.command import fail
 
 NAME_MAX = 255  # the longest file name most file systems take (bytes)
-LOCK_NAME = ".graf.lock"  # in a run's (or a multirun's) folder while it runs: the holder's process id
+LOCK_NAME = ".graf-run.lock"  # in a run's (or a multirun's) folder while it runs: the holder's process id
 _HELD: list[int] = []  # the lock files' descriptors this process holds, until it ends
 
 
@@ -41,7 +41,7 @@ def _ancestors() -> set[int]:
 
 
 def lock_folder(folder: Path) -> str | None:
-    """Hold ``folder/.graf.lock`` (an exclusive ``flock``, released when this process ends, however it ends) and
+    """Hold ``folder/.graf-run.lock`` (an exclusive ``flock``, released when this process ends, however it ends) and
     write this process's id into it; why not (None: held, or nothing to hold).  A lock held by a process this one
     descends from (a command that runs graf-train into its own folder) or a data-parallel rank other than 0 (they
     share rank 0's folder) takes nothing.  Where ``flock`` does not exist nothing is locked."""
