@@ -325,3 +325,47 @@ def test_a_users_claims_file_is_read_or_refused_in_one_line_never_replaced_by_gr
     with open(out / "claims.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     assert [(r["id"], r["claim"], r["verdict"]) for r in rows] == [("mine", "m1 says", "holds")]
+
+
+def test_a_value_claim_with_runs_is_judged_on_its_interval_not_on_its_mean(tmp_path):
+    """A figure above the paper's whose interval over the test spectra still reaches below it is not reproduced
+    (issue 68: 22.94 against 21.94 on 40 spectra, one run); with its runs' interval clear of it, it holds; two runs'
+    per-spectrum values are averaged and the interval widened to each run's own figure."""
+    rng = np.random.default_rng(0)
+
+    def run(folder, values):
+        folder.mkdir(parents=True)
+        (folder / "results.json").write_text(json.dumps({"method": "graf", "metrics": {"test/psnr": values.mean()}}))
+        rows = [{"eval_scene": "s", "method": "graf", "id": i, "mse": 0.01, "psnr": v, "ssim": 0.5, "lpips": 0.2}
+                for i, v in enumerate(values)]  # fmt: skip
+        write_per_spectrum(folder / "per_spectrum.csv.gz", rows)
+
+    run(tmp_path / "wide", 22.94 + np.tile([6.5, -6.5], 20))  # mean 22.94, spread wide enough to reach 21.94
+    run(tmp_path / "tight", 22.94 + rng.normal(0, 0.5, 40))
+    second = 22.60 + rng.normal(0, 0.5, 40)
+    run(tmp_path / "tight2", second)
+    claim = {"id": "rfid", "kind": "value", "key": "metrics.test/psnr", "paper_value": 21.94}
+    rows = ledger(
+        [
+            {**claim, "id": "one_wide", "record": "wide/results.json", "seeds": ["wide/results.json"]},
+            {**claim, "id": "one_tight", "record": "tight/results.json", "seeds": ["tight/results.json"]},
+            {
+                **claim,
+                "id": "two",
+                "record": "tight/results.json",
+                "seeds": ["tight/results.json", "tight2/results.json"],
+            },
+            {**claim, "id": "no_runs", "record": "wide/results.json"},  # the figure alone, as before
+        ],
+        tmp_path,
+    )
+    by = {r["id"]: r for r in rows}
+    low, high = (float(x) for x in by["one_wide"]["interval"].strip("[]").split(", "))
+    assert by["one_wide"]["platform"] == "22.94" and low < 21.94 < 22.94 < high
+    assert (
+        by["one_wide"]["verdict"] == "not reproduced" and "does not clear the paper's 21.94" in by["one_wide"]["reason"]
+    )
+    assert by["one_tight"]["verdict"] == "holds" and "1 run over 40 test spectra" in by["one_tight"]["reason"]
+    two_low = float(by["two"]["interval"].strip("[]").split(", ")[0])
+    assert "2 runs" in by["two"]["reason"] and two_low <= second.mean()  # widened to each run's own figure
+    assert by["no_runs"]["verdict"] == "holds" and by["no_runs"]["interval"] == ""

@@ -50,7 +50,15 @@ from omegaconf import DictConfig
 from graf.app.config import task_wrapper
 from graf.errors import ConfigError
 from graf.io import atomic_write_bytes, atomic_write_json
-from graf.reports.ledger import VERDICTS, check_claim, check_claims, check_records, read_claims, write_page
+from graf.reports.ledger import (
+    VERDICTS,
+    check_claim,
+    check_claims,
+    check_records,
+    read_claims,
+    value_interval,
+    write_page,
+)
 from graf.reports.rows import short_scenes
 from graf.reports.statistics import HIGHER_IS_BETTER
 
@@ -307,7 +315,7 @@ def judge(claim: dict, root: Path) -> dict:
             row.update(platform=judged.get("platform", ""), interval=judged.get("interval", ""))
             row.update(verdict="not comparable", reason=why)
             return row
-    judged = JUDGES[kind](claim, data)
+    judged = value_interval(claim, root) or JUDGES[kind](claim, data)
     row.update({k: v for k, v in judged.items() if k in COLUMNS})
     if claim.get("reason"):
         row["reason"] = f"{row['reason']}; {claim['reason']}" if row["reason"] else str(claim["reason"])
@@ -326,6 +334,9 @@ CELLS = {"paired": paired_cells, "change": change_cells, "transfer": transfer_ce
 def claim_cells(claim: dict, root: Path) -> list[dict]:
     """The cells with an interval that ``claim`` reads from its record under ``root`` (its figure's rows); none
     for a claim of another kind or without a record."""
+    if claim.get("kind") == "value" and claim.get("seeds"):
+        judged = value_interval(claim, root)
+        return [judged["cell"]] if "cell" in judged else []
     if claim.get("kind") not in CELLS:
         return []
     data = _load(root, claim["record"])

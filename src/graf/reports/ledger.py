@@ -15,6 +15,7 @@ line naming the file, the claim or the folder.
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
@@ -29,6 +30,8 @@ from graf.io import atomic_write_bytes
 from graf.metrics.names import REGISTRY
 from graf.plotting import save_figure
 from graf.plugins import one_line
+from graf.reports.statistics import HIGHER_IS_BETTER, paired_difference
+from graf.run.per_spectrum import PER_SPECTRUM_FILE, read_per_spectrum
 
 VERDICTS = ("holds", "refuted", "not reproduced", "not comparable")
 WIDTH = 88  # a command's lines in its code block, continued with " \"
@@ -121,8 +124,9 @@ def section(claim: dict, row: dict, cells: list[dict], figure: str | None, root:
 
 def _metric(claim: dict) -> tuple[str, str]:
     """The label and unit of the claim's metric (the metric registry's; the name alone for one it lacks)."""
-    m = REGISTRY.get(str(claim.get("metric")))
-    return (m.label, m.unit) if m else (str(claim.get("metric", "")), "")
+    name = claim.get("metric") or str(claim.get("key", "")).rsplit("/", 1)[-1]  # a value claim's key: test/psnr
+    m = REGISTRY.get(str(name))
+    return (m.label, m.unit) if m else (str(name), "")
 
 
 def difference(claim: dict) -> str:
@@ -132,6 +136,8 @@ def difference(claim: dict) -> str:
         return f"{label} of {claim['method']}, L = {claim['L_to']} minus L = {claim['L_from']}"
     if claim["kind"] == "transfer":
         return f"{label} of {claim['method']}, trained at another band minus at the test band"
+    if claim["kind"] == "value":
+        return f"test {label}, the mean over the runs' test spectra"
     return f"{label}, {claim['method']} minus {claim['reference']}"
 
 
@@ -199,11 +205,13 @@ def forest_plot(claim: dict, cells: list[dict], path: Path) -> Path:
     if claim.get("tolerance") is not None:
         tol = float(claim["tolerance"])
         ax.axvspan(-tol, tol, color="0.88", label=f"within ±{tol:g} (the paper's plateau)")
-    ax.axvline(0.0, color="0.3", lw=1.0, ls="--", label="0 (no difference)")
+    if claim["kind"] != "value":  # a value is no difference: no 0 line
+        ax.axvline(0.0, color="0.3", lw=1.0, ls="--", label="0 (no difference)")
     ax.errorbar(diff, y, xerr=err, fmt="o", color="C0", capsize=3, label="the platform: 95% interval")
     if claim.get("paper_value") is not None:
         paper = float(claim["paper_value"])
-        ax.plot([paper] * n, y, "D", color="C3", label=f"the paper's figure, {paper:+.2f}")
+        said = f"{paper:.2f}" if claim["kind"] == "value" else f"{paper:+.2f}"
+        ax.plot([paper] * n, y, "D", color="C3", label=f"the paper's figure, {said}")
     unit = _metric(claim)[1]
     ax.set_xlabel(f"{difference(claim)}{f' ({unit})' if unit else ''}", fontsize=9)
     ax.set_yticks(y, [c["cell"] for c in cells], fontsize=8)
@@ -307,3 +315,42 @@ def check_records(root: Path) -> None:
     if not root.is_dir():
         what = "is a file, not a folder" if root.exists() else "no such folder"
         raise ConfigError(f"records={root}: {what} (the folder the claims' record paths are relative to)")
+
+
+def value_interval(claim: dict, root: Path) -> dict | None:
+    """A ``value`` claim with ``seeds`` (its record's runs: results.json paths, the record first): the figure as the
+    mean over the runs' test spectra (each spectrum's value averaged over the runs) minus the paper's, with its 95%
+    interval (:func:`graf.reports.statistics.paired_difference` against the paper's figure on every spectrum:
+    bootstrap over spectra, widened to every run's own difference).  None: the claim has no ``seeds``."""
+    if not claim.get("seeds"):
+        return None
+    metric = str(claim["key"]).rsplit("/", 1)[-1]
+    runs = []
+    for rel in claim["seeds"]:
+        table = root / Path(rel).parent / PER_SPECTRUM_FILE
+        if not (root / rel).is_file() or not table.is_file():
+            return {"verdict": "not reproduced", "reason": f"no record yet: {rel} with its {PER_SPECTRUM_FILE}"}
+        method = json.loads((root / rel).read_text())["method"]
+        runs.append({r["id"]: r[metric] for r in read_per_spectrum(table) if r["method"] == method})
+    paper = float(claim["paper_value"])
+    c = paired_difference(runs, [dict.fromkeys(runs[0], paper)], metric)
+    fmt = claim.get("format", ".2f")
+    value, low, high = c["diff"] + paper, c["low"] + paper, c["high"] + paper
+    told = f"{format(value, fmt)} [{format(low, fmt)}, {format(high, fmt)}], {len(runs)} run{'s' * (len(runs) > 1)}"
+    clears = low > paper if HIGHER_IS_BETTER[metric] else high < paper
+    return {
+        "cell": {
+            "cell": f"{len(runs)} run{'s' * (len(runs) > 1)}",
+            "diff": value,
+            "low": low,
+            "high": high,
+            "verdict": "holds" if clears else "not reproduced",
+        },  # fmt: skip
+        "platform": format(value, fmt),
+        "interval": f"[{format(low, fmt)}, {format(high, fmt)}]",
+        "verdict": "holds" if clears else "not reproduced",
+        "reason": f"{told} over {c['n_spectra']} test spectra: the interval "
+        + (
+            f"clears the paper's {format(paper, fmt)}" if clears else f"does not clear the paper's {format(paper, fmt)}"
+        ),
+    }
