@@ -240,9 +240,11 @@ def test_a_run_folder_in_use_is_locked_and_a_second_run_into_it_stops_with_one_l
 
     from graf.app.output_folder import LOCK_NAME, lock_folder
 
-    hold = "import sys, time\nfrom pathlib import Path\nfrom graf.app.output_folder import lock_folder\n"
-    hold += "assert lock_folder(Path(sys.argv[1])) is None\nprint('held', flush=True)\ntime.sleep(30)\n"
-    p = subprocess.Popen([sys.executable, "-c", hold, str(tmp_path)], stdout=subprocess.PIPE, text=True)
+    # another run holding the folder: the lock as lock_folder takes it (an flock on the file, its pid written)
+    hold = "import fcntl, os, sys, time\nfd = os.open(sys.argv[1], os.O_RDWR | os.O_CREAT)\n"
+    hold += "fcntl.flock(fd, fcntl.LOCK_EX)\nos.write(fd, f'{os.getpid()}\\n'.encode())\nprint('held', flush=True)\n"
+    hold += "time.sleep(30)\n"
+    p = subprocess.Popen([sys.executable, "-c", hold, str(tmp_path / LOCK_NAME)], stdout=subprocess.PIPE, text=True)
     try:
         assert p.stdout.readline().strip() == "held"
         why = lock_folder(tmp_path)
