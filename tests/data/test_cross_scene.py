@@ -36,6 +36,7 @@ def _results(cfg) -> dict:
     return json.loads((Path(cfg.paths.output_dir) / "results.json").read_text())
 
 
+@pytest.mark.slow  # 73 s in the default run of 2026-12-04 (2 workers): the default tests stay under 5 min
 def test_two_scenes_of_different_bands_and_samples_per_ray_train_two_steps(compose_cfg, data_root):
     cfg = compose_cfg(
         "train",

@@ -27,6 +27,7 @@ FAST = [
 ]
 
 
+@pytest.mark.slow  # 88 s in the default run of 2026-12-04 (2 workers): the default tests stay under 5 min
 def test_graf_train_two_steps_through_the_real_configs(compose_cfg):
     # the main job's GRaF (graf_cpu_ray_weights: ray_weights), the seed-literal pooled one, and its residual variant
     for extra, method in (

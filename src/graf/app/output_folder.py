@@ -40,11 +40,12 @@ def _ancestors() -> set[int]:
     return out
 
 
-def lock_folder(folder: Path) -> str | None:
+def lock_folder(folder: Path, create: bool = True) -> str | None:
     """Hold ``folder/.graf-run.lock`` (an exclusive ``flock``, released when this process ends, however it ends) and
     write this process's id into it; why not (None: held, or nothing to hold).  A lock held by a process this one
     descends from (a command that runs graf-train into its own folder) or a data-parallel rank other than 0 (they
-    share rank 0's folder) takes nothing.  Where ``flock`` does not exist nothing is locked."""
+    share rank 0's folder) takes nothing.  Where ``flock`` does not exist nothing is locked.  ``create=False``: only
+    whether another run holds it, nothing written."""
     if any(os.environ.get(k, "0") not in ("", "0") for k in ("RANK", "LOCAL_RANK", "SLURM_PROCID")):
         return None
     try:
@@ -52,7 +53,9 @@ def lock_folder(folder: Path) -> str | None:
     except ImportError:  # not a POSIX system
         return None
     path = folder / LOCK_NAME
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    if not create and not path.is_file():
+        return None
+    fd = os.open(path, os.O_RDWR | (os.O_CREAT if create else 0), 0o644)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError:
@@ -64,6 +67,9 @@ def lock_folder(folder: Path) -> str | None:
             f"another run (process {holder or '?'}) is writing into it ({path}): wait for it to end, or give this "
             "run another folder"
         )
+    if not create:  # only asked whether another run holds it
+        os.close(fd)  # (closing releases this process's flock on it)
+        return None
     os.ftruncate(fd, 0)
     os.write(fd, f"{os.getpid()}\n".encode())
     _HELD.append(fd)
@@ -140,7 +146,10 @@ def check_output_folder(config: DictConfig, key: str, resumable: bool) -> None:
     if value is None:
         return
     folder = Path(str(value))
-    why = folder_problem(folder) or lock_folder(folder) or (interrupted_run(config, folder) if resumable else None)
+    # another run's lock first (a run in progress also looks interrupted), then the folder's state, and only then
+    # is anything written (a refused run leaves the folder as it was)
+    why = folder_problem(folder) or lock_folder(folder, create=False)
+    why = why or (interrupted_run(config, folder) if resumable else None) or lock_folder(folder)
     if why:
         fail(f"{key}={folder}: cannot be this run's output folder: {why}")
 
