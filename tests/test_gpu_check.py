@@ -24,13 +24,18 @@ def test_the_gpu_check_runs_at_toy_sizes_on_a_cpu(tmp_path):
     assert p.returncode == 0, (p.stdout + p.stderr)[-4000:]
     summary = json.loads((tmp_path / "out" / "gpu_check.json").read_text())
     assert summary["device"] == "cpu" and summary["tiny"] is True
-    assert set(summary["steps"]) == {"install", "bench_fp32", "bench_bf16", "main_job"}
+    assert set(summary["steps"]) == {"install", "bench_fp32", "bench_bf16", "step_profile", "main_job"}
     assert all(s["exit_status"] == 0 and s["seconds"] >= 0 for s in summary["steps"].values())
     rows = {(b["precision"], b["preset"]) for b in summary["bench"] if not b["error"]}
     assert rows == {(p, m) for p in ("fp32", "bf16") for m in ("graf", "nerf2")}
     assert all(b["infer_s_per_spectrum"] > 0 and b["train_s_per_step"] > 0 for b in summary["bench"])
+    assert all("trusted" in b for b in summary["bench"])
+    paths = {(r["precision"], r["path"]) for r in summary["step_profile"] if "error" not in r}
+    assert paths == {(p, q) for p in ("fp32", "bf16") for q in ("grouped", "static")}
+    assert summary["profile"]["host_reads_per_step"] == 0  # the static path reads nothing back
+    assert summary["profile"]["operator_calls_per_step"] > 0
     job = summary["main_job"]
-    assert job["method"] == "graf-ray-weights" and job["global_step"] == 2
+    assert job["method"] == "graf-ray-weights" and job["global_step"] == 2 and job["train_seconds"] > 0
     assert {"test/psnr", "test/ssim", "test/lpips"} <= set(job["metrics"])
     assert "| bf16 | rfid_s23 | nerf2 |" in (tmp_path / "out" / "gpu_check.md").read_text()
 

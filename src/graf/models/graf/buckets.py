@@ -8,7 +8,9 @@ padded voxels are masked out of the ray transformer's keys and of the mean over 
 the same function as in its own group (within float rounding; tests/models/test_graf_fast_training.py).
 
 The partition minimises ``groups x group_cost + padded voxels`` exactly (dynamic programming over the sorted
-counts; a few dozen counts at most).
+counts; a few dozen counts at most).  Choosing it reads the counts on the host, a synchronisation a GPU cannot
+afford: there (:func:`static_shapes`) a step's rays go through **one** group padded to the scene's longest ray
+(its length a Python int of the scene's table), with the mask made on the device and never read back.
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ def voxel_mask(samples: torch.Tensor, S: int) -> torch.Tensor | None:
     """``[n, S]`` True for each ray's own voxels (``samples [n]`` of them), or None when every ray has ``S``."""
     if bool((samples == S).all()):
         return None
-    return torch.arange(S, device=samples.device)[None, :] < samples[:, None]
+    return padded_mask(samples, S)
 
 
 def ray_groups(samples: torch.Tensor, padded: bool) -> list[tuple[torch.Tensor, int, torch.Tensor | None]]:
@@ -59,3 +61,15 @@ def ray_groups(samples: torch.Tensor, padded: bool) -> list[tuple[torch.Tensor, 
         sel = ((samples >= group[0]) & (samples <= group[-1])).nonzero().flatten()
         out.append((sel, int(group[-1]), samples[sel]))
     return out
+
+
+def static_shapes(model, device: torch.device) -> bool:
+    """Whether a step runs the static path (one padded group, masks on the device, nothing read back to the host):
+    ``model.static_shapes`` if set (True or False), else on every device but a CPU (where exact groups pay)."""
+    flag = getattr(model, "static_shapes", None)
+    return device.type != "cpu" if flag is None else bool(flag)
+
+
+def padded_mask(samples: torch.Tensor, S: int) -> torch.Tensor:
+    """``[n, S]`` True for each ray's own voxels (``samples [n]``), made on the device without reading it."""
+    return torch.arange(S, device=samples.device)[None, :] < samples[:, None]

@@ -27,9 +27,9 @@ im|``, and starts as KNN (:mod:`graf.models.graf.features.residual`).
 ``length_unit`` metres (:func:`graf.geometry.encoding.to_gateway_frame`); ``use_scene_index`` appends the scene
 index as a fourth coordinate of absolute positions.
 
-Training: ``rays_per_step`` random pixels per step (seeded by the step), per-ray L2 loss, Adam decayed by ``lr_decay``
-over ``decay_steps``.  Inference: all 32400 rays in chunks of ``chunk_rays`` through a fused attention kernel
-(:mod:`graf.models.graf.inference`).  Older checkpoints load through :mod:`graf.models.graf.legacy`.
+Training: ``rays_per_step`` random pixels a step (seeded by the step), per-ray L2 loss, Adam decayed by ``lr_decay``
+over ``decay_steps``.  Inference: all 32400 rays in chunks of ``chunk_rays`` (:mod:`graf.models.graf.inference`).  Off
+a CPU, the static path (:mod:`graf.models.graf.buckets`).  Old checkpoints load through :mod:`.legacy`.
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ from graf.geometry.grid import N_AZIMUTH, N_ELEVATION, local_directions
 from graf.geometry.rays import fp32, random_pixels
 from graf.models.base import SpectrumModule, adam_exponential_decay
 from graf.models.graf.attention import CrossAttentionBlock, MultiHeadAttention, SelfAttentionBlock
-from graf.models.graf.buckets import ray_groups, voxel_mask
+from graf.models.graf.buckets import padded_mask, ray_groups, static_shapes, voxel_mask
 from graf.models.graf.cache import EvalCache, weights_stamp
 from graf.models.graf.encoder import ResNetEncoder
 from graf.models.graf.features import Dims, build_features
@@ -65,7 +65,7 @@ from graf.models.graf.legacy import (
 from graf.models.graf.pieces import piece_prediction
 from graf.models.graf.ray_features import rows
 from graf.models.graf.settings import check_settings
-from graf.models.graf.tables import flat_scene_voxels, ray_sampling_summary, scene_ray_table
+from graf.models.graf.tables import flat_scene_voxels, geometry_key, ray_sampling_summary, scene_ray_table
 
 LOG_MSE_EPS = 1e-6
 # The scene index enters the PE as a coordinate ``index * SCENE_INDEX_SCALE``: with a raw integer n every
@@ -151,6 +151,7 @@ class GRaFModule(SpectrumModule):
         self.sample_spacing, self.ray_window = float(voxel_wavelengths), int(ray_window)
         self.fast_inference, self.fast_training = fast_inference, fast_training  # checked: true or false
         self.train_pieces = train_pieces  # checked: a positive int, or None: torch's threads
+        self.static_shapes: bool | None = None  # the static path: None, off a CPU (graf.models.graf.buckets)
         self._ray_tables: dict = {}  # geometry only: per scene geometry and band, never stale
         self.eval_cache = EvalCache()  # weights-dependent tables of evaluation (see _cached)
         self.base = KNNBase(weighting) if self.residual else NoBase()
@@ -217,29 +218,28 @@ class GRaFModule(SpectrumModule):
 
     # ------------------------------------------------------------------ rays of a scene (geometry only)
     def ray_table(self, batch: dict, b: int) -> dict:
-        """Voxels of every pixel's ray in item ``b``'s scene: ``t_in [P]`` (m, where the ray enters the scene
-        box), ``step [P]`` (m, the voxel length), ``samples [P]`` (long) and the pixel order by sample count
-        (``order [P]``); voxel ``s`` of a ray lies ``t_in + (s + 0.5) * step`` from the gateway.  Voxels are
-        ``voxel_wavelengths`` long (1: the paper's wavelength voxel) unless ``max_samples`` caps a ray.  Computed
-        once per scene geometry and band (cached; the key is the geometry itself, not a scene number)."""
+        """Voxels of every pixel's ray in item ``b``'s scene (:func:`~graf.models.graf.tables.scene_ray_table`; voxel
+        ``s`` of a ray lies ``t_in + (s + 0.5) * step`` from the gateway), once per geometry and band (cached)."""
         geo = (batch["gw_pos"][b], batch["gw_rot"][b], batch["bounds"][b])
-        wl = float(batch["wavelength"][b])
+        keys = batch.get("ray_table_keys")  # read on the host before the batch moved (on_before_batch_transfer)
+        key = keys[b] if keys is not None else geometry_key(*geo, batch["wavelength"][b])
         dev = self.ray_dirs.device
-        key = (
-            tuple(torch.cat([g.detach().double().flatten().cpu() for g in geo]).tolist()),
-            wl,
-            self.sample_spacing,
-            self.max_samples,
-            str(dev),
-        )
-        table = self._ray_tables.get(key)
-        if table is None:
-            table = self._ray_tables[key] = scene_ray_table(geo, wl, self.sample_spacing, self.max_samples, dev)
-        return table
+        full = (key, self.sample_spacing, self.max_samples, str(dev))
+        if full not in self._ray_tables:
+            self._ray_tables[full] = scene_ray_table(geo, key[-1], self.sample_spacing, self.max_samples, dev)
+        return self._ray_tables[full]
+
+    def on_before_batch_transfer(self, batch, dataloader_idx: int = 0):
+        """On the static path (:func:`graf.models.graf.buckets.static_shapes`) the batch's scene-table keys are read
+        here, on the host, so that a step on the device never copies geometry back to find its tables."""
+        if isinstance(batch, dict) and "gw_pos" in batch and static_shapes(self, self.device):
+            geo = zip(batch["gw_pos"], batch["gw_rot"], batch["bounds"], batch["wavelength"])
+            batch = {**batch, "ray_table_keys": [geometry_key(*g) for g in geo]}
+        return batch
 
     def samples_per_ray(self, batch: dict) -> list[int]:
         """The most voxels on any ray of each batch item (rays differ: each is cut at its own exit of the box)."""
-        return [int(self.ray_table(batch, b)["samples"].max()) for b in range(batch["gw_pos"].shape[0])]
+        return [self.ray_table(batch, b)["most"] for b in range(batch["gw_pos"].shape[0])]
 
     def mean_samples_per_ray(self, batch: dict) -> list[float]:
         """Mean voxels per ray of each batch item (what the cost of a spectrum is proportional to)."""
@@ -247,8 +247,7 @@ class GRaFModule(SpectrumModule):
 
     def ray_sampling(self, geometry: dict) -> dict:
         """Voxels per ray on one scene (``geometry``: ``gw_pos [1, 3]``, ``gw_rot [1, 3, 3]``, ``bounds [1, 2, 3]``,
-        ``wavelength [1]``): their most, mean and total, the voxel length, and whether ``max_samples`` capped
-        any ray (its voxels are then longer than ``voxel_wavelengths``)."""
+        ``wavelength [1]``): :func:`~graf.models.graf.tables.ray_sampling_summary`."""
         return ray_sampling_summary(self.ray_table(geometry, 0), float(geometry["wavelength"][0]), self.sample_spacing)
 
     # ------------------------------------------------------------------ evaluation caches
@@ -259,8 +258,7 @@ class GRaFModule(SpectrumModule):
         return self.eval_cache.memo(name, stamp, key, compute)
 
     def train(self, mode: bool = True):
-        if mode:
-            self.eval_cache.clear()  # free evaluation tables while training (they are stale after a step anyway)
+        mode and self.eval_cache.clear()  # free evaluation tables while training (stale after a step anyway)
         return super().train(mode)
 
     def spectrum_features(self, spectra: torch.Tensor) -> torch.Tensor:
@@ -275,12 +273,12 @@ class GRaFModule(SpectrumModule):
         """Everything about a batch that does not depend on the rays: computed once per batch (the component's
         context, the KNN base's with ``residual``, the target's query and the items' ray tables)."""
         mask = batch["src_mask"].bool()
-        B = mask.shape[0]
+        B, static = mask.shape[0], static_shapes(self, mask.device)
         return {
             **self.features.prepare(self, batch),
             **self.base.prepare(batch, mask),
             "mask": mask,
-            "key_mask": None if bool(mask.all()) else mask,
+            "key_mask": mask if static else None if bool(mask.all()) else mask,  # static: never read back
             "target_query": self.query_target(self.pe(self.coords(batch["tgt_pos"].float(), batch))),  # [B, d]
             "tables": [self.ray_table(batch, b) for b in range(B)],
             "wavelength": batch["wavelength"].float(),
@@ -317,11 +315,12 @@ class GRaFModule(SpectrumModule):
         compute = partial(flat_scene_voxels, table, self._voxel_inputs, wl, scene_index, self.d_model, device)
         return self._cached("voxels", stamp, (id(table), scene_index, wl, autocast), compute)
 
-    def _render_group(self, ctx: dict, bi: torch.Tensor, pix: torch.Tensor, S: int, samples=None) -> torch.Tensor:
-        """``[n, 2]`` (re, im) of rays of ``S`` voxels (``samples [n]``: padded to ``S``) of items ``bi``."""
+    def _render_group(self, ctx, bi, pix, S: int, samples=None, static: bool = False) -> torch.Tensor:
+        """``[n, 2]`` (re, im) of rays of ``S`` voxels (``samples [n]``: padded to ``S``) of items ``bi``; ``static``:
+        nothing read back to the host (no per-item shortcut, the mask made whatever it holds)."""
         n = pix.shape[0]
         tables = ctx["tables"]
-        one_item = bool((bi == bi[0]).all())
+        one_item = not static and bool((bi == bi[0]).all())
         if (
             one_item
             and not (self.training or torch.is_grad_enabled())
@@ -338,30 +337,31 @@ class GRaFModule(SpectrumModule):
                 idx = offs[:, None] + torch.arange(S, device=pix.device)
                 q, code = qf[idx], cf[idx]
         else:
-            t_in = torch.stack([tables[b]["t_in"] for b in range(len(tables))])[bi, pix]
-            step = torch.stack([tables[b]["step"] for b in range(len(tables))])[bi, pix]
+            t_in, step = (torch.stack([t[k] for t in tables])[bi, pix] for k in ("t_in", "step"))
             q, code = self._voxel_inputs(pix, t_in, step, ctx["wavelength"][bi], ctx["scene_index"][bi], S)
         q = q + rows(ctx["target_query"], bi)[:, None, :]
         x, tokens, key_mask, ray = self.features.scene_inputs(ctx, q, bi, pix, one_item)
         fast = fast_path(self.fast_inference, self.training, x)
-        voxels = None if samples is None else voxel_mask(samples, S)
+        voxels = padded_mask(samples, S) if static else None if samples is None else voxel_mask(samples, S)
         return self.features.output(ray_pass(self, x, tokens, key_mask, code, fast, voxels), ray)
 
     def render(self, ctx: dict, pix: torch.Tensor) -> torch.Tensor:
-        """Predicted values ``[B, R]`` of the pixels ``pix [B, R]`` (long, ``r * 360 + c``).  Rays are grouped
-        by their voxel count (exactly, no padding or masks); nothing runs per ray in Python."""
+        """Predicted values ``[B, R]`` of the pixels ``pix [B, R]`` (long, ``r * 360 + c``): rays grouped by voxel count
+        (exactly, or padded in the few groups of :func:`~graf.models.graf.buckets.buckets` when training on the fast
+        path), or on the static path all in one group padded to the longest ray, masked; nothing runs per ray."""
         B, R = pix.shape
         tables = ctx["tables"]
         S_all = torch.stack([tables[b]["samples"][pix[b]] for b in range(B)]).flatten()  # [B * R]
         flat_pix = pix.flatten()
         bi = torch.arange(B, device=pix.device).repeat_interleave(R)
-        order, outs = [], []
-        for sel, S, samples in ray_groups(
-            S_all, self.fast_training and torch.is_grad_enabled() and not self.ray_window
-        ):
-            order.append(sel)
-            outs.append(self._render_group(ctx, bi[sel], flat_pix[sel], S, samples))
-        out = torch.cat(outs)[torch.argsort(torch.cat(order))]  # back to (b, r) order
+        if static_shapes(self, pix.device) and not self.ray_window:  # windows need exact groups
+            out = self._render_group(ctx, bi, flat_pix, max(t["most"] for t in tables), S_all, static=True)
+        else:
+            order, outs, padded = [], [], self.fast_training and torch.is_grad_enabled() and not self.ray_window
+            for sel, S, samples in ray_groups(S_all, padded):
+                order.append(sel)
+                outs.append(self._render_group(ctx, bi[sel], flat_pix[sel], S, samples))
+            out = torch.cat(outs)[torch.argsort(torch.cat(order))]  # back to (b, r) order
         re, im = out.view(B, R, 2).unbind(-1)
         re = self.base.add(ctx, pix, re)
         return torch.sqrt(re * re + im * im + AMPLITUDE_EPS)

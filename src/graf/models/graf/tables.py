@@ -19,7 +19,7 @@ def scene_ray_table(geo: tuple, wl: float, spacing: float, max_samples: int, dev
         enters the box), ``step [P]`` (m, the voxel length), ``samples [P]`` (long), the pixel order by sample
         count (``order [P]``), each ray's first voxel in a flat table whose rays lie in that order (``offsets [P]``: the
     consecutive rays of a chunk of ``order`` with the same count are one slice of it), the voxels of all rays
-        (``voxels``) and those each ray needs uncapped (``needed [P]``, on the CPU)."""
+        (``voxels``), the most on any ray (``most``) and those each ray needs uncapped (``needed [P]``, on the CPU)."""
     t_in, t_out = box_segments(*(g.detach().cpu() for g in geo), local_directions(dtype=torch.float64))
     samples, step = segment_samples(t_in, t_out, spacing * wl, max_samples)
     order = torch.argsort(samples, stable=True)
@@ -34,6 +34,7 @@ def scene_ray_table(geo: tuple, wl: float, spacing: float, max_samples: int, dev
         "needed": needed,
         "offsets": offsets.to(device),
         "voxels": int(samples.sum()),
+        "most": int(samples.max()),  # the longest ray's voxels: the static path's padded length (a Python int)
     }
 
 
@@ -81,3 +82,11 @@ def flat_scene_voxels(
         idx = (table["offsets"][part][:, None] + torch.arange(q.shape[1], device=device)).flatten()
         qf[idx], cf[idx] = q.flatten(0, 1), c.flatten(0, 1)
     return qf, cf
+
+
+def geometry_key(gw_pos: torch.Tensor, gw_rot: torch.Tensor, bounds: torch.Tensor, wl) -> tuple:
+    """A scene table's key: the geometry's own values (not a scene number) and the wavelength, as Python floats.
+    Read from the batch on the host (:meth:`GRaFModule.on_before_batch_transfer`), a step on a GPU needs no copy
+    back to find its tables."""
+    geo = torch.cat([g.detach().double().flatten().cpu() for g in (gw_pos, gw_rot, bounds)])
+    return (*geo.tolist(), float(wl))
