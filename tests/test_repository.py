@@ -1,0 +1,33 @@
+"""The repository stops growing by binaries: no checkpoint enters git beyond the 13 published before the rule
+(.gitignore's ``*.ckpt``; a record names the command that rebuilds its checkpoint instead)."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PUBLISHED_BEFORE_THE_RULE = {
+    f"sweeps/learning_curves/{curve}/{point}/checkpoints/last.ckpt"
+    for curve, points in {
+        "cross_family": ["knn_dl/step_3000", "pooled/step_3000", "ray/step_3000", "ray_knn/step_3000",
+                         "ray_weights/step_3000"],
+        "cross_family_val_30k": ["pooled/step_30000", "ray/step_30000"],
+        "rfid_sparse": [f"{m}/step_10000" for m in ("knn_dl", "nerf2", "pooled", "ray", "ray_knn", "ray_weights")],
+    }.items()
+    for point in points
+}  # fmt: skip
+
+
+@pytest.mark.skipif(shutil.which("git") is None or not (ROOT / ".git").exists(), reason="not a git checkout")
+def test_no_new_checkpoint_is_under_version_control():
+    tracked = subprocess.run(
+        ["git", "ls-files", "--cached", "*.ckpt", "*.pt", "*.pth"], cwd=ROOT, capture_output=True, text=True, check=True
+    ).stdout.split()
+    assert set(tracked) - PUBLISHED_BEFORE_THE_RULE == set()
+    probe = "sweeps/learning_curves/any_regime/ray_weights/step_300/checkpoints/last.ckpt"
+    ignored = subprocess.run(["git", "check-ignore", "-q", "--no-index", probe], cwd=ROOT)
+    assert ignored.returncode == 0, f"{probe} is not ignored by .gitignore"
