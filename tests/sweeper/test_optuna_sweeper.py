@@ -16,6 +16,7 @@ from pathlib import Path
 
 import optuna
 import pytest
+from omegaconf import OmegaConf
 from optuna.trial import TrialState
 
 from graf.search.objectives import check_objective_names, objective_values
@@ -366,3 +367,20 @@ def test_heartbeat_settings_on_sqlite_are_said_to_be_unused(caplog):
     assert url == "sqlite:///x.db"
     said = [r.getMessage() for r in caplog.records if "heartbeat" in r.getMessage()]
     assert len(said) == 1 and "not used" in said[0] and "owner" in said[0]
+
+
+def test_a_searchs_directions_are_its_metrics_and_a_contradiction_stops_with_one_line():
+    from graf.sweeper.optuna_sweeper import OptunaSweep, SearchSpaceError
+
+    sweep = OptunaSweep()  # no direction: each objective's own, from the metric registry
+    sweep.config = OmegaConf.create({"optimized_metric": ["val/psnr@mean", "cost/infer_s_per_spectrum", "val/lpips"]})
+    assert sweep._objective_names() == ["val/psnr@mean", "cost/infer_s_per_spectrum", "val/lpips"]
+    assert sweep.directions == ["maximize", "minimize", "minimize"]
+    agreeing = OptunaSweep(direction=["maximize", "minimize"])
+    agreeing.config = OmegaConf.create({"optimized_metric": ["val/ssim", "val/mse"]})
+    agreeing._objective_names()
+    assert agreeing.directions == ["maximize", "minimize"]
+    wrong = OptunaSweep(direction="maximize")
+    wrong.config = OmegaConf.create({"optimized_metric": "val/lpips"})
+    with pytest.raises(SearchSpaceError, match=r"direction maximize for val/lpips contradicts the metric \(lower"):
+        wrong._objective_names()

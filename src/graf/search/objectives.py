@@ -7,7 +7,8 @@
   ``COST_BATCHES`` validation batches after one warm-up batch, divided by the batch size; prediction
   only, no metric).
 
-A test metric is refused: nothing is chosen on the test split.
+A test metric is refused: nothing is chosen on the test split.  Each objective's direction is its metric's
+(:data:`graf.metrics.names.REGISTRY`: higher or lower is better; a cost: lower), :func:`objective_direction`.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import time
 import torch
 
 from graf.errors import ConfigError
-from graf.metrics.names import METRIC_NAMES
+from graf.metrics.names import METRIC_NAMES, REGISTRY
 
 COST_BATCHES = 3
 COSTS = ("cost/infer_s_per_spectrum",)
@@ -35,6 +36,15 @@ def check_objective_names(names: list[str]) -> None:
                 f"val/<metric>@mean (over the run's test scenes) or {', '.join(COSTS)}; nothing is "
                 "chosen on the test split"
             )
+
+
+def objective_direction(name: str) -> str:
+    """``maximize`` or ``minimize``: the direction of objective ``name`` (checked by :func:`check_objective_names`),
+    read from the metric registry at call time (a plugin's metric included); a cost is minimised."""
+    if str(name) in COSTS:
+        return "minimize"
+    metric = REGISTRY[str(name).partition("@")[0].split("/", 1)[1]]
+    return "maximize" if metric.higher_is_better else "minimize"
 
 
 def inference_seconds_per_spectrum(model, dm, batches: int = COST_BATCHES) -> float:

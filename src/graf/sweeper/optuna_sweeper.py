@@ -60,7 +60,7 @@ from optuna.trial import FrozenTrial, TrialState
 
 from graf.errors import PREEMPTED_EXIT_CODE, is_preempted
 from graf.io import atomic_write_json
-from graf.search.objectives import check_objective_names, metrics_mean
+from graf.search.objectives import check_objective_names, metrics_mean, objective_direction
 from graf.search.pruners import make_pruner
 from graf.search.search_space import SearchSpace, SearchSpaceError, parse_search_space
 from graf.sweeper.outputs import best_trials, write_outputs
@@ -290,7 +290,7 @@ class OptunaSweep:
         *,
         sampler: str = "auto",
         seed: int = 0,
-        direction: Any = "maximize",
+        direction: Any = None,
         storage: str | None = None,
         study_name: str | None = None,
         n_trials: int = 20,
@@ -307,15 +307,8 @@ class OptunaSweep:
         worker_rank: int = 0,
     ):
         self.sampler_name, self.seed = sampler, int(seed)
-        self.directions = [
-            str(d)
-            for d in (
-                direction if isinstance(direction, (list, tuple)) or OmegaConf.is_list(direction) else [direction]
-            )
-        ]
-        for d in self.directions:
-            if d not in ("maximize", "minimize"):
-                raise SearchSpaceError(f"hydra.sweeper.direction: {d!r} is not maximize or minimize")
+        self.direction = direction  # None: each objective's own; checked against the objectives (_objective_names)
+        self.directions: list[str] = []  # one per objective, set with the objectives' names
         self.storage, self.study_name = storage, study_name
         self.n_trials, self.max_failures = int(n_trials), int(max_failures)
         self.n_jobs, self.threads_per_job = max(1, int(n_jobs)), threads_per_job
@@ -372,12 +365,29 @@ class OptunaSweep:
     def _objective_names(self) -> list[str]:
         names = self.config.get("optimized_metric")
         names = [names] if isinstance(names, str) else list(names or [])
-        if len(names) != len(self.directions):
+        check_objective_names(names)
+        own = [objective_direction(n) for n in names]  # the metric registry's (a cost: minimize)
+        given = self.direction
+        if given is None:
+            self.directions = own
+            return names
+        given = [str(d) for d in (given if isinstance(given, (list, tuple)) or OmegaConf.is_list(given) else [given])]
+        for d in given:
+            if d not in ("maximize", "minimize"):
+                raise SearchSpaceError(f"hydra.sweeper.direction: {d!r} is not maximize or minimize")
+        if len(names) != len(given):
             raise SearchSpaceError(
                 f"optimized_metric {names} has {len(names)} value(s) but hydra.sweeper.direction "
-                f"has {len(self.directions)}: give one direction per objective"
+                f"has {len(given)}: give one direction per objective (or none: each objective's own)"
             )
-        check_objective_names(names)
+        for n, d, o in zip(names, given, own):
+            if d != o:
+                better = "higher" if o == "maximize" else "lower"
+                raise SearchSpaceError(
+                    f"hydra.sweeper.direction {d} for {n} contradicts the metric ({better} is better: {o}); leave "
+                    "direction out and each objective takes its own"
+                )
+        self.directions = given
         return names
 
     def sweep(self, arguments: list[str]) -> list:

@@ -42,7 +42,9 @@ class GrafOptunaSweeperConf:
     )
     seed: int = 0
     population_size: int | None = None  # nsga2: trials per generation; null: Optuna's 50
-    direction: Any = "maximize"  # or a list, one per objective (optimized_metric a list)
+    # null: each objective's own direction (its metric's in graf.metrics.names; a cost's: minimize); or maximize /
+    # minimize, a list for several objectives, refused where it contradicts the metric
+    direction: Any = None
     storage: str | None = None  # SQLAlchemy URL; null: sqlite:///<sweep dir>/optuna.db
     study_name: str | None = None  # null: the task name
     n_trials: int = 20  # finished trials (complete or pruned) the study ends with, over all runs
