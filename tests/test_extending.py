@@ -62,6 +62,8 @@ def test_a_registered_metric_reaches_the_records_the_report_and_a_figure(study):
     assert {r["method"] for r in rows} == {"neighbor-mean", "knn"} and all(float(r["peak_error"]) >= 0 for r in rows)
     table = (study / "report.md").read_text()
     assert "peak error" in table
+    header = (study / "table.md").read_text().splitlines()[0]  # graf-table's (the sweep's callback): the registry's
+    assert "| peak error |" in header and header.index("LPIPS") < header.index("peak error")
     intervals = json.loads((study / "intervals.json").read_text())["rows"]
     paired = [r for r in intervals if r["metric"] == "peak_error" and r["method"] == "neighbor-mean"]
     assert paired and all(r["vs_knn"]["n_spectra"] == 8 for r in paired)  # paired with KNN over the same spectra

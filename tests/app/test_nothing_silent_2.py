@@ -184,8 +184,8 @@ def test_a_fifth_registered_metric_reaches_the_curve_figures(monkeypatch, tmp_pa
 
     from graf.reports import figures as report_figures
 
-    metrics = (*report_figures.METRICS, ("test/fid", "FID", "{:.1f}"))
-    monkeypatch.setattr(report_figures, "METRICS", metrics)
+    metrics = (*report_figures.TEST_FIGURES, ("test/fid", "FID", "{:.1f}"))
+    monkeypatch.setattr(report_figures, "TEST_FIGURES", metrics)
     seen = []
     monkeypatch.setattr(plt.Figure, "savefig", lambda fig, *a, **k: seen.append([ax.get_title() for ax in fig.axes]))
     data = {"knn": {2: {"PSNR": 20.0, "SSIM": 0.7, "MSE": 0.01, "LPIPS": 0.2, "FID": 3.0}}}

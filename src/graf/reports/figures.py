@@ -13,7 +13,7 @@ import numpy as np
 from graf.io import atomic_write_json
 from graf.metrics.names import REGISTRY
 from graf.plotting import SPECTRUM_CMAP, SPECTRUM_LABEL, shared_limits
-from graf.reports.rows import METRICS, label_hz, matrices, seed_means, seeds_told, short_scenes
+from graf.reports.rows import TEST_FIGURES, label_hz, matrices, seed_means, seeds_told, short_scenes
 
 LABELS = {m.label: m for m in REGISTRY.values()}
 EXTENT = (0, 360, 0, 90)  # a spectrum's axes in degrees: azimuth 0-360, elevation 0-90
@@ -26,7 +26,7 @@ def matrix_figures(rows: list[dict], out: Path) -> dict:
     mats, written = matrices(rows), []
     methods = list(mats)
     told = seeds_told(r["n_seeds"] for r in rows if r["steps"] != "0")
-    for key, name, spec in METRICS:
+    for key, name, spec in TEST_FIGURES:
         # one colour scale for every method of the figure (they are compared), one colour bar
         lo, hi = shared_limits([r.get(key) if r.get(key) is not None else np.nan for r in rows])
         n_rows = max(len(mats[m][name]["rows"]) for m in methods)
@@ -74,11 +74,11 @@ def curve_figure(data: dict, xlabel: str, path: Path, title: str) -> None:
     """Each metric against ``xlabel``, one line per method of ``data`` (``{method: {x: {metric: value}}}``), in a
     grid of two columns (legible at page width; as many rows as the registered metrics need), each y axis with
     its unit and which way is better."""
-    rows = -(-len(METRICS) // 2)
+    rows = -(-len(TEST_FIGURES) // 2)
     fig, axes = plt.subplots(rows, 2, figsize=(10, 3.5 * rows), constrained_layout=True, squeeze=False)
-    for ax in axes.flat[len(METRICS) :]:
+    for ax in axes.flat[len(TEST_FIGURES) :]:
         ax.set_visible(False)
-    for ax, (_, name, _) in zip(axes.flat, METRICS):
+    for ax, (_, name, _) in zip(axes.flat, TEST_FIGURES):
         for m, pts in sorted(data.items()):
             xs = list(pts)
             ax.plot(xs, [p[name] for p in pts.values()], "o-", label=m)

@@ -27,7 +27,7 @@ from graf.run.per_spectrum import read_per_spectrum
 
 CELL = AXIS_NAMES  # a cell: one value of every study axis (graf.reports.axes)
 REFERENCES = ("knn", "knn-dl")
-METRICS = tuple(HIGHER_IS_BETTER)
+PAIRED_METRICS = tuple(HIGHER_IS_BETTER)
 
 
 BASELINE_TOLERANCE = 1e-4  # a baseline tested in two jobs: equal up to float rounding (another device, another BLAS)
@@ -55,9 +55,9 @@ def collect_spectra(runs: Path) -> tuple[dict, list]:
         seed = (result.get("config") or {}).get("seed")
         densities.add((result.get("config") or {}).get("sim_num_tx"))
         trained = result.get("method")
-        by_eval: dict = defaultdict(lambda: {m: {} for m in METRICS})
+        by_eval: dict = defaultdict(lambda: {m: {} for m in PAIRED_METRICS})
         for row in read_per_spectrum(f.parent / result["per_spectrum"]):
-            for m in METRICS:
+            for m in PAIRED_METRICS:
                 if not math.isnan(row[m]):  # NaN: an empty target, left out of every figure (its id of every method)
                     by_eval[(row["eval_scene"], row["method"])][m][row["id"]] = row[m]
         tested = {ev["eval_scene"]: ev for ev in evaluations(result)}  # a cross-band job tests at another band
@@ -97,7 +97,10 @@ def _cell_order(item: tuple) -> tuple:
 
 
 def comparisons(
-    cells: dict, metrics: tuple[str, ...] = METRICS, references: tuple[str, ...] = REFERENCES, imported: tuple = ()
+    cells: dict,
+    metrics: tuple[str, ...] = PAIRED_METRICS,
+    references: tuple[str, ...] = REFERENCES,
+    imported: tuple = (),
 ) -> list[dict]:
     """One row per (cell, trained method, metric): its summary and its paired differences to the references.
     ``imported``: methods taken from another record (:func:`import_references`), compared with, never given rows
@@ -120,7 +123,7 @@ def comparisons(
     return rows
 
 
-def l_changes(cells: dict, base_l: int = 2, metrics: tuple[str, ...] = METRICS) -> list[dict]:
+def l_changes(cells: dict, base_l: int = 2, metrics: tuple[str, ...] = PAIRED_METRICS) -> list[dict]:
     """The neighbor-count study's question: each trained method's change from ``L = base_l`` to every other L,
     pooled over the cells' (trained on, test scene) pairs (the paper averages its four same-family pairs),
     paired by (pair, spectrum id), with the interval of :func:`paired_difference`."""
@@ -161,7 +164,7 @@ def l_changes(cells: dict, base_l: int = 2, metrics: tuple[str, ...] = METRICS) 
     return rows
 
 
-def band_transfers(cells: dict, metrics: tuple[str, ...] = METRICS) -> list[dict]:
+def band_transfers(cells: dict, metrics: tuple[str, ...] = PAIRED_METRICS) -> list[dict]:
     """Seed E.5's question: each trained method's model trained at another band than the test band, minus the
     model trained at the test band (the same method, scenes, fine-tuning and L), on the same test spectra, with the
     interval of :func:`paired_difference`.  Empty unless the study varies the training band."""

@@ -15,7 +15,12 @@ from omegaconf import OmegaConf
 
 from graf.app import config as app_config
 from graf.errors import ConfigError, UserError
-from graf.reports.rows import METRICS, matrices, seed_means, seeds_told  # METRICS: the registry's, in its order
+from graf.reports.rows import (
+    TEST_FIGURES,
+    matrices,
+    seed_means,
+    seeds_told,
+)  # TEST_FIGURES: the registry's, in its order
 from graf.reports.table import fmt, md  # noqa: F401  (the views' markdown, read from here by the site and readme)
 
 FRACTIONS = ("-", "none", "f05", "f10", "f20", "f50", "f100")
@@ -65,7 +70,7 @@ def matrix(report: dict, rows: list[dict] | None = None) -> str:
     mats = matrices(rows) if rows else report["matrix"]
     told = seeds_told(r["n_seeds"] for r in seed_means(rows) if r["steps"] != "0") if rows else "from report.json"
     out = []
-    for _, name, f in METRICS:
+    for _, name, f in TEST_FIGURES:
         cols = None
         body = []
         for method, mats_m in mats.items():
@@ -94,7 +99,7 @@ def vs_l(report: dict, rows: list[dict]) -> str:
     data = report["vs_L"]
     ls = sorted({int(x) for pts in data.values() for x in pts})
     out = []
-    for _, name, f in METRICS:
+    for _, name, f in TEST_FIGURES:
         body = [[m, *[fmt(pts.get(str(x), {}).get(name), f) for x in ls]] for m, pts in data.items()]
         out.append(f"**{name}** vs L (mean over {pairs(rows)})\n\n" + md(["method", *[f"L = {x}" for x in ls]], body))
     return "\n\n".join(out)
@@ -108,14 +113,14 @@ def unseen(rows: list[dict]) -> str:
         sub = [r for r in rows if r["eval_scene"] == scene and r["train_band"] in (band, "-")]
         for ft, title in (("none", "zero-shot"), ("f20", "fine-tuned on 20%")):
             body = [
-                [r["method"], r["n_test"], r["steps"], *[fmt(r.get(k), f) for k, _, f in METRICS]]
+                [r["method"], r["n_test"], r["steps"], *[fmt(r.get(k), f) for k, _, f in TEST_FIGURES]]
                 for r in sorted(sub, key=lambda r: r["method"])
                 if r["finetune"] in ((ft, "zero-shot", "-") if ft == "none" else (ft, "-"))
             ]
             out.append(
                 f"**{scene}**, models trained at {band}, {title} (test neighbors: "
                 f"{'the whole training split' if ft == 'none' else 'the measured 20%'}; {told})\n\n"
-                + md(["method", "test spectra", "steps", *[n for _, n, _ in METRICS]], body)
+                + md(["method", "test spectra", "steps", *[n for _, n, _ in TEST_FIGURES]], body)
             )
         by = defaultdict(dict)
         for r in sub:

@@ -25,6 +25,7 @@ from pathlib import Path
 
 from graf.errors import UserError
 from graf.io import atomic_write_text
+from graf.metrics.names import REGISTRY
 from graf.reports import axes
 from graf.reports.published import md, study_tables
 
@@ -34,7 +35,13 @@ MAX_COLUMNS = 7
 SIGNED = "{:+.2f}"  # a difference of PSNR (dB); -0.00: below zero by less than the last digit
 AXIS_WORDS = {"trained_on": "trained on", "train_band": "train band", "finetune": "fine-tuned",
               "eval_scene": "tested on", "eval_band": "test band"}  # fmt: skip
-FORMS = {"psnr": "{:+.2f}", "ssim": "{:+.3f}", "lpips": "{:+.3f}", "mse": "{:+.4f}"}  # a difference, by metric
+SUMMARY_ORDER = ("psnr", "ssim", "lpips", "mse")  # the summary's metric order; any other (a plugin's) after them
+
+
+def difference_form(metric: str) -> str:
+    """A difference of ``metric``, signed, in its registered number format (:data:`graf.metrics.names.REGISTRY`)."""
+    m = REGISTRY.get(metric)
+    return "{:+.3g}" if m is None else m.fmt.replace("{:", "{:+", 1)
 
 
 def _numeric(cell: str) -> bool:
@@ -104,10 +111,10 @@ def verdicts(rows: list[dict]) -> str:
         for ref in ("knn", "knn-dl"):
             if r.get(f"vs_{ref}"):
                 groups[(r["method"], ref, r["metric"])].append(r[f"vs_{ref}"])
-    order = {m: i for i, m in enumerate(FORMS)}
+    order = {m: i for i, m in enumerate(SUMMARY_ORDER)}
     body = []
     for (method, ref, metric), cs in sorted(groups.items(), key=lambda kv: (*kv[0][:2], order.get(kv[0][2], 9))):
-        form = FORMS.get(metric, "{:+.3g}")
+        form = difference_form(metric)
         counts = defaultdict(int)
         for c in cs:
             counts[c["verdict"].split()[0]] += 1

@@ -14,17 +14,14 @@ import numpy as np
 from graf.app.config import family
 from graf.errors import ConfigError
 from graf.metrics.names import REGISTRY
-from graf.reports.axes import AXES as AXIS_LIST
-from graf.reports.axes import AXIS_NAMES
+from graf.reports.axes import AXES, AXIS_NAMES
 from graf.reports.table import read_run_result
 
 # neighbor reliance (PSNR with true minus with swapped neighbors): a column of the tables, not a figure
 RELIANCE = ("test/reliance_db", "reliance dB", "{:.2f}")
-# every registered metric (graf.metrics.names.REGISTRY): (results.json key, label, number format)
-METRICS = tuple((f"test/{m.name}", m.label, m.fmt) for m in REGISTRY.values())
-# the settings a study may vary, in the order its table blocks are nested (declared in graf.reports.axes)
-AXES = AXIS_NAMES
-UNTRAINED = tuple(a.name for a in AXIS_LIST if a.untrained is not None)  # a baseline's row: not trained
+# every registered metric's test figure (graf.metrics.names.REGISTRY): (results.json key, label, number format)
+TEST_FIGURES = tuple((f"test/{m.name}", m.label, m.fmt) for m in REGISTRY.values())
+UNTRAINED = tuple(a.name for a in AXES if a.untrained is not None)  # a baseline's row: not trained
 PSNR_TARGETS = (16.0, 18.0, 20.0, 22.0, 25.0)  # dB: "how densely must I measure for X dB?"
 
 
@@ -65,7 +62,7 @@ def job_settings(result: dict, job: str) -> dict:
     """The settings of a job that every row of it shares: the job axes of :data:`graf.reports.axes.AXES`, the
     test pool and the survey's spacing."""
     out = {"job": job}
-    for a in AXIS_LIST:
+    for a in AXES:
         if a.of_evaluation is None:
             out[a.name] = a.job_value(result)
         if a.name == "finetune":  # where the fine-tuned model's test neighbors came from, beside its fraction
@@ -90,7 +87,7 @@ def evaluations(result: dict) -> list[dict]:
 
 
 def _figures(tested: dict) -> dict:
-    return {k: (tested.get("metrics") or {}).get(k) for k, _, _ in (*METRICS, RELIANCE)}
+    return {k: (tested.get("metrics") or {}).get(k) for k, _, _ in (*TEST_FIGURES, RELIANCE)}
 
 
 def rows_of(result: dict, job: str) -> list[dict]:
@@ -103,14 +100,14 @@ def rows_of(result: dict, job: str) -> list[dict]:
     for ev in evaluations(result):
         base = {
             **common,
-            **{a.name: a.evaluation_value(result, ev) for a in AXIS_LIST if a.of_evaluation is not None},
+            **{a.name: a.evaluation_value(result, ev) for a in AXES if a.of_evaluation is not None},
             "within_scene": bool(ev.get("within_scene")),
             "n_test": ev.get("n_test"),
         }
         out.append({**base, "method": result.get("method"), "steps": budget, **_figures(ev)})
         for name, b in (ev.get("baselines") or {}).items():
             # a baseline is not trained: it is the same whatever the job trained on
-            untrained = {**{a.name: a.untrained for a in AXIS_LIST if a.untrained is not None}, "within_scene": None}
+            untrained = {**{a.name: a.untrained for a in AXES if a.untrained is not None}, "within_scene": None}
             out.append({**base, **untrained, "method": name, "steps": "0", **_figures(b)})
     return out
 
@@ -135,7 +132,7 @@ def collect_rows(runs: Path) -> tuple[list[dict], list[Path]]:
     return rows, files
 
 
-FIGURES = tuple(k for k, _, _ in (*METRICS, RELIANCE))  # a row's figures: averaged over a cell's seeds
+FIGURES = tuple(k for k, _, _ in (*TEST_FIGURES, RELIANCE))  # a row's figures: averaged over a cell's seeds
 
 
 def seed_means(rows: list[dict]) -> list[dict]:
@@ -194,7 +191,7 @@ def matrices(rows: list[dict]) -> dict:
                     f"show varies: jobs {cells[i, j]} and {r.get('job')})"
                 )
             seeds[i, j], cells[i, j] = r["n_seeds"], r.get("job")
-        for key, name, _ in METRICS:
+        for key, name, _ in TEST_FIGURES:
             v = values.copy()
             for r in rows:
                 if r["method"] == m:
@@ -205,8 +202,8 @@ def matrices(rows: list[dict]) -> dict:
 
 
 def varying_axes(rows: list[dict]) -> list[str]:
-    """The settings of :data:`AXES` that take more than one value in the study (baselines' "-" aside)."""
-    return [a for a in AXES if len({str(r.get(a)) for r in rows if r["steps"] != "0" or a not in UNTRAINED}) > 1]
+    """The study axes (:data:`graf.reports.axes.AXIS_NAMES`) that take more than one value (baselines' "-" aside)."""
+    return [a for a in AXIS_NAMES if len({str(r.get(a)) for r in rows if r["steps"] != "0" or a not in UNTRAINED}) > 1]
 
 
 def _sort_key(v):
@@ -219,14 +216,14 @@ def _sort_key(v):
 def table(rows: list[dict], axes: list[str]) -> tuple[list[str], list[list]]:
     """Method x metric rows, sorted by the study's varying axes (the paper's tables: one block per setting): one
     row per cell, its figures the mean over the cell's seeds (:func:`seed_means`), their number in ``seeds``."""
-    header = [*axes, "method", "n_test", "seeds", "steps", *[n for _, n, _ in (*METRICS, RELIANCE)]]
+    header = [*axes, "method", "n_test", "seeds", "steps", *[n for _, n, _ in (*TEST_FIGURES, RELIANCE)]]
     order = sorted(
         seed_means(rows), key=lambda r: ([_sort_key(r.get(a)) for a in axes], r["method"] == "knn", r["method"])
     )
     return header, [
         [r.get(a) for a in axes]
         + [r["method"], r.get("n_test"), r["n_seeds"], r["steps"]]
-        + [r.get(k) for k, _, _ in (*METRICS, RELIANCE)]
+        + [r.get(k) for k, _, _ in (*TEST_FIGURES, RELIANCE)]
         for r in order
     ]
 
@@ -253,7 +250,7 @@ def curve(rows: list[dict], axis: str, same_family: bool) -> dict:
     out = defaultdict(dict)
     for (m, x), rs in groups.items():
         # a baseline tested beside several models appears once per (test scene, x): average those
-        out[m][x] = {name: mean(r.get(k) for r in rs) for k, name, _ in METRICS} | {"n_pairs": len(rs)}
+        out[m][x] = {name: mean(r.get(k) for r in rs) for k, name, _ in TEST_FIGURES} | {"n_pairs": len(rs)}
     return {m: dict(sorted(v.items(), key=lambda kv: _sort_key(kv[0]))) for m, v in out.items()}
 
 

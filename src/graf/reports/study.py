@@ -37,14 +37,14 @@ from omegaconf import DictConfig, OmegaConf
 from graf.app.config import task_wrapper
 from graf.app.launch import command
 from graf.io import atomic_write_bytes, atomic_write_json
+from graf.reports.axes import AXIS_NAMES
 from graf.reports.figures import band_figure, curve_figure, matrix_figures, spectra_grids
 from graf.reports.intervals import write_intervals
 from graf.reports.readme import refresh
 from graf.reports.rows import (
-    AXES,
-    METRICS,
     PSNR_TARGETS,
     RELIANCE,
+    TEST_FIGURES,
     collect_rows,
     curve,
     ft_fraction,
@@ -59,7 +59,7 @@ log = logging.getLogger("graf")
 
 
 def _fmt(v, col: str) -> str:
-    spec = {n: s for _, n, s in (*METRICS, RELIANCE)}.get(col)
+    spec = {n: s for _, n, s in (*TEST_FIGURES, RELIANCE)}.get(col)
     if v is None:
         return ""
     if isinstance(v, float) and math.isnan(v):
@@ -74,7 +74,7 @@ def to_markdown(header, body) -> str:
 def to_latex(header, body) -> str:
     esc = lambda s: str(s).replace("_", r"\_").replace("%", r"\%").replace("&", r"\&")  # noqa: E731
     lines = [
-        r"\begin{tabular}{" + "l" * (len(header) - len(METRICS) - 1) + "r" * (len(METRICS) + 1) + "}",
+        r"\begin{tabular}{" + "l" * (len(header) - len(TEST_FIGURES) - 1) + "r" * (len(TEST_FIGURES) + 1) + "}",
         r"\toprule",
         " & ".join(esc(h) for h in header) + r" \\",
         r"\midrule",
@@ -89,7 +89,16 @@ def write_tables(rows: list[dict], axes: list[str], out: Path) -> None:
     atomic_write_bytes(out / "report.md", to_markdown(header, body).encode())
     atomic_write_bytes(out / "report.csv", to_csv(header, body).encode())
     atomic_write_bytes(out / "report.tex", to_latex(header, body).encode())
-    cols = ["job", *AXES, "within_scene", "test_pool", "method", "n_test", "steps", *[k for k, _, _ in METRICS]]
+    cols = [
+        "job",
+        *AXIS_NAMES,
+        "within_scene",
+        "test_pool",
+        "method",
+        "n_test",
+        "steps",
+        *[k for k, _, _ in TEST_FIGURES],
+    ]
     atomic_write_bytes(out / "rows.csv", to_csv(cols, [[r.get(c) for c in cols] for r in rows]).encode())
 
 

@@ -35,18 +35,22 @@ from omegaconf import DictConfig, ListConfig
 from graf.app.config import output_dir, task_wrapper
 from graf.errors import PREEMPTED_EXIT_CODE, ConfigError, UserError, is_preempted
 from graf.io import atomic_write_bytes, atomic_write_json
+from graf.metrics.names import REGISTRY
 
 log = logging.getLogger("graf")
 
-METRICS = (
-    "val/psnr",
-    "val/ssim",
-    "test/mse",
-    "test/psnr",
-    "test/ssim",
-    "test/lpips",  # blank where absent
-    "test/reliance_db",
-)
+VALIDATION_COLUMNS = ("psnr", "ssim")  # the validation figures a table shows beside every test figure
+
+
+def result_columns() -> list[tuple[str, str, str]]:
+    """``(results.json key, column, format)`` of the figures a table shows, read from the metric registry when called
+    (a plugin's metric included, in the registry's order): validation PSNR and SSIM, every test metric (blank where a
+    run has none), the reliance."""
+    val = [(f"val/{n}", f"val {REGISTRY[n].label}", REGISTRY[n].fmt) for n in VALIDATION_COLUMNS]
+    test = [(f"test/{m.name}", m.label, m.fmt) for m in REGISTRY.values()]
+    return [*val, *test, ("test/reliance_db", "reliance dB", "{:.2f}")]
+
+
 IGNORED_PREFIXES = (
     "paths.",
     "hydra.",
@@ -185,23 +189,9 @@ def build_table(rows: list[dict]) -> tuple[list[str], list[list]]:
     """One row per (run, test scene) and per baseline tested beside it: the method, the scenes it was trained
     and tested on, the config keys that vary between the runs, the budget and the metrics."""
     axes = [k for k in varying_keys(rows) if k not in NAMED_GROUPS]  # the two scene columns name them
-    header = [
-        "method",
-        "trained on",
-        "tested on",
-        *axes,
-        "parameters",
-        "steps",
-        "n_test",
-        "val PSNR",
-        "val SSIM",
-        "MSE",
-        "PSNR",
-        "SSIM",
-        "LPIPS",
-        "reliance dB",
-        "seconds",
-    ]
+    keys = [k for k, _, _ in result_columns()]
+    header = ["method", "trained on", "tested on", *axes, "parameters", "steps", "n_test"]
+    header += [*[c for _, c, _ in result_columns()], "seconds"]
     body, seen = [], set()
     for r in rows:
         flat = _flat_config(r.get("config", {}))
@@ -217,7 +207,7 @@ def build_table(rows: list[dict]) -> tuple[list[str], list[list]]:
                     r.get("trainable_parameters"),
                     r.get("global_step"),
                     e.get("n_test"),
-                    *[m.get(k) for k in METRICS],
+                    *[m.get(k) for k in keys],
                     r.get("seconds") if i == 0 else None,
                 ]
             )
@@ -236,7 +226,7 @@ def build_table(rows: list[dict]) -> tuple[list[str], list[list]]:
                         b.get("trainable_parameters"),
                         None,
                         e.get("n_test"),
-                        *[b["metrics"].get(k) for k in METRICS],
+                        *[b["metrics"].get(k) for k in keys],
                         b.get("seconds"),
                     ]
                 )
@@ -247,16 +237,7 @@ def _fmt(v, col):
     if isinstance(v, float):
         if math.isnan(v):
             return "nan"
-        return {
-            "MSE": f"{v:.4f}",
-            "PSNR": f"{v:.2f}",
-            "SSIM": f"{v:.3f}",
-            "LPIPS": f"{v:.3f}",
-            "val PSNR": f"{v:.2f}",
-            "reliance dB": f"{v:.2f}",
-            "val SSIM": f"{v:.3f}",
-            "seconds": f"{v:.1f}",
-        }.get(col, f"{v:g}")
+        return {c: f for _, c, f in result_columns()}.get(col, "{:.1f}" if col == "seconds" else "{:g}").format(v)
     return "" if v is None else str(v)
 
 
