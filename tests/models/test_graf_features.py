@@ -16,6 +16,7 @@ from graf.models.base import CheckpointError, check_checkpoint, read_checkpoint
 from graf.models.graf import GRaFModule
 from graf.models.graf.features import (
     MODES,
+    PAPER_MODE,
     PooledFeatures,
     RayFeatures,
     RayKNNFeatures,
@@ -84,6 +85,15 @@ def test_the_features_group_chooses_the_component(compose_cfg, overrides, cls, m
     assert type(saved) is dict and saved == dict(cfg.features)  # plain, serialisable, what was composed
     if "model.features.pixel_window=0" in overrides:
         assert model.features.pixel_window == 0 and saved["pixel_window"] == 0
+
+
+def test_the_paper_mode_has_one_home(compose_cfg):
+    """conf/model/graf.yaml's default mode is :data:`PAPER_MODE`, the constructor's default and the legacy mode."""
+    import inspect
+
+    cfg = compose_cfg("train", ("model=graf",)).model
+    assert cfg.features._target_ == MODES[PAPER_MODE]
+    assert inspect.signature(GRaFModule.__init__).parameters["features"].default == PAPER_MODE
 
 
 def test_a_component_config_is_checked():

@@ -12,7 +12,7 @@ from collections.abc import Mapping
 
 from torch import nn
 
-from graf.models.graf.features import MODES, features_config
+from graf.models.graf.features import MODES, PAPER_MODE, features_config
 
 MODE_KEYS = ("neighbor_features", "neighbour_features")  # the old string hyperparameter, both spellings
 SETTING_KEYS = ("ray_feature_dim", "pixel_window")  # the ray modes' settings, then top-level hyperparameters
@@ -38,10 +38,10 @@ def upgrade_arguments(features: Mapping | str, legacy: Mapping) -> dict:
         FutureWarning,
         stacklevel=3,
     )
-    if mode is not None and features != "pooled":
+    if mode is not None and features != PAPER_MODE:
         raise ValueError(f"give model/features or the deprecated neighbor_features={mode}, not both")
     config = features_config(features if mode is None else str(mode))
-    if config["_target_"] != MODES["pooled"]:  # a pooled checkpoint recorded the (unused) ray settings too
+    if config["_target_"] != MODES[PAPER_MODE]:  # a pooled checkpoint recorded the (unused) ray settings too
         config.update({k: legacy[k] for k in SETTING_KEYS if k in legacy})
     return config
 
@@ -51,7 +51,7 @@ def upgrade_hparams(hparams: Mapping) -> dict:
     hp = {k: v for k, v in hparams.items() if k not in LEGACY_KEYS}
     legacy = {k: v for k, v in hparams.items() if k in LEGACY_KEYS}
     if legacy:
-        hp["features"] = upgrade_arguments(hparams.get("features", "pooled"), legacy)
+        hp["features"] = upgrade_arguments(hparams.get("features", PAPER_MODE), legacy)
     return hp
 
 

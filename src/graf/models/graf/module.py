@@ -51,7 +51,7 @@ from graf.models.graf.attention import CrossAttentionBlock, MultiHeadAttention, 
 from graf.models.graf.buckets import padded_mask, ray_groups, static_shapes, voxel_mask
 from graf.models.graf.cache import EvalCache, weights_stamp
 from graf.models.graf.encoder import ResNetEncoder
-from graf.models.graf.features import Dims, build_features
+from graf.models.graf.features import PAPER_MODE, Dims, build_features
 from graf.models.graf.features.base import mlp
 from graf.models.graf.features.residual import KNNBase, NoBase
 from graf.models.graf.inference import SerialThreads, fast_path, ray_pass, rays_in_chunks, split_batch
@@ -133,7 +133,7 @@ class GRaFModule(SpectrumModule):
         fast_inference: bool,
         fast_training: bool,
         train_pieces: int | None,
-        features: Mapping | str = "pooled",
+        features: Mapping | str = PAPER_MODE,
         **legacy,
     ):
         super().__init__()

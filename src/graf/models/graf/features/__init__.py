@@ -12,7 +12,14 @@ Each is configured by ``conf/model/features/<mode>.yaml`` (``_target_`` plus its
 :func:`build_features`; the interface is :class:`NeighborFeatures`.
 """
 
-from graf.models.graf.features.base import MODES, Dims, NeighborFeatures, build_features, features_config
+from graf.models.graf.features.base import (
+    MODES,
+    PAPER_MODE,
+    Dims,
+    NeighborFeatures,
+    build_features,
+    features_config,
+)
 from graf.models.graf.features.pooled import PooledFeatures
 from graf.models.graf.features.ray import RayFeatures
 from graf.models.graf.features.ray_knn import RayKNNFeatures
@@ -20,6 +27,7 @@ from graf.models.graf.features.ray_weights import RayWeightsFeatures
 
 __all__ = [
     "MODES",
+    "PAPER_MODE",
     "Dims",
     "NeighborFeatures",
     "PooledFeatures",

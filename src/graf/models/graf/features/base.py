@@ -21,6 +21,9 @@ from torch import nn
 
 from graf.config_home import class_defaults
 
+# the paper's mode (supplement D): conf/model/graf.yaml's default (tests/models/test_graf_features.py checks it), and
+# the mode of every checkpoint written before the modes existed (graf.models.graf.legacy)
+PAPER_MODE = "pooled"
 # mode name (model/features=<name>) -> component class
 MODES = {
     "pooled": "graf.models.graf.features.PooledFeatures",
