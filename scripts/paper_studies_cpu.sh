@@ -33,7 +33,11 @@ MATRIX=${GRAF_MATRIX:-sweeps/cross_scene_matrix_paper_val}  # the matrix record 
 MATRIX_MODELS=${GRAF_MATRIX_MODELS:-graf_cpu_scenes_ray_weights knn_dl}
 NC=${GRAF_NC:-sweeps/neighbor_count_paper_val}
 NC_L=${GRAF_NC_L:-1,2,4,6,8,10,16}  # the neighbor counts nc tests (GRAF_NC_L=2,4: the Table 5 rise alone)
-declare -A STEPS=([graf_cpu_scenes_ray_weights]=${GRAF_STEPS:-1000} [knn_dl]=${GRAF_KNN_DL_STEPS:-3000})
+budget() {  # a model's study budget: its one home, conf/study_size/paper.yaml (read off its learning curve)
+    "${PYTHON:-.venv/bin/python}" -c "from omegaconf import OmegaConf as O; print(O.load('conf/study_size/paper.yaml').study_budgets['$1'])"
+}
+declare -A STEPS=([graf_cpu_scenes_ray_weights]=${GRAF_STEPS:-$(budget graf_cpu_scenes_ray_weights)}
+    [knn_dl]=${GRAF_KNN_DL_STEPS:-$(budget knn_dl)})
 declare -A THREADS=([graf_cpu_scenes_ray_weights]=2 [knn_dl]=1)
 BANDS=${GRAF_BANDS:-915mhz,1.8ghz,2.4ghz,3ghz}  # the bands the bands study trains at and tests at
 UNSEEN_FT=${GRAF_UNSEEN_FINETUNE:-none,f05,f10,f20,f50,f100}  # the fine-tuning fractions unseen tests
