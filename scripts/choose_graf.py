@@ -37,6 +37,8 @@ from pathlib import Path
 
 from graf.errors import UserError
 from graf.reports.published import (
+    BUDGET_WITHIN_DB,
+    GAIN_PER_DOUBLING_DB,
     ahead_label,
     best_step,
     choose_per_regime,
@@ -53,7 +55,12 @@ def main() -> None:
     ap.add_argument("--modes", nargs="+", default=["pooled", "ray", "ray_knn", "ray_weights"])
     ap.add_argument("--regime", default=None, help="only this regime")
     ap.add_argument("--max-step", type=int, default=None, help="only the points at or below this many steps")
-    ap.add_argument("--within-db", type=float, default=None, help="print each method's budget within this many dB")
+    ap.add_argument(
+        "--within-db",
+        type=float,
+        default=None,
+        help=f"print each method's budget within this many dB (the studies' rule: {BUDGET_WITHIN_DB})",
+    )
     ap.add_argument("--leads-knn", default=None, metavar="REGIME", help="the main job's rule on this regime")
     args = ap.parse_args()
     path = Path(args.curves)
@@ -99,7 +106,8 @@ def main() -> None:
             )
     if args.within_db is not None:
         print(f"\n### budgets: the smallest step within {args.within_db} dB of the curve's best validation PSNR\n")
-        print("| regime | method | budget (steps) | last step | still gaining > 0.1 dB per doubling |")
+        gain = f"still gaining > {GAIN_PER_DOUBLING_DB} dB per doubling"
+        print(f"| regime | method | budget (steps) | last step | {gain} |")
         print("|---|---|---|---|---|")
         for regime in sorted({r["regime"] for r in rows}):
             for m in sorted({r["method"] for r in rows if r["regime"] == regime and r["val_psnr"] not in ("", None)}):

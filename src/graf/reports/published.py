@@ -25,6 +25,7 @@ from graf.reports.table import fmt, md  # noqa: F401  (the views' markdown, read
 
 FRACTIONS = ("-", "none", "f05", "f10", "f20", "f50", "f100")
 BUDGET_WITHIN_DB = 0.1  # the studies' budget rule: the smallest step within this of a curve's best validation PSNR
+GAIN_PER_DOUBLING_DB = 0.1  # a curve still gaining more than this per doubling of steps is extended (regime d30)
 VALIDATION_FIGURES = (("val_psnr", True), ("val_ssim", True), ("val_lpips", False))  # (key, higher is better)
 
 
@@ -365,7 +366,9 @@ def curve(rows: list[dict], method: str, regime: str | None = None) -> list[tupl
     )
 
 
-def still_gaining(rows: list[dict], method: str, regime: str, per_doubling_db: float = 0.1) -> bool | None:
+def still_gaining(
+    rows: list[dict], method: str, regime: str, per_doubling_db: float = GAIN_PER_DOUBLING_DB
+) -> bool | None:
     """Whether ``method``'s curve in ``regime`` still gains more than ``per_doubling_db`` per doubling of steps
     between its last two points (gain / log2(step ratio)): the rule that extends a curve of regime
     ``cross_family_val`` from 10,000 to 30,000 steps.  None with fewer than two points."""
