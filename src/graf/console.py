@@ -43,6 +43,12 @@ KNOWN_WARNINGS: tuple[tuple[str, str], ...] = (
         "on PostgreSQL uses them to find dead workers (graf.sweeper.optuna_sweeper.make_storage), as the issue asks",
     ),
     (
+        r"You have overridden `on_before_batch_transfer` in `LightningModule` but have passed in a",
+        "GRaF reads its batch's scene-table keys on the host before the batch moves (GRaFModule."
+        "on_before_batch_transfer, the static path); the datamodule defines no such hook, so the module's runs, "
+        "which is what Lightning says it does",
+    ),
+    (
         r"The number of training batches \(\d+\) is smaller than the logging interval",
         "a short run (a smoke test, a two-step test) logs less often than log_every_n_steps asks; the final "
         "figures come from the evaluation after training, not from the training log",

@@ -223,10 +223,10 @@ def test_training_runs_with_deterministic_algorithms_whose_index_backward_is_rep
 
 
 def test_graf_gathers_rows_with_a_backward_that_adds_in_a_fixed_order():
-    """GRaF's gathers of per-target rows and map cells (``ray_features.rows``: index_select) give advanced
+    """GRaF's gathers of per-target rows and map cells (``features.ray_reading.rows``: index_select) give advanced
     indexing's values, and a backward that is bit-equal from run to run on two threads even without
     deterministic algorithms (advanced indexing's is not: it adds with atomics)."""
-    from graf.models.graf.ray_features import rows
+    from graf.models.graf.features.ray_reading import rows
 
     threads, was = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
     try:

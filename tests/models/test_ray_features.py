@@ -11,7 +11,7 @@ import torch
 
 from graf.models.graf import GRaFModule
 from graf.models.graf.features import MODES, RayFeatures
-from graf.models.graf.ray_features import all_pixel_inputs, pad_wrap, pixel_window, sample_wrap, upsample_wrap
+from graf.models.graf.features.ray_reading import all_pixel_inputs, pad_wrap, pixel_window, sample_wrap, upsample_wrap
 from graf.models.knn import KNNModule
 from graf.run.train import train
 

@@ -42,6 +42,11 @@ class Metric:
         if self.aggregate not in AGGREGATES:
             raise ValueError(f"metric {self.name!r}: aggregate must be one of {AGGREGATES}, got {self.aggregate!r}")
 
+    @property
+    def difference_fmt(self) -> str:
+        """The number format of a difference of this metric: ``fmt``, signed (``{:+.2f}``)."""
+        return self.fmt.replace("{:", "{:+", 1)
+
     def axis_label(self, split: str = "test") -> str:
         """``test PSNR (dB), higher is better``."""
         unit = f" ({self.unit})" if self.unit else ""

@@ -15,12 +15,7 @@ from omegaconf import OmegaConf
 
 from graf.app import config as app_config
 from graf.errors import ConfigError, UserError
-from graf.reports.rows import (
-    TEST_FIGURES,
-    matrices,
-    seed_means,
-    seeds_told,
-)  # TEST_FIGURES: the registry's, in its order
+from graf.reports.rows import TEST_FIGURES, matrices, seed_means, seeds_told  # TEST_FIGURES: the registry's
 from graf.reports.table import fmt, md  # noqa: F401  (the views' markdown, read from here by the site and readme)
 
 FRACTIONS = ("-", "none", "f05", "f10", "f20", "f50", "f100")
@@ -366,9 +361,7 @@ def curve(rows: list[dict], method: str, regime: str | None = None) -> list[tupl
     )
 
 
-def still_gaining(
-    rows: list[dict], method: str, regime: str, per_doubling_db: float = GAIN_PER_DOUBLING_DB
-) -> bool | None:
+def still_gaining(rows: list, method: str, regime: str, per_doubling_db: float = GAIN_PER_DOUBLING_DB) -> bool | None:
     """Whether ``method``'s curve in ``regime`` still gains more than ``per_doubling_db`` per doubling of steps
     between its last two points (gain / log2(step ratio)): the rule that extends a curve of regime
     ``cross_family_val`` from 10,000 to 30,000 steps.  None with fewer than two points."""

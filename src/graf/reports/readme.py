@@ -2,9 +2,8 @@
 no figure its record does not hold.
 
 graf-report writes, into the study folder's ``README.md``, a block between :data:`START` and :data:`END`: the
-study's tables (:func:`graf.reports.published.study_tables`, the site's, split so that no table is wider than
-:data:`MAX_COLUMNS`) and the summary of its paired intervals (``intervals.json``).  The text around the block is
-the record's own (what was run, how, on what) and is kept; a README without the block gets it appended.
+study's tables (:func:`graf.reports.published.study_tables`, split to at most :data:`MAX_COLUMNS` columns) and the
+summary of its paired intervals (``intervals.json``).  The text around the block is the record's own and is kept.
 :func:`refresh` rewrites the block from the folder's ``report.json``, ``rows.json`` and ``intervals.json`` alone
 (``graf-report runs=FOLDER readme_only=true``, ``python scripts/record_readmes.py``).
 
@@ -32,16 +31,10 @@ from graf.reports.published import md, study_tables
 START = "<!-- graf-report: generated from report.json, rows.json, intervals.json; do not edit -->"
 END = "<!-- /graf-report -->"
 MAX_COLUMNS = 7
-SIGNED = "{:+.2f}"  # a difference of PSNR (dB); -0.00: below zero by less than the last digit
+SIGNED = REGISTRY["psnr"].difference_fmt  # a difference of PSNR (dB); -0.00: below zero by less than the last digit
 AXIS_WORDS = {"trained_on": "trained on", "train_band": "train band", "finetune": "fine-tuned",
               "eval_scene": "tested on", "eval_band": "test band"}  # fmt: skip
 SUMMARY_ORDER = ("psnr", "ssim", "lpips", "mse")  # the summary's metric order; any other (a plugin's) after them
-
-
-def difference_form(metric: str) -> str:
-    """A difference of ``metric``, signed, in its registered number format (:data:`graf.metrics.names.REGISTRY`)."""
-    m = REGISTRY.get(metric)
-    return "{:+.3g}" if m is None else m.fmt.replace("{:", "{:+", 1)
 
 
 def _numeric(cell: str) -> bool:
@@ -95,7 +88,7 @@ def _diff(c: dict) -> str:
     return SIGNED.format(c["diff"])
 
 
-def _ends(c: dict) -> str:
+def _ends(c: dict) -> str:  # an interval of PSNR differences
     return f"[{SIGNED.format(c['low'])}, {SIGNED.format(c['high'])}]"
 
 
@@ -114,7 +107,7 @@ def verdicts(rows: list[dict]) -> str:
     order = {m: i for i, m in enumerate(SUMMARY_ORDER)}
     body = []
     for (method, ref, metric), cs in sorted(groups.items(), key=lambda kv: (*kv[0][:2], order.get(kv[0][2], 9))):
-        form = difference_form(metric)
+        form = REGISTRY[metric].difference_fmt if metric in REGISTRY else "{:+.3g}"
         counts = defaultdict(int)
         for c in cs:
             counts[c["verdict"].split()[0]] += 1

@@ -53,6 +53,7 @@ from graf.models.graf.cache import EvalCache, weights_stamp
 from graf.models.graf.encoder import ResNetEncoder
 from graf.models.graf.features import PAPER_MODE, Dims, build_features
 from graf.models.graf.features.base import mlp
+from graf.models.graf.features.ray_reading import rows
 from graf.models.graf.features.residual import KNNBase, NoBase
 from graf.models.graf.inference import SerialThreads, fast_path, ray_pass, rays_in_chunks, split_batch
 from graf.models.graf.legacy import (
@@ -63,7 +64,6 @@ from graf.models.graf.legacy import (
     upgrade_state_dict,
 )
 from graf.models.graf.pieces import piece_prediction
-from graf.models.graf.ray_features import rows
 from graf.models.graf.settings import check_settings
 from graf.models.graf.tables import flat_scene_voxels, geometry_key, ray_sampling_summary, scene_ray_table
 

@@ -10,7 +10,7 @@ from torch import nn
 
 from graf.models.graf.buckets import static_shapes
 from graf.models.graf.features.base import Dims, NeighborFeatures, complex_head, mlp
-from graf.models.graf.ray_features import rows
+from graf.models.graf.features.ray_reading import rows
 
 
 class PooledFeatures(NeighborFeatures):

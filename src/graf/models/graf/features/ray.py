@@ -1,4 +1,4 @@
-"""``model/features=ray``: ray-aligned neighbor features (:mod:`graf.models.graf.ray_features`).
+"""``model/features=ray``: ray-aligned neighbor features (:mod:`graf.models.graf.features.ray_reading`).
 
 Every spectrum of a scene is measured by the same array, so ray (elevation, azimuth) of the target is pixel
 (elevation, azimuth) of every neighbor.  Each neighbor's encoder feature map is projected to
@@ -17,8 +17,15 @@ from torch import nn
 from graf.config_home import defaults_from
 from graf.models.graf.buckets import static_shapes
 from graf.models.graf.features.base import Dims, NeighborFeatures, complex_head
+from graf.models.graf.features.ray_reading import (
+    RayNeighborTokens,
+    all_pixel_inputs,
+    pad_wrap,
+    pixel_window,
+    rows,
+    sample_wrap,
+)
 from graf.models.graf.inference import split_batch
-from graf.models.graf.ray_features import RayNeighborTokens, all_pixel_inputs, pad_wrap, pixel_window, rows, sample_wrap
 from graf.models.knn.weights import idw_weights
 
 
