@@ -203,6 +203,7 @@ CASES = [(f, "auto", 0) for f in ("pooled", "ray", "ray_knn", "ray_weights")] + 
 
 
 @pytest.mark.parametrize("features,attention,window", CASES)
+@pytest.mark.slow  # moved from the default run to keep it under 5 min on the 2-core machine (issue 68)
 def test_whole_spectra_fast_equal_plain(tiny, features, attention, window):
     """predict_spectra with fast_inference (the kernel, chunks on two threads) equals it without, every mode,
     attention kernel and ray window, for a batch of two targets and of one."""
