@@ -29,7 +29,7 @@ def test_the_gpu_check_runs_at_toy_sizes_on_a_cpu(tmp_path):
     rows = {(b["precision"], b["preset"]) for b in summary["bench"] if not b["error"]}
     assert rows == {(p, m) for p in ("fp32", "bf16") for m in ("graf", "nerf2")}
     assert all(b["infer_s_per_spectrum"] > 0 and b["train_s_per_step"] > 0 for b in summary["bench"])
-    assert all("trusted" in b for b in summary["bench"])
+    assert all(b["trusted"] is (not b["disturbed"]) for b in summary["bench"] if not b["error"])
     paths = {(r["precision"], r["path"]) for r in summary["step_profile"] if "error" not in r}
     assert paths == {(p, q) for p in ("fp32", "bf16") for q in ("grouped", "static")}
     assert summary["profile"]["host_reads_per_step"] == 0  # the static path reads nothing back

@@ -375,16 +375,17 @@ def test_heartbeat_settings_on_sqlite_are_said_to_be_unused(caplog):
 
 def test_a_searchs_directions_are_its_metrics_and_a_contradiction_stops_with_one_line():
     from graf.sweeper.optuna_sweeper import OptunaSweep, SearchSpaceError
+    from graf.sweeper.settings import sweeper_settings
 
-    sweep = OptunaSweep()  # no direction: each objective's own, from the metric registry
+    sweep = OptunaSweep(**sweeper_settings())  # no direction: each objective's own, from the metric registry
     sweep.config = OmegaConf.create({"optimized_metric": ["val/psnr@mean", "cost/infer_s_per_spectrum", "val/lpips"]})
     assert sweep._objective_names() == ["val/psnr@mean", "cost/infer_s_per_spectrum", "val/lpips"]
     assert sweep.directions == ["maximize", "minimize", "minimize"]
-    agreeing = OptunaSweep(direction=["maximize", "minimize"])
+    agreeing = OptunaSweep(**sweeper_settings(direction=["maximize", "minimize"]))
     agreeing.config = OmegaConf.create({"optimized_metric": ["val/ssim", "val/mse"]})
     agreeing._objective_names()
     assert agreeing.directions == ["maximize", "minimize"]
-    wrong = OptunaSweep(direction="maximize")
+    wrong = OptunaSweep(**sweeper_settings(direction="maximize"))
     wrong.config = OmegaConf.create({"optimized_metric": "val/lpips"})
     with pytest.raises(SearchSpaceError, match=r"direction maximize for val/lpips contradicts the metric \(lower"):
         wrong._objective_names()

@@ -44,6 +44,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -64,6 +65,7 @@ from graf.search.objectives import check_objective_names, metrics_mean, objectiv
 from graf.search.pruners import make_pruner
 from graf.search.search_space import SearchSpace, SearchSpaceError, parse_search_space
 from graf.sweeper.outputs import best_trials, write_outputs
+from graf.sweeper.settings import HeartbeatConf
 
 log = logging.getLogger("graf")
 
@@ -150,16 +152,14 @@ def make_storage(url: str, heartbeat: dict | None):
                 heartbeat.get("grace_period"),
             )
         return url
-    interval, grace = int(heartbeat.get("interval", 10)), heartbeat.get("grace_period")
+    interval, grace = int(heartbeat["interval"]), heartbeat.get("grace_period")
     for attempt in range(5):
         try:
             return RDBStorage(
                 url,
                 heartbeat_interval=interval,
                 grace_period=None if grace is None else int(grace),
-                heartbeat_stale_trial_callback=RetryHeartbeatStaleTrialCallback(
-                    max_retry=heartbeat.get("max_retry", 3)
-                ),
+                heartbeat_stale_trial_callback=RetryHeartbeatStaleTrialCallback(max_retry=heartbeat["max_retry"]),
             )
         except (sqlalchemy.exc.IntegrityError, sqlalchemy.exc.ProgrammingError) as exc:
             # workers starting together on an empty database race to create Optuna's tables (one wins, the
@@ -288,24 +288,27 @@ class OptunaSweep:
     def __init__(
         self,
         *,
-        sampler: str = "auto",
-        seed: int = 0,
-        direction: Any = None,
-        storage: str | None = None,
-        study_name: str | None = None,
-        n_trials: int = 20,
-        max_failures: int = 5,
-        n_jobs: int = 1,
-        threads_per_job: int | None = None,
-        pruner: dict | None = None,
-        heartbeat: dict | None = None,
-        params: dict | None = None,
-        test_best: bool = True,
-        population_size: int | None = None,
-        test_overrides: list | None = None,
-        plots: bool = True,
-        worker_rank: int = 0,
+        sampler: str,
+        seed: int,
+        direction: Any,
+        storage: str | None,
+        study_name: str | None,
+        n_trials: int,
+        max_failures: int,
+        n_jobs: int,
+        threads_per_job: int | None,
+        pruner: dict | None,
+        heartbeat: dict | None,
+        params: dict | None,
+        test_best: bool,
+        population_size: int | None,
+        test_overrides: list | None,
+        plots: bool,
+        worker_rank: int,
     ):
+        """The settings of ``hydra.sweeper``, every one given: their defaults have one home, the plugin's config class
+        (:class:`graf.sweeper.settings.GrafOptunaSweeperConf`; in code:
+        ``OptunaSweep(**sweeper_settings(...))``)."""
         self.sampler_name, self.seed = sampler, int(seed)
         self.direction = direction  # None: each objective's own; checked against the objectives (_objective_names)
         self.directions: list[str] = []  # one per objective, set with the objectives' names
@@ -313,7 +316,7 @@ class OptunaSweep:
         self.n_trials, self.max_failures = int(n_trials), int(max_failures)
         self.n_jobs, self.threads_per_job = max(1, int(n_jobs)), threads_per_job
         self.pruner_conf = dict(pruner or {})
-        self.heartbeat = dict(heartbeat) if heartbeat is not None else {"interval": 10, "grace_period": 60}
+        self.heartbeat = dict(heartbeat) if heartbeat is not None else asdict(HeartbeatConf())
         self.params = dict(params or {})
         self.test_best, self.test_overrides = bool(test_best), list(test_overrides or ["test=true"])
         self.plots, self.worker_rank = bool(plots), int(worker_rank)
@@ -545,7 +548,7 @@ class OptunaSweep:
                     "trial %d: its worker %s sent no heartbeat for %s s: failed and queued again by Optuna",
                     n,
                     trials[n].user_attrs.get(OWNER),
-                    self.heartbeat.get("grace_period") or 2 * int(self.heartbeat.get("interval", 10)),
+                    self.heartbeat.get("grace_period") or 2 * int(self.heartbeat["interval"]),
                 )
             return
         for t in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
