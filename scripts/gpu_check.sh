@@ -85,12 +85,13 @@ for s in steps:
     name, ms, rc = s.split()
     summary["steps"][name] = {"seconds": round(int(ms) / 1000, 1), "exit_status": int(rc)}
 keys = ("scene", "preset", "method", "samples_per_ray", "infer_s_per_spectrum", "train_s_per_step", "peak_mb_infer",
-        "peak_mb_train", "disturbed", "trusted", "error")
+        "peak_mb_train", "disturbed", "error")
 for precision in ("fp32", "bf16"):
     f = out / f"bench_{precision}" / "results.json"
     if f.exists():
         r = json.loads(f.read_text())
-        summary["bench"] += [{"precision": precision, **{k: row.get(k) for k in keys}} for row in r["rows"]]
+        summary["bench"] += [{"precision": precision, **{k: row.get(k) for k in keys},
+                              "trusted": not (row.get("disturbed") or row.get("error"))} for row in r["rows"]]
 f = out / "step_profile.json"
 if f.exists():  # the paper-size training step, path against path: the static path's row at the paper's rays
     rows = json.loads(f.read_text())["rows"]
