@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import re
+import textwrap
 from pathlib import Path
 
 import matplotlib.pyplot as plt  # on the Agg backend: graf.plotting (below) sets it
@@ -35,6 +36,7 @@ from graf.run.per_spectrum import PER_SPECTRUM_FILE, read_per_spectrum
 
 VERDICTS = ("holds", "refuted", "not reproduced", "not comparable")
 WIDTH = 88  # a command's lines in its code block, continued with " \"
+TITLE_CHARS = 60  # a forest plot's title lines (centred over the axes, right of the cell labels): wrapped, never cut
 TOKEN = re.compile(r"(?:'[^']*'|\"[^\"]*\"|\S)+")  # a word of a command, quotes kept whole
 
 
@@ -208,15 +210,18 @@ def forest_plot(claim: dict, cells: list[dict], path: Path) -> Path:
     if claim["kind"] != "value":  # a value is no difference: no 0 line
         ax.axvline(0.0, color="0.3", lw=1.0, ls="--", label="0 (no difference)")
     ax.errorbar(diff, y, xerr=err, fmt="o", color="C0", capsize=3, label="the platform: 95% interval")
+    whose = claim.get("against") or "the paper's"  # a target of the platform's own: "the target's"
     if claim.get("paper_value") is not None:
         paper = float(claim["paper_value"])
         said = f"{paper:.2f}" if claim["kind"] == "value" else f"{paper:+.2f}"
-        ax.plot([paper] * n, y, "D", color="C3", label=f"the paper's figure, {said}")
+        ax.plot([paper] * n, y, "D", color="C3", label=f"{whose} figure, {said}")
+    if claim.get("margin") is not None:  # the target: ahead by at least this much in every cell
+        ax.axvline(float(claim["margin"]), color="C3", lw=1.2, ls=":", label=f"{whose} margin, {claim['margin']:+g}")
     unit = _metric(claim)[1]
     ax.set_xlabel(f"{difference(claim)}{f' ({unit})' if unit else ''}", fontsize=9)
     ax.set_yticks(y, [c["cell"] for c in cells], fontsize=8)
     ax.set_ylim(-0.7, n - 0.3)
-    ax.set_title(title(claim), fontsize=10)
+    ax.set_title("\n".join(textwrap.wrap(title(claim), TITLE_CHARS)), fontsize=10)  # wrapped, never cut
     fig.legend(fontsize=7, loc="outside lower center", ncols=3, frameon=False)  # below: it hides no interval
     return save_figure(fig, path, dpi=100)
 
