@@ -138,11 +138,20 @@ def markdown(rows: list[dict]) -> str:
 
 
 def _plot(path: Path, rows: list[dict]) -> None:
-    fig, ax = plt.subplots(figsize=(6, 4), constrained_layout=True)
+    """The CDF of each run's AoA error (and the true spectra's): one colour per method, darker where more positions
+    were measured, each run labelled with its method and measured count; the legend beside the axes, never over the
+    curves (a record holds up to 20 runs).  Redrawn from a record's ``results.json`` by :func:`redraw`."""
+    fig, ax = plt.subplots(figsize=(9, 4.5), constrained_layout=True)
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    counts = sorted({r.get("n_measured") or 0 for r in rows})
     done_truth = set()
-    for r in rows:
+    for r in sorted(rows, key=lambda r: (methods.index(r["method"]), r.get("n_measured") or 0)):
         e = np.sort(r["per_spectrum"]["pred_vs_geometry"])
-        ax.plot(e, np.arange(1, len(e) + 1) / len(e), label=f"{r['method']} ({r['scene']})")
+        shade = 0.35 + 0.65 * (counts.index(r.get("n_measured") or 0) + 1) / len(counts)
+        label = f"{r['method']}, {r.get('n_measured') or 'all'} measured" + (
+            f" ({r['scene']})" if len({x["scene"] for x in rows}) > 1 else ""
+        )
+        ax.plot(e, np.arange(1, len(e) + 1) / len(e), color=f"C{methods.index(r['method'])}", alpha=shade, label=label)
         if r["scene"] not in done_truth:
             t = np.sort(r["per_spectrum"]["true_vs_geometry"])
             ax.plot(t, np.arange(1, len(t) + 1) / len(t), "k--", lw=1, label=f"true spectra ({r['scene']})")
@@ -150,8 +159,16 @@ def _plot(path: Path, rows: list[dict]) -> None:
     ax.set_xscale("log")
     ax.set_xlabel("AoA error against the geometry (degrees)")
     ax.set_ylabel("fraction of test positions")
-    ax.legend(fontsize=7)
+    fig.legend(fontsize=6, loc="outside right upper", ncols=1 if len(rows) <= 12 else 2, frameon=False)
     save_figure(fig, path, dpi=100)
+
+
+def redraw(folder: Path) -> Path:
+    """A record's CDF figure (``aoa_cdf.png``) drawn again from its ``results.json`` alone."""
+    result = json.loads((folder / "results.json").read_text())
+    path = folder / result.get("figure", "aoa_cdf.png")
+    _plot(path, result["runs"])
+    return path
 
 
 @task_wrapper
