@@ -255,8 +255,16 @@ def _draw_points(ax, sr: list[dict], cost: str, front: str, markers: dict) -> No
             edgecolors="k" if r[front] else "none",
             label=r["knob"],
         )
-        ax.annotate(f"{r['value']}", (r[cost], r["test_psnr"]), fontsize=7, xytext=(3, 3), textcoords="offset points")
     fr = sorted((r for r in sr if r[front] and r[cost] is not None), key=lambda r: r[cost])
+    # labels on the front's points alone, alternating above and below the line (the rest crowd together:
+    # their marker names their knob, pareto.md their value)
+    for k, r in enumerate(fr):
+        at = (4, 5) if k % 2 == 0 else (4, -11)
+        ax.annotate(f"{r['value']}", (r[cost], r["test_psnr"]), fontsize=7, xytext=at, textcoords="offset points")
+    for r in sr:  # another method is named wherever it lies (it stands apart from GRaF's knobs)
+        if r["knob"] == "method" and not r[front] and r[cost] is not None and r["test_psnr"] is not None:
+            xy = (r[cost], r["test_psnr"])
+            ax.annotate(f"{r['value']}", xy, fontsize=7, xytext=(4, 5), textcoords="offset points")
     if fr:
         ax.plot([r[cost] for r in fr], [r["test_psnr"] for r in fr], "k--", lw=0.8, label="front (chosen on val PSNR)")
     knn = next((r["knn_test_psnr"] for r in sr if r["knn_test_psnr"] is not None), None)
