@@ -124,6 +124,7 @@ def _plot(path, name, data, fine, kpart, kmap, objects, wavelength) -> None:
             (cx, cy), (sx, sy) = o["center"][:2], o["size"][:2]
             ax.add_patch(plt.Rectangle((cx - sx / 2, cy - sy / 2), sx, sy, fill=False, ec="w", lw=0.8))
         ax.set_aspect("equal")
+        ax.set_xlabel("x (m)"), ax.set_ylabel("y (m)")
         ax.set_title(f"log10 K at z = {kmap['z']:.2f} m (white: objects)", fontsize=9)
         fig.colorbar(im, ax=ax, shrink=0.8, label="log10 K (1/m^2)")
     if fine is not None and kpart is not None:
