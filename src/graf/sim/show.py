@@ -91,8 +91,11 @@ def scenes_figure(rows, count: int, band: str):
             )
             p = d.positions[i]
             ax.set_title(f"{name} id {int(d.ids[i])} ({p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}) m", fontsize=7)
-            ax.set_xticks([]), ax.set_yticks([])
+            # degrees on the outer panels only: azimuth along the bottom row, elevation up the first column
+            ax.set_xticks([90, 180, 270, 360] if r == len(rows) - 1 else [])
+            ax.set_yticks([1, 45, 90] if c == 0 else [])
+            ax.tick_params(labelsize=6)
     if rows:
         fig.colorbar(axes[0, 0].images[0], ax=axes.ravel().tolist(), shrink=0.9, label=SPECTRUM_LABEL)
-    fig.suptitle(f"Simulated spectra at {band} (azimuth 1-360 deg across, elevation 1-90 deg up)")
+    fig.suptitle(f"Simulated spectra at {band} (azimuth 1-360 deg across, elevation 1-90 deg up)", fontsize=9)
     return fig
