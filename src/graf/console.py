@@ -40,7 +40,7 @@ KNOWN_WARNINGS: tuple[tuple[str, str], ...] = (
     (
         r"(Argument ``heartbeat_interval`` is an|.*fail_stale_trials is) experimental",
         "Optuna marks RDBStorage's heartbeats experimental (since 2.9, unchanged through 5.0); a study shared "
-        "on PostgreSQL uses them to find dead workers (graf.sweeper.optuna_sweeper.make_storage), as the issue asks",
+        "on PostgreSQL uses them to find dead workers (graf.sweeper.storage.make_storage), as the issue asks",
     ),
     (
         r"You have overridden `on_before_batch_transfer` in `LightningModule` but have passed in a",

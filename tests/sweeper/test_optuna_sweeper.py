@@ -256,7 +256,7 @@ def test_samplers_follow_the_space_and_the_objectives():
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     from graf.search.search_space import SearchSpaceError, parse_search_space
-    from graf.sweeper.optuna_sweeper import make_sampler
+    from graf.sweeper.sampler import make_sampler
 
     parser = OverridesParser.create()
     cat = parse_search_space({"a": "choice(1,2)", "b": "choice(3,4,5)"}, [], parser)
@@ -364,7 +364,7 @@ def test_heartbeat_settings_on_sqlite_are_said_to_be_unused(caplog):
     one log line says it is unused and what finds dead workers there instead."""
     import logging
 
-    from graf.sweeper.optuna_sweeper import make_storage
+    from graf.sweeper.storage import make_storage
 
     with caplog.at_level(logging.INFO, logger="graf"):
         url = make_storage("sqlite:///x.db", {"interval": 10, "grace_period": 60, "max_retry": 3})
@@ -374,7 +374,8 @@ def test_heartbeat_settings_on_sqlite_are_said_to_be_unused(caplog):
 
 
 def test_a_searchs_directions_are_its_metrics_and_a_contradiction_stops_with_one_line():
-    from graf.sweeper.optuna_sweeper import OptunaSweep, SearchSpaceError
+    from graf.errors import ConfigError
+    from graf.sweeper.optuna_sweeper import OptunaSweep
     from graf.sweeper.settings import sweeper_settings
 
     sweep = OptunaSweep(**sweeper_settings())  # no direction: each objective's own, from the metric registry
@@ -387,5 +388,5 @@ def test_a_searchs_directions_are_its_metrics_and_a_contradiction_stops_with_one
     assert agreeing.directions == ["maximize", "minimize"]
     wrong = OptunaSweep(**sweeper_settings(direction="maximize"))
     wrong.config = OmegaConf.create({"optimized_metric": "val/lpips"})
-    with pytest.raises(SearchSpaceError, match=r"direction maximize for val/lpips contradicts the metric \(lower"):
+    with pytest.raises(ConfigError, match=r"direction maximize for val/lpips contradicts the metric \(lower"):
         wrong._objective_names()

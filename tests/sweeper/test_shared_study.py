@@ -71,6 +71,6 @@ def test_a_worker_killed_mid_trial_has_its_trial_failed_by_heartbeat_and_queued_
     # every configuration ran to its end exactly once (the killed one never ended), and the dead worker's trial
     # is not counted as a failure of its configuration
     assert set(trained(tmp_path).values()) == {1} and len(trained(tmp_path)) == 6
-    from graf.sweeper.optuna_sweeper import counted_failures
+    from graf.sweeper.trials import counted_failures
 
     assert counted_failures(study.trials) == []

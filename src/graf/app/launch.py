@@ -6,7 +6,9 @@
 :func:`command` turns a console script's name into ``[python, -m, its module, *args]`` (the interpreter that runs
 graf, so a virtual environment need not be on ``PATH``), the modules read from graf's console scripts
 (``pyproject.toml`` ``[project.scripts]``, the one list of them).  ``tests/test_import_graph.py`` reads every call
-of it as a launch and checks that launches go from the studies down to the commands and nowhere else.
+of it as a launch and checks that launches go from the studies down to the commands and nowhere else.  A search's
+further workers run the search's own command again (:func:`again`), the one other launcher, called by the sweeper
+alone.
 """
 
 from __future__ import annotations
@@ -42,3 +44,17 @@ def module(name: str) -> str:
 def command(name: str, *args: str) -> list[str]:
     """The argument list that runs the command ``name`` with ``args`` in a subprocess."""
     return [sys.executable, "-m", module(name), *map(str, args)]
+
+
+def again(*args: str) -> list[str]:
+    """The argument list that runs this process's own command again with ``args`` (an Optuna search's further
+    workers, :mod:`graf.sweeper.workers`): a graf command by its name (:func:`command`), run as
+    ``python -m`` whether it was started as a console script or as a module; any other Hydra app (a test's) by its
+    script.  ``tests/test_import_graph.py`` knows this launcher: only the sweeper calls it."""
+    started = Path(sys.argv[0])
+    if started.name in commands():
+        return command(started.name, *args)
+    by_file = {m: n for n, m in commands().items() if m.replace(".", "/") + ".py" in started.as_posix()}
+    if by_file:
+        return command(next(iter(by_file.values())), *args)
+    return [sys.executable, str(started), *map(str, args)]

@@ -47,6 +47,32 @@ def objective_direction(name: str) -> str:
     return "maximize" if metric.higher_is_better else "minimize"
 
 
+def objective_directions(names: list[str], given=None) -> list[str]:
+    """One direction per objective: each one's own (:func:`objective_direction`) when ``given`` is None, else
+    ``given`` (``hydra.sweeper.direction``: one value or a list), checked against them: a count that differs, a
+    value other than maximize/minimize, or a direction that contradicts its metric stops with one line."""
+    own = [objective_direction(n) for n in names]
+    if given is None:
+        return own
+    given = [str(given)] if isinstance(given, str) else [str(d) for d in given]
+    for d in given:
+        if d not in ("maximize", "minimize"):
+            raise ConfigError(f"hydra.sweeper.direction: {d!r} is not maximize or minimize")
+    if len(names) != len(given):
+        raise ConfigError(
+            f"optimized_metric {names} has {len(names)} value(s) but hydra.sweeper.direction "
+            f"has {len(given)}: give one direction per objective (or none: each objective's own)"
+        )
+    for n, d, o in zip(names, given, own):
+        if d != o:
+            better = "higher" if o == "maximize" else "lower"
+            raise ConfigError(
+                f"hydra.sweeper.direction {d} for {n} contradicts the metric ({better} is better: {o}); leave "
+                "direction out and each objective takes its own"
+            )
+    return given
+
+
 def inference_seconds_per_spectrum(model, dm, batches: int = COST_BATCHES) -> float:
     """Median seconds per spectrum of ``model.predict_spectra`` on validation batches (one warm-up first)."""
     model.eval()
