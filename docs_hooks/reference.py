@@ -31,7 +31,7 @@ from mkdocs.exceptions import PluginError
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "src" / "graf" / "conf"
-DIRECTIVE = re.compile(r"^<!-- gen: (config|group|interp) (\S+) -->$", re.M)
+DIRECTIVE = re.compile(r"^<!-- gen: (config|group|interp|settings) (\S+) -->$", re.M)
 # what the keys every command shares set, where a config file leaves them without a comment
 BUILT_IN = {
     "task_name": "names the output folder (`outputs/<task_name>/<time>/`) and its log file",
@@ -52,7 +52,7 @@ def expand(markdown: str, src_uri: str = "", fit=None) -> str:
         kind, name = m.group(1), m.group(2)
         try:
             makers = {"config": lambda: config_block(name, depth), "group": lambda: group_block(name),
-                      "interp": lambda: interp_table(name)}  # fmt: skip
+                      "interp": lambda: interp_table(name), "settings": lambda: settings_table(name)}  # fmt: skip
             text = makers[kind]()
             return fit(text) if fit else text
         except (OSError, ValueError, KeyError, yaml.YAMLError, tree_pages.TreeError) as e:
@@ -349,3 +349,21 @@ def curvature_row(c: dict) -> list[str]:
         f"{c['spearman_rho']:.2f} ({c['spearman_p']:.1g})",
         f"{fit['slope']:.2f} [{fit['ci'][0]:.2f}, {fit['ci'][1]:.2f}]",
     ]
+
+
+def settings_table(name: str) -> str:
+    """The table of ``hydra.sweeper``'s settings (key, default, meaning), read from their one home,
+    :class:`graf.sweeper.settings.GrafOptunaSweeperConf`."""
+    if name != "hydra.sweeper":
+        raise ValueError(f"no settings class for {name}; hydra.sweeper is the one there is")
+    from graf.sweeper.settings import settings_rows
+
+    def shown(value) -> str:  # YAML's spelling, as on the command line (null, true, [test=true])
+        return yaml.safe_dump(value, default_flow_style=True).strip().removesuffix("...").strip()
+
+    rows = [f"| `{key}` | `{shown(default)}` | {meaning} |" for key, default, meaning in settings_rows()]
+    return (
+        "| key | default | meaning |\n|---|---|---|\n"
+        + "\n".join(rows)
+        + ("\n\n*Generated from `graf.sweeper.settings.GrafOptunaSweeperConf`, the settings' one home.*")
+    )

@@ -390,3 +390,25 @@ def test_a_searchs_directions_are_its_metrics_and_a_contradiction_stops_with_one
     wrong.config = OmegaConf.create({"optimized_metric": "val/lpips"})
     with pytest.raises(ConfigError, match=r"direction maximize for val/lpips contradicts the metric \(lower"):
         wrong._objective_names()
+
+
+def test_every_sweeper_setting_has_one_home_with_its_meaning():
+    """The searches page's table, the plugin's structured config and ``OptunaSweep``'s keyword arguments all read
+    :class:`graf.sweeper.settings.GrafOptunaSweeperConf`: every setting there has a meaning, and every keyword
+    argument of the sweep is one of its settings (nested ones whole)."""
+    import inspect
+
+    from hydra.core.config_store import ConfigStore
+
+    import hydra_plugins.graf_optuna_sweeper.graf_optuna_sweeper  # noqa: F401  (registers the config)
+    from graf.sweeper.optuna_sweeper import OptunaSweep
+    from graf.sweeper.settings import settings_rows, sweeper_settings
+
+    rows = settings_rows()
+    assert [k for k, _, meaning in rows if not meaning.strip()] == []
+    assert {k.split(".")[0] for k, _, _ in rows} == set(sweeper_settings())
+    kwargs = set(inspect.signature(OptunaSweep.__init__).parameters) - {"self"}
+    assert kwargs == set(sweeper_settings())
+    registered = ConfigStore.instance().load("hydra/sweeper/graf_optuna.yaml").node
+    assert OmegaConf.to_container(registered.heartbeat) == dict(sweeper_settings()["heartbeat"])
+    assert {k: v for k, v, _ in rows}["heartbeat.interval"] == registered.heartbeat.interval
