@@ -176,7 +176,8 @@ def test_every_command_file_is_thin(path):
 # --- sizes: small modules and small functions (issue: the house by stage) ---
 MODULE_MAX_LINES = 400
 FUNCTION_MAX_LINES = 60
-LONG_MODULES: set[str] = set()  # none: a module that must be longer says why in its docstring and is named here
+# a module longer than the limit says why in its docstring (splitting it would cut one idea in two) and is named here
+LONG_MODULES = {"graf.case_studies.interpolation"}
 
 
 def test_no_module_is_over_the_size_limit():

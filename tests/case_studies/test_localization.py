@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from graf.analysis.localization import (
+from graf.case_studies.localization import (
     SpectrumLocalizer,
     check_disjoint,
     denormalise,

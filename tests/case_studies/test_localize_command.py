@@ -62,7 +62,7 @@ def test_graf_localize_loads_a_trained_run_from_its_checkpoint(tmp_path):
 
 
 def test_a_measured_set_holding_a_test_position_is_refused():
-    from graf.analysis.localization import check_disjoint
+    from graf.case_studies.localization import check_disjoint
     from graf.errors import ConfigError
 
     test = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from graf.analysis.oracle import fit_weights, run_oracle, select_targets
+from graf.case_studies.oracle import fit_weights, run_oracle, select_targets
 from graf.run.build import build_datamodule
 
 

@@ -13,13 +13,13 @@ and measured part form a *group*; per group:
 - **test set**: the scene's test split (true spectra in, positions out): never trained on, never used to
   choose anything; every budget below is fixed in the config before looking;
 - **synthetic positions**: ``n_synth`` positions uniform in the box of the scene's training split, each at
-  least ``min_gap_wavelengths`` from every test position (:func:`graf.analysis.localization.check_disjoint`
+  least ``min_gap_wavelengths`` from every test position (:func:`check_disjoint`
   refuses anything closer, and a measured set holding a test position);
 - **synthesizers**: every run of the group, and IDW KNN on the same pool (``knn=true``), predict spectra
   at the synthetic positions; each one's test PSNR (its predictions at the test positions, same pool) is
   its *synthesis quality* (on the first ``quality_test_count`` test positions when set: a study job's own
   test budget, so the figure equals that job's test PSNR);
-- **localizers** (:class:`~graf.analysis.localization.SpectrumLocalizer`), per seed: ``random`` (random
+- **localizers** (:class:`SpectrumLocalizer`), per seed: ``random`` (random
   initialisation, ``train_steps`` on the measured set) and one per synthesizer (``pretrain_steps`` on its
   synthesized spectra, then the same ``train_steps`` on the measured set with a fresh Adam).
 
@@ -29,6 +29,16 @@ reliance.  ``results.json`` is rewritten after every group (a killed run resumes
 group's wall time and the command's over all its invocations (``seconds``; results written before this kept only
 the last invocation's); ``localize.md`` and ``localize.png`` (median error against the number of measured
 spectra, a panel per scene).
+
+**The localizer.** Localization from spectra (the paper's claim that synthesized spectra initialise a localization
+model better than random initialisation): a small CNN from a spectrum to the transmitter's position, and the splits
+that keep the test positions out of everything it trains on.
+
+- :class:`SpectrumLocalizer`: ``[B, 90, 360]`` spectra -> ``[B, 3]`` positions in the scene box's normalised
+  coordinates ([-1, 1] per axis); azimuth is padded circularly (the spectrum wraps at 360 deg).
+- :func:`synthetic_positions`: positions to synthesize spectra at for pre-training, uniform in a box and at least
+  ``min_gap`` from every test position, so that no synthesized copy of a test position is trained on.
+- :func:`check_disjoint`: refuses a training set with a position within ``min_gap`` of a test position.
 """
 
 from __future__ import annotations
@@ -42,14 +52,9 @@ import matplotlib.pyplot as plt  # on the Agg backend: graf.plotting (below) set
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
+from torch import nn
+from torch.nn import functional as F
 
-from graf.analysis.localization import (
-    SpectrumLocalizer,
-    check_disjoint,
-    denormalise,
-    normalise,
-    synthetic_positions,
-)
 from graf.app.config import CONF_DIR, output_dir, task_wrapper
 from graf.case_studies.synthesis import load_model, synthesize
 from graf.errors import ConfigError
@@ -57,6 +62,77 @@ from graf.io import atomic_write_json, atomic_write_text
 from graf.metrics.functional import psnr_per_sample
 from graf.plotting import save_figure
 from graf.run.build import build_datamodule
+
+
+class SpectrumLocalizer(nn.Module):
+    """A small CNN: average-pool 2x, three strided convolutions (circular in azimuth), a pooled 3 x 6 map, an MLP."""
+
+    def __init__(self, widths: tuple[int, int, int] = (16, 32, 64), hidden: int = 128):
+        super().__init__()
+        c1, c2, c3 = widths
+        self.convs = nn.ModuleList(
+            [nn.Conv2d(1, c1, 5, stride=2), nn.Conv2d(c1, c2, 3, stride=2), nn.Conv2d(c2, c3, 3, stride=2)]
+        )
+        self.head = nn.Sequential(nn.Flatten(), nn.Linear(c3 * 18, hidden), nn.ReLU(), nn.Linear(hidden, 3))
+
+    def features(self, spectra: torch.Tensor, layers: int | None = None) -> torch.Tensor:
+        """The feature maps after the first ``layers`` convolutions (all by default): ``[B, C, h, w]``."""
+        x = F.avg_pool2d(spectra.unsqueeze(1), 2)  # [B, 1, 45, 180]
+        for conv in self.convs[:layers]:
+            k = conv.kernel_size[0] // 2
+            x = F.pad(x, (k, k, 0, 0), mode="circular")  # azimuth wraps
+            x = F.pad(x, (0, 0, k, k), mode="replicate")  # elevation does not
+            x = F.relu(conv(x))
+        return x
+
+    def forward(self, spectra: torch.Tensor) -> torch.Tensor:  # [B, 90, 360] -> [B, 3]
+        return self.head(F.adaptive_avg_pool2d(self.features(spectra), (3, 6)))
+
+
+def normalise(positions, box_min, box_max) -> np.ndarray:
+    lo, hi = np.asarray(box_min, dtype=np.float64), np.asarray(box_max, dtype=np.float64)
+    return 2.0 * (np.asarray(positions, dtype=np.float64) - lo) / np.maximum(hi - lo, 1e-9) - 1.0
+
+
+def denormalise(coords, box_min, box_max) -> np.ndarray:
+    lo, hi = np.asarray(box_min, dtype=np.float64), np.asarray(box_max, dtype=np.float64)
+    return (np.asarray(coords, dtype=np.float64) + 1.0) / 2.0 * (hi - lo) + lo
+
+
+def _min_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    if len(b) == 0:
+        return np.full(len(a), np.inf)
+    return torch.cdist(torch.as_tensor(a, dtype=torch.float64), torch.as_tensor(b, dtype=torch.float64)).amin(1).numpy()
+
+
+def synthetic_positions(box_min, box_max, n: int, exclude, min_gap: float, seed: int = 0) -> np.ndarray:
+    """``n`` positions uniform in the box, each at least ``min_gap`` (m) from every position of ``exclude``
+    (the test positions); refused when the box leaves too little room."""
+    rng = np.random.default_rng(seed)
+    lo, hi = np.asarray(box_min, dtype=np.float64), np.asarray(box_max, dtype=np.float64)
+    ex = np.asarray(exclude, dtype=np.float64).reshape(-1, 3)
+    out: list[np.ndarray] = []
+    for _ in range(100):
+        cand = rng.uniform(lo, hi, size=(max(2 * n, 64), 3))
+        out.append(cand[_min_distance(cand, ex) >= min_gap])
+        if sum(len(o) for o in out) >= n:
+            return np.concatenate(out)[:n]
+    raise ConfigError(
+        f"localization: only {sum(len(o) for o in out)} of {n} synthetic positions fit in the box {lo.tolist()} - "
+        f"{hi.tolist()} at least {min_gap} m from the {len(ex)} test positions: lower min_gap or n"
+    )
+
+
+def check_disjoint(train_positions, test_positions, min_gap: float, what: str = "training set") -> None:
+    """Refuse a training (or synthesized) set with a position closer than ``min_gap`` to a test position."""
+    d = _min_distance(np.asarray(train_positions, dtype=np.float64).reshape(-1, 3), np.asarray(test_positions))
+    bad = np.flatnonzero(d < min_gap)
+    if len(bad):
+        raise ConfigError(
+            f"localization: the {what} holds {len(bad)} position(s) within {min_gap} m of a test position (first: "
+            f"row {int(bad[0])}, {float(d[bad[0]]):.4f} m): a test position or its copy would be trained on"
+        )
+
 
 log = logging.getLogger("graf")
 

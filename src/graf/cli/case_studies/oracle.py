@@ -1,4 +1,4 @@
-"""graf-oracle: the per-pixel linear-fusion oracle of supplement A.2 on a scene (see graf.analysis.oracle).
+"""graf-oracle: the per-pixel linear-fusion oracle of supplement A.2 on a scene (see graf.case_studies.oracle).
 
 The work is :func:`graf.case_studies.oracle.run`, callable from Python with a composed config."""
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from graf.analysis.aoa import angular_error, arrival_direction, direction_to_angles, peak_direction
-from graf.analysis.powerlaw import fit_power_law
+from graf.case_studies.aoa import angular_error, arrival_direction, direction_to_angles, peak_direction
+from graf.case_studies.interpolation import fit_power_law
 from graf.sim.array import Bartlett, array_positions
 
 
@@ -80,7 +80,7 @@ def _smooth_field(pos: np.ndarray, pixels: int = 40, seed: int = 1) -> np.ndarra
 
 
 def test_barycentric_interpolation_error_grows_as_dp_squared_and_idw_as_dp():
-    from graf.analysis.interpolation import interpolation_errors
+    from graf.case_studies.interpolation import interpolation_errors
 
     rng = np.random.default_rng(0)
     dp, err = {"barycentric": [], "idw": []}, {"barycentric": [], "idw": []}
@@ -101,7 +101,7 @@ def test_barycentric_interpolation_error_grows_as_dp_squared_and_idw_as_dp():
 
 
 def test_the_curvature_of_a_quadratic_field_is_its_second_derivative():
-    from graf.analysis.interpolation import curvature
+    from graf.case_studies.interpolation import curvature
 
     rng = np.random.default_rng(1)  # _smooth_field's draws for seed 1: a, b, then c
     rng.random(40), rng.standard_normal((3, 40))
@@ -122,7 +122,7 @@ def _wave_field(pos: np.ndarray, k: float = 50.0, pixels: int = 30, seed: int = 
 
 
 def test_fine_scale_clusters_find_the_quadratic_regime_and_where_it_ends():
-    from graf.analysis.interpolation import cluster_errors, local_slopes, quadratic_up_to
+    from graf.case_studies.interpolation import cluster_errors, local_slopes, quadratic_up_to
 
     anchors = np.random.default_rng(3).uniform(-1, 1, (12, 3))
     scales = np.geomspace(1e-3, 1.0, 7)  # (below a millimetre the barycentric ridge term's tiny bias shows)
@@ -141,7 +141,7 @@ def test_fine_scale_clusters_find_the_quadratic_regime_and_where_it_ends():
 
 
 def test_the_curvature_map_is_the_curvature_at_every_point():
-    from graf.analysis.interpolation import curvature, curvature_map
+    from graf.case_studies.interpolation import curvature, curvature_map
 
     pts = np.random.default_rng(4).uniform(-1, 1, (5, 3))
     k = curvature_map(_wave_field, pts, h=1e-3)
