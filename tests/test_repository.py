@@ -1,5 +1,6 @@
-"""The repository stops growing by binaries: no checkpoint enters git beyond the 13 published before the rule
-(.gitignore's ``*.ckpt``; a record names the command that rebuilds its checkpoint instead)."""
+"""The repository stops growing by binaries (no checkpoint enters git beyond the 13 published before the rule:
+.gitignore's ``*.ckpt``; a record names the command that rebuilds its checkpoint instead), and its records tree
+holds no code."""
 
 from __future__ import annotations
 
@@ -31,3 +32,13 @@ def test_no_new_checkpoint_is_under_version_control():
     probe = "sweeps/learning_curves/any_regime/ray_weights/step_300/checkpoints/last.ckpt"
     ignored = subprocess.run(["git", "check-ignore", "-q", "--no-index", probe], cwd=ROOT)
     assert ignored.returncode == 0, f"{probe} is not ignored by .gitignore"
+
+
+@pytest.mark.skipif(shutil.which("git") is None or not (ROOT / ".git").exists(), reason="not a git checkout")
+def test_the_records_tree_holds_no_code():
+    """Records are data: a script that made one lives in ``scripts/`` (``scripts/records/`` for one-off runs), and the
+    record's README names it."""
+    tracked = subprocess.run(
+        ["git", "ls-files", "--cached", "sweeps/*.py", "sweeps/*.sh"], cwd=ROOT, capture_output=True, text=True
+    ).stdout.split()
+    assert tracked == []

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Before/after figures of the GRaF geometry changes (issue 9 point 5): the same command on each commit.
-# usage: run.sh NAME=COMMIT ...   (resumable: a finished run is skipped)
+# usage: scripts/records/graf_geometry_rfid_s23_run.sh NAME=COMMIT ...   (resumable: a finished run is skipped)
 set -u
 cd /work/main
 for pair in "$@"; do
