@@ -19,7 +19,6 @@ from graf.bands import Band
 from graf.data.datamodule import SpectrumDataModule
 from graf.data.neighbors import NeighborSelector
 from graf.data.scenes import NeRF2Scene
-from graf.geometry.encoding import PositionalEncoding, normalize_positions
 from graf.geometry.rays import num_samples, random_pixels
 from graf.models.graf import CrossAttentionBlock, GRaFModule, ResNetEncoder, SelfAttentionBlock
 from graf.models.knn import KNNModule
@@ -97,20 +96,6 @@ def test_preset_configs_are_the_constructor_arguments(compose_cfg):
 
 
 # ---------------------------------------------------------------------------------------------- parts
-def test_positional_encoding_and_normalisation():
-    pe = PositionalEncoding(10)
-    assert pe(torch.zeros(5, 3)).shape == (5, 63) and pe(torch.zeros(2, 7, 4)).shape == (2, 7, 84)
-    x = torch.tensor([[0.25, -0.5, 1.0]])
-    y = pe(x)
-    assert torch.equal(y[:, :3], x)
-    k = 3  # sin(2^k pi x) of the second coordinate sits after the 3 inputs at (coord * F + k)
-    assert torch.allclose(y[0, 3 + 1 * 10 + k], torch.sin(torch.tensor(2.0**k * math.pi * -0.5)), atol=1e-6)
-    assert torch.allclose(y[0, 33 + 1 * 10 + k], torch.cos(torch.tensor(2.0**k * math.pi * -0.5)), atol=1e-6)
-    bounds = torch.tensor([[[-1.0, 0.0, 0.0], [3.0, 1.0, 2.0]]])
-    corners = torch.tensor([[[-1.0, 0.0, 0.0], [3.0, 1.0, 2.0], [1.0, 0.5, 1.0]]])
-    n = normalize_positions(corners, bounds)
-    assert torch.allclose(n[0, 2], torch.zeros(3)) and n.abs().max() == 1.0  # centre -> 0, largest axis -> +-1
-    assert torch.allclose(n[0, 1] - n[0, 0], (corners[0, 1] - corners[0, 0]) / 2.0)  # one scale for all axes
 
 
 def test_encoder_is_resnet18_and_per_spectrum():
