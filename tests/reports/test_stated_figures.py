@@ -1,6 +1,7 @@
 """Every figure a record's README states is held by its record, and every figure a site page (or the repository's
-README) states is held by the records the page names (graf.reports.readme); a README's generated block is the one
-its record makes: the check on small made-up files first, then on every ``sweeps/*/README.md`` and every page."""
+README) states is held by the records the page names (``docs_hooks/stated_figures.py``); a README's generated block
+is the one its record makes: the check on small made-up files first, then on every ``sweeps/*/README.md`` and every
+page."""
 
 from __future__ import annotations
 
@@ -8,22 +9,17 @@ import json
 from pathlib import Path
 
 import pytest
-
-from graf.errors import UserError
-from graf.reports.readme import (
-    END,
-    START,
-    block,
+from docs_hooks.stated_figures import (
     named_records,
     not_held,
     pages_problems,
     readme_problems,
     record_numbers,
-    refresh,
-    split_table,
     supplement,
-    with_block,
 )
+
+from graf.errors import UserError
+from graf.reports.readme import END, START, block, refresh, split_table, with_block
 from graf.reports.table import HEADLINE, markers, with_headline
 
 ROOT = Path(__file__).resolve().parents[2]

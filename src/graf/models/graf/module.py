@@ -3,12 +3,9 @@
 For a target transmitter at P and its L neighbors (spectra SS_l at positions P_l), every spectrum pixel is
 a ray from the gateway; the predicted value of a ray is
 
-1. **Neighbor features** (``model/features=<mode>``, a component of :mod:`graf.models.graf.features`):
-   ``pooled`` (the paper's, the default) makes one token ``MLP1(ResNet18(SS_l) ⊕ PE(P_l) ⊕ PE(P_l - P))`` ->
-   ``d_model`` (16) per neighbor spectrum, once per batch, never per ray; ``ray`` makes per-ray tokens from
-   each neighbor's feature map and pixel values at the ray's own direction; ``ray_knn`` and ``ray_weights``
-   add a per-ray convex combination of the neighbors' values (IDW KNN at initialisation).  Padded
-   neighbors are masked out.
+1. **Neighbor features** (``model/features=<mode>``, the modes in :mod:`graf.models.graf.features`): the
+   paper's ``pooled`` makes one token ``MLP1(ResNet18(SS_l) ⊕ PE(P_l) ⊕ PE(P_l - P))`` -> ``d_model`` (16) per
+   neighbor spectrum, once per batch; padded neighbors are masked out.
 2. **Voxel latents**: the S voxels along the ray (one wavelength apart unless capped at ``max_samples``,
    see :mod:`graf.geometry.rays`) are queries ``Linear(PE(x_s) ⊕ PE(dir) ⊕ PE(P))`` (voxel, ray direction,
    target) that attend to the neighbor tokens through ``scene_blocks`` post-norm cross-attention blocks
@@ -258,7 +255,8 @@ class GRaFModule(SpectrumModule):
         return self.eval_cache.memo(name, stamp, key, compute)
 
     def train(self, mode: bool = True):
-        mode and self.eval_cache.clear()  # free evaluation tables while training (stale after a step anyway)
+        if mode:  # free the evaluation tables while training (stale after a step anyway)
+            self.eval_cache.clear()
         return super().train(mode)
 
     def spectrum_features(self, spectra: torch.Tensor) -> torch.Tensor:

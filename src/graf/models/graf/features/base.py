@@ -11,7 +11,7 @@ A component owns the parameters that differ between modes and the three steps of
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -20,6 +20,7 @@ from hydra.utils import get_class
 from torch import nn
 
 from graf.config_home import class_defaults
+from graf.models.graf.buckets import static_shapes
 
 # the paper's mode (supplement D): conf/model/graf.yaml's default (tests/models/test_graf_features.py checks it), and
 # the mode of every checkpoint written before the modes existed (graf.models.graf.legacy)
@@ -103,6 +104,24 @@ class NeighborFeatures(nn.Module):
     def output(self, state: torch.Tensor, ray: dict) -> torch.Tensor:  # pragma: no cover - abstract
         """The ray tracer's state mean-pooled over each ray ``[n, d]`` -> ``(re, im)`` ``[n, 2]``."""
         raise NotImplementedError
+
+
+def neighbor_slots(
+    model: nn.Module, mask: torch.Tensor, every_slot: Callable[[], torch.Tensor], real_slots: Callable[[], torch.Tensor]
+) -> torch.Tensor:
+    """What the encoder makes of each neighbor slot, ``[B, L, ...]``, zero for padded slots (``mask [B, L]``
+    False).  With static shapes (:func:`graf.models.graf.buckets.static_shapes`: a GPU's default) ``every_slot()``
+    encodes all ``B * L`` slots and the padded ones are zeroed, so that no count is read back to the host;
+    otherwise ``real_slots()`` encodes only the real ones (``mask.sum()`` of them), scattered into place."""
+    B, L = mask.shape
+    if static_shapes(model, mask.device):
+        out = every_slot()
+        out = out.view(B, L, *out.shape[1:])
+        return out.masked_fill(~mask.view(B, L, *[1] * (out.dim() - 2)), 0.0)
+    real = real_slots()
+    full = real.new_zeros(B, L, *real.shape[1:])
+    full[mask] = real
+    return full
 
 
 def component_class(target: str) -> type[NeighborFeatures]:

@@ -8,8 +8,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from graf.models.graf.buckets import static_shapes
-from graf.models.graf.features.base import Dims, NeighborFeatures, complex_head, mlp
+from graf.models.graf.features.base import Dims, NeighborFeatures, complex_head, mlp, neighbor_slots
 from graf.models.graf.features.ray_reading import rows
 
 
@@ -35,14 +34,12 @@ class PooledFeatures(NeighborFeatures):
         """``tokens [B, L, d]`` (zero for padded neighbors); the encoder sees only the real neighbors' spectra
         (once per distinct spectrum at evaluation: :meth:`GRaFModule.spectrum_features`)."""
         spectra, mask = batch["src_spectra"], batch["src_mask"].bool()
-        B, L = mask.shape
-        if static_shapes(model, mask.device):  # every slot encoded, padded ones zeroed: no count read back
-            feats = model.encoder(spectra.flatten(0, 1).unsqueeze(1).float()).view(B, L, -1)
-            feats = feats.masked_fill(~mask[..., None], 0.0)
-        else:
-            real = model.spectrum_features(spectra[mask])  # [N_real, C]
-            feats = real.new_zeros(B, L, real.shape[-1])
-            feats[mask] = real
+        feats = neighbor_slots(
+            model,
+            mask,
+            lambda: model.encoder(spectra.flatten(0, 1).unsqueeze(1).float()),
+            lambda: model.spectrum_features(spectra[mask]),  # [N_real, C]
+        )
         pe_pos = model.pe(model.coords(batch["src_pos"].float(), batch))
         _, pe_off = model.neighbor_offsets(batch)
         tokens = self.mlp1(torch.cat([feats.float(), pe_pos, pe_off], dim=-1))

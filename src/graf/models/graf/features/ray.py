@@ -15,8 +15,7 @@ import torch
 from torch import nn
 
 from graf.config_home import defaults_from
-from graf.models.graf.buckets import static_shapes
-from graf.models.graf.features.base import Dims, NeighborFeatures, complex_head
+from graf.models.graf.features.base import Dims, NeighborFeatures, complex_head, neighbor_slots
 from graf.models.graf.features.ray_reading import (
     RayNeighborTokens,
     all_pixel_inputs,
@@ -72,15 +71,13 @@ class RayFeatures(NeighborFeatures):
         :func:`sample_wrap`: bilinear at the ray's pixel, never upsampled whole), the spectra ``src [B, L, 90,
         360]`` (padded ones zero) and the geometry's share of the token MLP ``geo [B, L, hidden]``."""
         spectra, mask = batch["src_spectra"].float(), batch["src_mask"].bool()
-        B, L = mask.shape
         encode = lambda x: self.ray_proj(model.encoder.forward_map(x))  # noqa: E731
-        if static_shapes(model, mask.device):  # every slot encoded, padded ones zeroed: no count read back
-            maps = pad_wrap(encode(spectra.flatten(0, 1).unsqueeze(1)))
-            ray_maps = maps.view(B, L, *maps.shape[1:]).masked_fill(~mask[:, :, None, None, None], 0.0)
-        else:
-            maps = pad_wrap(split_batch(encode, spectra[mask].unsqueeze(1)))  # [N, k, h, w + 2]
-            ray_maps = maps.new_zeros(B, L, *maps.shape[1:])
-            ray_maps[mask] = maps
+        ray_maps = neighbor_slots(  # [B, L, k, h, w + 2]
+            model,
+            mask,
+            lambda: pad_wrap(encode(spectra.flatten(0, 1).unsqueeze(1))),
+            lambda: pad_wrap(split_batch(encode, spectra[mask].unsqueeze(1))),
+        )
         offset, pe_off = model.neighbor_offsets(batch)
         dist_wl = torch.linalg.vector_norm(offset, dim=-1, keepdim=True) / batch["wavelength"].float()[:, None, None]
         ctx = {
