@@ -85,65 +85,61 @@ def _quad(name, corners, material, thickness) -> Surface:
 
 
 def build_geometry(room: dict | None = None, ground: dict | None = None, objects: dict | None = None) -> SceneGeometry:
-    """Neither ``room`` nor ``ground``: free space with only the objects.  ``room``: {size: [X, Y, Z], walls, "
-    "floor, ceiling: ITU types, wall_thickness, floor_thickness,
-    ceiling_thickness}, spanning [0, X] x [0, Y] x [0, Z].  ``ground``: {size: [X, Y], material,
-    thickness} at z = 0 (open scenes, height from ``ground.height``).  ``objects``: name -> {material,
-    center, size, yaw (deg), thickness}; a null entry is a removed object (layout variants)."""
+    """Neither ``room`` nor ``ground``: free space with only the objects (its bounds theirs).  ``room``: {size:
+    [X, Y, Z], walls, floor, ceiling: ITU types, wall_thickness, floor_thickness, ceiling_thickness}, spanning
+    [0, X] x [0, Y] x [0, Z].  ``ground``: {size: [X, Y], material, thickness} at z = 0 (open scenes, height from
+    ``ground.height``).  ``objects``: name -> {material, center, size, yaw (deg), thickness}; a null entry is a
+    removed object (layout variants)."""
     geo = SceneGeometry()
     if room is not None and ground is not None:
         raise ValueError("a simulated scene has a 'room' or a 'ground', not both")
     if room is not None:
-        X, Y, Z = (float(v) for v in room["size"])
-        wt = float(room.get("wall_thickness", 0.2))
-        w = room.get("walls", "concrete")
-        geo.surfaces += [
-            _quad(
-                "floor",
-                [[0, 0, 0], [X, 0, 0], [X, Y, 0], [0, Y, 0]],
-                room.get("floor", "concrete"),
-                room.get("floor_thickness", 0.2),
-            ),
-            _quad(
-                "ceiling",
-                [[0, 0, Z], [0, Y, Z], [X, Y, Z], [X, 0, Z]],
-                room.get("ceiling", "ceiling_board"),
-                room.get("ceiling_thickness", 0.05),
-            ),
-            _quad("wall_x0", [[0, 0, 0], [0, Y, 0], [0, Y, Z], [0, 0, Z]], w, wt),
-            _quad("wall_x1", [[X, 0, 0], [X, 0, Z], [X, Y, Z], [X, Y, 0]], w, wt),
-            _quad("wall_y0", [[0, 0, 0], [0, 0, Z], [X, 0, Z], [X, 0, 0]], w, wt),
-            _quad("wall_y1", [[0, Y, 0], [X, Y, 0], [X, Y, Z], [0, Y, Z]], w, wt),
-        ]
-        geo.bounds = np.array([[0, 0, 0], [X, Y, Z]], float)
+        geo.surfaces += _room_surfaces(room)
+        geo.bounds = np.array([[0, 0, 0], [float(v) for v in room["size"]]], float)
     elif ground is not None:
         X, Y = (float(v) for v in ground["size"])
-        geo.surfaces.append(
-            _quad(
-                "ground",
-                [[0, 0, 0], [X, 0, 0], [X, Y, 0], [0, Y, 0]],
-                ground.get("material", "medium_dry_ground"),
-                ground.get("thickness", 1.0),
-            )
-        )
+        corners = [[0, 0, 0], [X, 0, 0], [X, Y, 0], [0, Y, 0]]
+        material, thickness = ground.get("material", "medium_dry_ground"), ground.get("thickness", 1.0)
+        geo.surfaces.append(_quad("ground", corners, material, thickness))
         geo.bounds = np.array([[0, 0, 0], [X, Y, float(ground.get("height", 10.0))]], float)
-    # with neither: free space holding only the objects (physics tests); bounds from the objects below
     for name, spec in sorted((objects or {}).items()):
-        if spec is None:
-            continue
-        for key in ("material", "center", "size"):
-            if key not in spec:
-                raise ValueError(f"object {name!r} has no {key!r}")
-        box = Box(name, np.asarray(spec["center"], float), np.asarray(spec["size"], float), float(spec.get("yaw", 0.0)))
-        if box.size.shape != (3,) or np.any(box.size <= 0):
-            raise ValueError(f"object {name!r}: size must be 3 positive numbers, got {spec['size']}")
-        thickness = spec.get("thickness") or float(box.size.min()) / 2
-        geo.boxes.append(box)
-        geo.surfaces.append(Surface(name, box.vertices(), _BOX_FACES.copy(), spec["material"], float(thickness)))
-    if room is None and ground is None and geo.boxes:
+        if spec is not None:
+            box, surface = _object(name, spec)
+            geo.boxes.append(box)
+            geo.surfaces.append(surface)
+    if room is None and ground is None and geo.boxes:  # free space: the objects' bounds
         v = np.vstack([b.vertices() for b in geo.boxes])
         geo.bounds = np.stack([v.min(0), v.max(0)])
     return geo
+
+
+def _room_surfaces(room: dict) -> list[Surface]:
+    """A room's floor, ceiling and four walls, spanning ``[0, X] x [0, Y] x [0, Z]`` (normals facing in)."""
+    X, Y, Z = (float(v) for v in room["size"])
+    wt = float(room.get("wall_thickness", 0.2))
+    w = room.get("walls", "concrete")
+    floor = (room.get("floor", "concrete"), room.get("floor_thickness", 0.2))
+    ceiling = (room.get("ceiling", "ceiling_board"), room.get("ceiling_thickness", 0.05))
+    return [
+        _quad("floor", [[0, 0, 0], [X, 0, 0], [X, Y, 0], [0, Y, 0]], *floor),
+        _quad("ceiling", [[0, 0, Z], [0, Y, Z], [X, Y, Z], [X, 0, Z]], *ceiling),
+        _quad("wall_x0", [[0, 0, 0], [0, Y, 0], [0, Y, Z], [0, 0, Z]], w, wt),
+        _quad("wall_x1", [[X, 0, 0], [X, 0, Z], [X, Y, Z], [X, Y, 0]], w, wt),
+        _quad("wall_y0", [[0, 0, 0], [0, 0, Z], [X, 0, Z], [X, 0, 0]], w, wt),
+        _quad("wall_y1", [[0, Y, 0], [X, Y, 0], [X, Y, Z], [0, Y, Z]], w, wt),
+    ]
+
+
+def _object(name: str, spec: dict) -> tuple[Box, Surface]:
+    """An object's box and its surface, checked: a material, a centre and a size of 3 positive numbers."""
+    for key in ("material", "center", "size"):
+        if key not in spec:
+            raise ValueError(f"object {name!r} has no {key!r}")
+    box = Box(name, np.asarray(spec["center"], float), np.asarray(spec["size"], float), float(spec.get("yaw", 0.0)))
+    if box.size.shape != (3,) or np.any(box.size <= 0):
+        raise ValueError(f"object {name!r}: size must be 3 positive numbers, got {spec['size']}")
+    thickness = spec.get("thickness") or float(box.size.min()) / 2
+    return box, Surface(name, box.vertices(), _BOX_FACES.copy(), spec["material"], float(thickness))
 
 
 def sample_positions(geo: SceneGeometry, count: int, low, high, seed: int, clearance: float = 0.05) -> np.ndarray:
