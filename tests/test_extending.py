@@ -1,6 +1,8 @@
-"""The worked examples of docs/extending.md: a metric, a study axis and a method added by a plugin
+"""The worked examples of docs/extending.md: a metric, a study axis and methods added by a plugin
 (tests/plugins/toy_plugin.py) through graf's interface only, and seen to reach results.json, the per-spectrum
-records, graf-report's tables, its intervals and a figure."""
+records, graf-report's tables, its intervals and a figure; a trained plugin method round-trips (trained,
+checkpointed, read back by graf-eval, benchmarked by graf-bench), and an installed plugin is found by its entry
+point."""
 
 from __future__ import annotations
 
@@ -18,26 +20,31 @@ ROOT = Path(__file__).resolve().parents[1]
 PLUGINS = ROOT / "tests" / "plugins"
 
 
-def _run(module: str, *args: str, env: dict) -> None:
+def _run(module: str, *args: str, env: dict) -> subprocess.CompletedProcess:
     p = subprocess.run([sys.executable, "-m", module, *args], env=env, capture_output=True, text=True, timeout=600)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    return p
+
+
+def _plugin_env(**extra: str) -> dict:
+    return {
+        **os.environ,
+        "GRAF_PLUGINS": "toy_plugin",
+        "PYTHONPATH": os.pathsep.join([str(PLUGINS), os.environ.get("PYTHONPATH", "")]),
+        "OMP_NUM_THREADS": "1",
+        **extra,
+    }
 
 
 @pytest.fixture(scope="module")
 def study(tmp_path_factory) -> Path:
     """Four jobs of the toy method (L 2 and 4, neighbors dense and sparse), KNN tested beside each, and their report."""
     sweep = tmp_path_factory.mktemp("extending") / "study"
-    env = {
-        **os.environ,
-        "GRAF_PLUGINS": "toy_plugin",
-        "PYTHONPATH": os.pathsep.join([str(PLUGINS), os.environ.get("PYTHONPATH", "")]),
-        "OMP_NUM_THREADS": "1",
-    }
+    env = _plugin_env()
     _run(
         "graf.cli.train",
         "-m",
-        "model=neighbor_mean",
-        f"hydra.searchpath=[file://{PLUGINS / 'conf'}]",
+        "model=neighbor_mean",  # found in the plugin's own conf folder (toy_plugin: add_conf)
         "neighbors.L=2,4",
         "neighbors.exclude_within=0.0,0.25",
         "data.test_subset=8",
@@ -121,3 +128,44 @@ def test_a_registration_too_late_to_reach_every_reader_is_refused():
         register(Metric("late", "late", "", True, "{:.1f}", per_spectrum=lambda p, t: p.mean(dim=(1, 2))))
     with pytest.raises(ValueError, match="register it in a plugin"):
         register_axis(Axis("late", of_job=lambda r: 0))
+
+
+@pytest.mark.slow  # about 40 s: four commands in subprocesses
+def test_a_plugin_method_trains_checkpoints_and_is_read_back_by_graf_eval_and_graf_bench(tmp_path):
+    env = _plugin_env()
+    common = ["data.test_subset=4", "logger=none", "plot_count=0", "trainer.enable_progress_bar=false"]
+    _run("graf.cli.train", "model=neighbor_gain", "trainer.max_steps=5", *common, f"hydra.run.dir={tmp_path / 'train'}",
+         env=env)  # fmt: skip
+    trained = json.loads((tmp_path / "train" / "results.json").read_text())
+    ckpt = tmp_path / "train" / "checkpoints" / "last.ckpt"
+    assert trained["method"] == "neighbor-gain" and trained["global_step"] == 5 and ckpt.is_file()
+    _run("graf.cli.evaluate", f"ckpt_path={ckpt}", *common[:3], f"hydra.run.dir={tmp_path / 'eval'}", env=env)
+    evaluated = json.loads((tmp_path / "eval" / "results.json").read_text())
+    assert evaluated["method"] == "neighbor-gain"
+    assert evaluated["metrics"]["test/psnr"] == pytest.approx(trained["metrics"]["test/psnr"], abs=1e-6)  # its weights
+    refused = subprocess.run(
+        [sys.executable, "-m", "graf.cli.evaluate", f"ckpt_path={ckpt}", "model.lr=0.1", *common[:3],
+         f"hydra.run.dir={tmp_path / 'eval2'}"], env=env, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert refused.returncode == 2 and "cannot change the trained checkpoint" in refused.stderr  # its config found
+    _run("graf.cli.studies.bench", "+model@models.gain=neighbor_gain", "bench.models=[gain,knn]", "bench.scenes=[real]",
+         "quick=true", "threads=1", f"hydra.run.dir={tmp_path / 'bench'}", env=env)  # fmt: skip
+    rows = json.loads((tmp_path / "bench" / "results.json").read_text())["rows"]
+    gain = next(r for r in rows if r["method"] == "neighbor-gain")
+    assert gain["trainable_parameters"] == 1 and gain["train_s_per_step"] > 0 and gain["samples_per_ray"] is None
+
+
+def test_an_installed_plugin_is_found_by_its_entry_point(tmp_path):
+    """Installed the way pip installs it (its distribution's metadata on the path, with the entry point of
+    tests/plugins/pyproject.toml), the toy plugin is imported with graf, its conf folder registered, and no
+    GRAF_PLUGINS set."""
+    dist = tmp_path / "graf_toy_plugin-0.1.0.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: graf-toy-plugin\nVersion: 0.1.0\n")
+    (dist / "entry_points.txt").write_text("[graf.plugins]\ntoy = toy_plugin\n")
+    env = {k: v for k, v in _plugin_env().items() if k != "GRAF_PLUGINS"}
+    env["PYTHONPATH"] = os.pathsep.join([str(tmp_path), env["PYTHONPATH"]])
+    code = "import graf.plugins as p; print(p.LOADED, [d.name for d in p.CONF_DIRS])"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "['toy_plugin'] ['conf']"

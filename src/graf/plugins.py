@@ -1,12 +1,20 @@
 """Plugins: your own metrics, study axes and methods, added without editing graf (docs/extending.md).
 
-``GRAF_PLUGINS`` names modules (comma-separated, importable: on ``PYTHONPATH`` or installed) that graf imports
-when it is first imported, before any command reads its registries.  A plugin module registers what it adds:
+graf imports its plugins when it is first imported, before any command reads its registries:
+
+- an installed package's entry points in the group ``graf.plugins`` (:data:`GROUP`; in its ``pyproject.toml``:
+  ``[project.entry-points."graf.plugins"] mine = "my_plugin"``), the preferred way;
+- ``GRAF_PLUGINS``: modules named in this environment variable (comma-separated, importable: a file on
+  ``PYTHONPATH``, or installed).
+
+A plugin module registers what it adds:
 
 - a metric: :func:`graf.metrics.names.register` (name, label, unit, direction, per-spectrum function);
 - a study axis: :func:`graf.reports.axes.register` (name, how it is read from a job's ``results.json``);
 - a method: a :class:`graf.models.base.SpectrumModule` subclass (the :class:`graf.models.base.Method` interface)
-  with a config file in a folder given to Hydra (``hydra.searchpath=[file://DIR]``) as ``model/<name>.yaml``.
+  with its config ``model/<name>.yaml`` in the plugin's own conf folder, registered once with :func:`add_conf`:
+  every graf command's Hydra search path then holds it (``hydra_plugins.graf_plugin_confs``), so ``model=<name>``
+  works in graf-train, graf-eval and graf-bench as for graf's own methods.
 
 A plugin that cannot be imported stops graf with one line naming it and its error, exit code 2
 (``HYDRA_FULL_ERROR=1``: the traceback).  A registered function that raises (a metric's, a study axis's) stops
@@ -21,18 +29,43 @@ import functools
 import importlib
 import os
 import sys
+from importlib.metadata import entry_points
+from pathlib import Path
 
 ENV = "GRAF_PLUGINS"
+GROUP = "graf.plugins"  # the entry-point group of installed plugins
 LOADED: list[str] = []  # the plugin modules imported, in order
+CONF_DIRS: list[Path] = []  # the plugins' own conf folders (add_conf), searched after graf's own configs
+
+
+def add_conf(folder) -> Path:
+    """Register a plugin's own conf folder (``model/<name>.yaml`` and any other group), once, in the plugin
+    module: every graf command then finds its configs (``hydra_plugins.graf_plugin_confs`` appends it to Hydra's
+    search path, after graf's own, so a plugin adds options and never replaces one).  The folder, resolved."""
+    path = Path(folder).resolve()
+    if not path.is_dir():
+        raise ValueError(f"graf.plugins.add_conf: {path} is not a folder (a plugin's conf folder: model/<name>.yaml)")
+    if path not in CONF_DIRS:
+        CONF_DIRS.append(path)
+    return path
+
+
+def entry_point_modules() -> list[str]:
+    """The modules of the installed plugins (entry points of group :data:`GROUP`), in name order."""
+    return [e.value.split(":")[0] for e in sorted(entry_points(group=GROUP), key=lambda e: e.name)]
 
 
 def load_plugins(names: str | None = None) -> list[str]:
-    """Import the modules of ``names`` (default: the ``GRAF_PLUGINS`` environment variable); their names.  One
-    that cannot be imported ends the process with one line and exit code 2 (graf is being imported: no command
-    has started that could say it)."""
-    names = os.environ.get(ENV, "") if names is None else names
+    """Import the modules of ``names`` (default: the installed plugins' entry points, then the ``GRAF_PLUGINS``
+    environment variable); their names.  One that cannot be imported ends the process with one line naming it and
+    where it was named, exit code 2 (graf is being imported: no command has started that could say it)."""
+    if names is None:
+        named = [(m, f"entry point of {GROUP}") for m in entry_point_modules()]
+        named += [(m, ENV) for m in os.environ.get(ENV, "").split(",")]
+    else:
+        named = [(m, ENV) for m in names.split(",")]
     loaded = []
-    for name in (n.strip() for n in names.split(",")):
+    for name, source in ((n.strip(), src) for n, src in named):
         if not name:
             continue
         try:
@@ -41,8 +74,8 @@ def load_plugins(names: str | None = None) -> list[str]:
             if os.environ.get("HYDRA_FULL_ERROR") == "1":
                 raise
             print(
-                f"error: {ENV}: plugin module {name!r} could not be imported: {type(exc).__name__}: {one_line(exc)}\n"
-                "(HYDRA_FULL_ERROR=1 shows the full traceback)",
+                f"error: {source}: plugin module {name!r} could not be imported: {type(exc).__name__}: "
+                f"{one_line(exc)}\n(HYDRA_FULL_ERROR=1 shows the full traceback)",
                 file=sys.stderr,
             )
             raise SystemExit(2) from None

@@ -16,6 +16,7 @@ from hydra.errors import ConfigCompositionException, MissingConfigException, Ove
 
 from graf.app.config import CONF_DIR
 from graf.errors import ConfigError
+from graf.plugins import CONF_DIRS
 
 __all__ = ["RENAMED_KEYS", "check_overrides", "modernize"]
 
@@ -104,8 +105,9 @@ def searchpath_dirs(overrides) -> list[Path]:
 
 def check_group_values(overrides) -> None:
     """Every value of a graf config group given on the command line (each value of a sweep) is one of its files,
-    in graf's config folder or one a ``hydra.searchpath`` override adds."""
-    dirs = [CONF_DIR, *searchpath_dirs(overrides)]
+    in graf's config folder, a plugin's (:func:`graf.plugins.add_conf`) or one a ``hydra.searchpath`` override
+    adds."""
+    dirs = [CONF_DIR, *CONF_DIRS, *searchpath_dirs(overrides)]
     for o in overrides:
         group = o.key_or_group
         if o.is_delete() or group.startswith("hydra/") or not is_group(group):

@@ -205,6 +205,17 @@ class Method(Protocol):
     schedule_record: the learning-rate schedule that ran (``results.json`` ``schedule``), or None.
     predict_spectra: a batch (``tgt_pos [B, 3]``, ``src_pos [B, L, 3]``, ``src_spectra [B, L, 90, 360]``,
         ``src_mask [B, L]``, the scene's geometry) -> spectra ``[B, 90, 360]`` in [0, 1].
+    upgrade_hparams: a checkpoint's hyperparameters in the method's current form (graf-eval, a resume).
+
+    A method that renders rays (GRaF, NeRF2; ``renders_rays`` True) also gives what graf-bench and the records read
+    of its rays; the defaults say "not a ray renderer":
+
+    renders_rays: True where ``prepare(batch) -> ctx`` and ``render(ctx, pix [B, R]) -> [B, R]`` render a subset of
+        a spectrum's pixels (graf-bench's light warm-up renders one chunk of ``chunk_rays`` through them).
+    rays_per_step: pixels one training step renders over a batch (None: whole spectra).
+    chunk_rays: pixels rendered at once at inference (None: whole spectra).
+    samples_per_ray / mean_samples_per_ray: the most and the mean samples per ray of each batch item (None: no
+        rays); ray_sampling: their summary on one scene for ``results.json`` (None: no rays).
     """
 
     method: str
@@ -213,8 +224,20 @@ class Method(Protocol):
     has_trainable_parameters: bool
     INFERENCE_SETTINGS: tuple[str, ...]
     schedule_record: dict | None
+    renders_rays: bool
+    rays_per_step: int | None
+    chunk_rays: int | None
 
     def predict_spectra(self, batch: dict) -> torch.Tensor: ...
+
+    @staticmethod
+    def upgrade_hparams(hparams: dict) -> dict: ...
+
+    def samples_per_ray(self, batch: dict) -> list[int] | None: ...
+
+    def mean_samples_per_ray(self, batch: dict) -> list[float] | None: ...
+
+    def ray_sampling(self, geometry: dict) -> dict | None: ...
 
 
 class SpectrumModule(L.LightningModule):
@@ -227,6 +250,9 @@ class SpectrumModule(L.LightningModule):
     per_scene = False  # RF-GS sets True: tested only on the scene it was trained on (graf.run.build)
     INFERENCE_SETTINGS: tuple[str, ...] = ()
     schedule_record: dict | None = None  # set by the optimiser's schedule (graf.models.schedule)
+    renders_rays = False  # GRaF and NeRF2: prepare(batch) and render(ctx, pix) render a subset of pixels
+    rays_per_step: int | None = None  # pixels a training step renders over a batch; None: whole spectra
+    chunk_rays: int | None = None  # pixels rendered at once at inference; None: whole spectra
     LAYOUT = 1
     LAYOUT_CHANGES: dict[int, str] = {}
 
@@ -268,15 +294,32 @@ class SpectrumModule(L.LightningModule):
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         check_checkpoint(checkpoint, type(self), "checkpoint")
 
+    @staticmethod
+    def upgrade_hparams(hparams: dict) -> dict:
+        """A checkpoint's hyperparameters in the current form: as saved, unless the method's arguments changed
+        (GRaF's: :mod:`graf.models.graf.legacy`)."""
+        return dict(hparams)
+
+    def samples_per_ray(self, batch: dict) -> list[int] | None:
+        """The most samples on any ray of each batch item (ray renderers); None: the method renders no rays."""
+        return None
+
+    def mean_samples_per_ray(self, batch: dict) -> list[float] | None:
+        """The mean samples per ray of each batch item (what a spectrum's cost is proportional to); by default
+        :meth:`samples_per_ray` (every ray alike); None: no rays."""
+        most = self.samples_per_ray(batch)
+        return None if most is None else [float(s) for s in most]
+
     def ray_sampling(self, geometry: dict) -> dict | None:
         """For ray-rendering methods: samples per ray and the effective sample spacing on one scene, and whether
         ``max_samples`` capped them (the spacing is then longer than the method's nominal ``sample_spacing``
         wavelengths).  ``geometry``: the scene's batch geometry with a batch of one (``ray_length [1]``,
         ``wavelength [1]``, ``gw_pos [1, 3]``, ``gw_rot [1, 3, 3]``, ``bounds [1, 2, 3]``).  None for other methods."""
-        if not hasattr(self, "samples_per_ray"):
+        most = self.samples_per_ray(geometry)
+        if most is None:
             return None
         ray_length, wavelength = float(geometry["ray_length"][0]), float(geometry["wavelength"][0])
-        S = int(self.samples_per_ray(geometry)[0])
+        S = int(most[0])
         span = float(ray_length) - float(getattr(self, "near", 0.0))
         nominal = float(getattr(self, "sample_spacing", 1.0))
         spacing = span / S / float(wavelength)

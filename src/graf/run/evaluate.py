@@ -21,6 +21,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from graf.app.config import CONF_DIR, check_run_settings, output_dir, override_key, task_wrapper, with_baselines_switch
 from graf.interrupts import stage
 from graf.models.base import CheckpointError, check_checkpoint, checkpoint_class, read_checkpoint, safe_loading
+from graf.plugins import CONF_DIRS
 from graf.run.build import build
 from graf.run.record import CheckpointInfo, Results, RunFacts
 from graf.run.resume import not_done
@@ -55,9 +56,9 @@ def load_checkpoint_model(cfg: DictConfig, path: str, overrides: Sequence[str]) 
     cls = checkpoint_class(target, path)
     check_checkpoint(ckpt, cls, path)
     saved = dict(ckpt.get("hyper_parameters") or {})
-    allowed = tuple(getattr(cls, "INFERENCE_SETTINGS", ()))
+    allowed = tuple(cls.INFERENCE_SETTINGS)
     # nested settings (model.features.pixel_window) too, an old checkpoint's in the current form
-    trained = OmegaConf.create(getattr(cls, "upgrade_hparams", dict)(saved))
+    trained = OmegaConf.create(cls.upgrade_hparams(saved))
     applied = {}
     for key in keys:
         value = OmegaConf.select(cfg.model, key)
@@ -118,7 +119,8 @@ def checkpoint_model_choice(args: Sequence[str]) -> str | None:
         return None
     if cls is None:
         return None
-    for f in sorted((CONF_DIR / "model").glob("*.yaml")):  # graf before graf_cpu: the base config of a class
+    folders = [CONF_DIR, *CONF_DIRS]  # graf's own, then the plugins' (graf.plugins.add_conf)
+    for f in [f for d in folders for f in sorted((d / "model").glob("*.yaml"))]:  # graf before graf_cpu: the base
         t = OmegaConf.load(f).get("_target_")
         try:
             if t and get_class(str(t)) is cls:

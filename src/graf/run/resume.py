@@ -145,8 +145,8 @@ def check_resume(cfg: DictConfig, model, dm, path) -> Resumed:
     ckpt = read_checkpoint(path)
     check_checkpoint(ckpt, type(model), path)
     # in the current form (GRaF's: a checkpoint written before model/features, graf.models.graf.legacy)
-    saved = getattr(type(model), "upgrade_hparams", dict)(ckpt.get("hyper_parameters") or {})
-    allowed = set(getattr(type(model), "INFERENCE_SETTINGS", ()))
+    saved = type(model).upgrade_hparams(ckpt.get("hyper_parameters") or {})
+    allowed = set(type(model).INFERENCE_SETTINGS)
     info = ckpt.get("graf") or {}
     run_then, run_now = info.get("run") or {}, run_settings(cfg)
     then = {

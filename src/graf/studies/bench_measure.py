@@ -165,14 +165,11 @@ def _checkpoint_mb(model) -> float:
         return path.stat().st_size / 2**20
 
 
-def samples_per_ray(model, batch: dict) -> float | int | None:
-    """Mean voxels per ray where the model reports it (GRaF), else its samples per ray (NeRF2); None for
-    models that do not render rays."""
-    if hasattr(model, "mean_samples_per_ray"):
-        return round(float(model.mean_samples_per_ray(batch)[0]), 2)
-    if hasattr(model, "samples_per_ray"):
-        return int(model.samples_per_ray(batch)[0])
-    return None
+def samples_per_ray(model, batch: dict) -> float | None:
+    """Mean samples (voxels) per ray of the batch's first item (:meth:`graf.models.base.Method.mean_samples_per_ray`);
+    None for methods that render no rays."""
+    mean = model.mean_samples_per_ray(batch)
+    return None if mean is None else round(float(mean[0]), 2)
 
 
 def optimizer_and_scheduler(conf):
@@ -199,7 +196,7 @@ def optimizer_and_scheduler(conf):
 def rays_per_train_step(model, batch_size: int) -> int:
     """Rays one training step renders: ``rays_per_step // B`` per target (at most a whole spectrum) where
     the model has that setting, else whole spectra."""
-    rps = getattr(model, "rays_per_step", None)
+    rps = model.rays_per_step
     if rps is None:
         return N_RAYS * batch_size
     return min(N_RAYS, max(1, int(rps) // batch_size)) * batch_size
@@ -218,10 +215,10 @@ def warm_up_inference(model, batch: dict, light: bool) -> None:
     """A whole spectrum; ``light`` (quick=true): one chunk of ``chunk_rays`` rays through the model's own
     ``prepare`` and ``render`` where it has them (GRaF, NeRF2; neighbor encodings and ray tables are made
     and cached as by a whole spectrum), a whole spectrum otherwise."""
-    if light and hasattr(model, "prepare") and hasattr(model, "render"):
+    if light and model.renders_rays:
         ctx = model.prepare(batch)
         B = int(batch["tgt_pos"].shape[0])
-        n = min(N_RAYS, max(1, int(getattr(model, "chunk_rays", 1024)) // B))
+        n = min(N_RAYS, max(1, int(model.chunk_rays or N_RAYS * B) // B))
         model.render(ctx, torch.arange(n, device=batch["tgt_pos"].device)[None].expand(B, -1))
     else:
         model.predict_spectra(batch)
@@ -285,7 +282,7 @@ def measure_training(
             if sched is not None:
                 sched.step()
 
-        rays = getattr(model, "rays_per_step", None)
+        rays = model.rays_per_step
         if light_warmup and rays is not None:
             model.rays_per_step = min(int(rays), LIGHT_WARMUP_RAYS)
         try:

@@ -95,6 +95,7 @@ class GRaFModule(SpectrumModule):
         features: the neighbor-feature component's config (``conf/model/features/<mode>.yaml``) or a mode's name.
     """
 
+    renders_rays = True  # prepare(batch) and render(ctx, pix): graf.models.base.Method
     INFERENCE_SETTINGS = ("chunk_rays", "fast_inference", "fast_training", "train_pieces")  # how fast, not what
     LAYOUT = 3
     LAYOUT_CHANGES = LAYOUT_CHANGES  # graf.models.graf.legacy: what each layout changed

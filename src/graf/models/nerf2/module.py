@@ -65,6 +65,7 @@ class NeRF2Module(SpectrumModule):
         lr / weight_decay: Adam.  t_max / eta_min: cosine learning-rate schedule (in optimiser steps).
     """
 
+    renders_rays = True  # prepare(batch) and render(ctx, pix): graf.models.base.Method
     INFERENCE_SETTINGS = ("chunk_rays",)  # graf-eval may change these on a trained checkpoint
     uses_neighbors = False  # one scene's field: no neighbor is read, so no reliance to measure
 
