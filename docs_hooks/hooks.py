@@ -51,13 +51,14 @@ import re
 from pathlib import Path
 
 import curve_facts
-import records
+import page_words
 import reference
 import site_checks
 import tree_pages
 from mkdocs.exceptions import PluginError
 from mkdocs.structure.files import File
 
+import records
 from graf.errors import UserError
 from graf.reports import published
 from graf.reports import table as headline_table
@@ -71,6 +72,7 @@ DIRECTIVE = re.compile(
 RESULTS_NAV = "Results"  # the navigation's section whose pages hide the table of contents (WIDE_PAGES)
 WIDE_PAGES: set[str] = set()  # filled by on_config
 NAV_TITLES: dict[str, str] = {}
+PAGE_PROBLEMS: list[str] = []  # what page_words found on the pages of this build (on_post_build fails on any)
 
 
 def _record(path: Path) -> Path:
@@ -274,6 +276,7 @@ def on_config(config):
     """The navigation's "API reference" entry becomes the generated pages, the index first; the pages of its
     Results section are noted (:data:`WIDE_PAGES`), and every page's title (the Records page's links)."""
     WIDE_PAGES.clear()
+    PAGE_PROBLEMS.clear()
     for item in config["nav"]:
         if isinstance(item, dict) and isinstance(item.get(RESULTS_NAV), list):
             WIDE_PAGES.update(records.nav_titles(item[RESULTS_NAV]))
@@ -336,7 +339,11 @@ def on_page_markdown(markdown: str, page, config, files) -> str:
         return text if kind == "code" else site_checks.fit_tables(text, width)
 
     markdown = reference.expand(markdown, page.file.src_uri, fit=lambda text: site_checks.fit_tables(text, width))
-    return DIRECTIVE.sub(expand, markdown)
+    markdown = DIRECTIVE.sub(expand, markdown)
+    problems = page_words.development_words(markdown, page.file.src_uri)
+    problems += page_words.shell_problems(markdown, page.file.src_uri)
+    PAGE_PROBLEMS.extend(problems)
+    return markdown
 
 
 SPHINX_ROLE = re.compile(r":(?:mod|func|class|meth|data|attr|exc|obj):(?=<code>)")
@@ -356,3 +363,10 @@ def on_files(files, config):
     for path, (_, text) in tree(tree_pages.api_pages, ROOT).items():
         files.append(File.generated(config, path, content=text))
     return files
+
+
+def on_post_build(config):
+    """The build fails on a development-log word on a user page or a shell block bash cannot parse
+    (:mod:`page_words`), every one listed."""
+    if PAGE_PROBLEMS:
+        raise PluginError("docs: pages a reader cannot act on as they are:\n  " + "\n  ".join(PAGE_PROBLEMS))

@@ -1,5 +1,5 @@
 """GRaF's training step, the grouped path against the static one, side by side in one run (scripts/gpu_check.sh's
-``step_profile`` step; issue 69).
+``step_profile`` step).
 
     python scripts/gpu_step_profile.py OUT.json [--tiny] [bench overrides, e.g. data_root=...]
 

@@ -1,4 +1,4 @@
-"""The paper-density studies on one lent GPU, in one call with a deadline: learning curves, a choice made on them,
+"""The paper-density studies on one GPU machine, in one call with a deadline: learning curves, a choice made on them,
 then the cross-scene matrix and the neighbor-count study at the chosen variant and budget.
 
     python scripts/paper_studies_gpu.py --pack .paper_gpu --out "$OUT" --deadline 520      (on the GPU machine)

@@ -1,4 +1,4 @@
-"""The 2-process speed-ups of the scaling-out engines on this machine, each next to one process (issue 25, part 5).
+"""The 2-process speed-ups of the scaling-out engines on this machine, each next to one process.
 
     python scripts/scaling_speedups.py [--out sweeps/scaling] [--num-tx 256] [--steps 150]
 

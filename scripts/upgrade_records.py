@@ -1,5 +1,5 @@
-"""Bring the published records under ``sweeps/`` to the record rules of issue 52, from what each record holds
-(nothing is re-run, nothing typed):
+"""Bring the published records under ``sweeps/`` to the current record rules (per-spectrum files, seeds,
+intervals), from what each record holds (nothing is re-run, nothing typed):
 
 - ``scene`` names the scenes the model was trained on (``train_scenes`` joined by ``+``); records written before
   named the headline's test scene there.
