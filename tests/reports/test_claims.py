@@ -369,3 +369,28 @@ def test_a_value_claim_with_runs_is_judged_on_its_interval_not_on_its_mean(tmp_p
     two_low = float(by["two"]["interval"].strip("[]").split(", ")[0])
     assert "2 runs" in by["two"]["reason"] and two_low <= second.mean()  # widened to each run's own figure
     assert by["no_runs"]["verdict"] == "holds" and by["no_runs"]["interval"] == ""
+
+
+def test_every_command_of_the_ledger_runs_when_pasted():
+    """The ledger's command blocks hold exact shell lines (bash -n parses them, no ``<placeholder>`` in them); the
+    form of each job a study runs, with its placeholders, is said beside, not in the block."""
+    import shutil
+    import subprocess
+
+    from graf.reports.ledger import shell_lines
+
+    lines, jobs = shell_lines(
+        "GRAF_NC_L=2,4 bash s.sh nc; GRAF_NC_L=6 bash s.sh nc (graf-train model=<a | b> x=(1)); graf-report runs=r"
+    )
+    assert lines == ["GRAF_NC_L=2,4 bash s.sh nc", "GRAF_NC_L=6 bash s.sh nc", "graf-report runs=r"]
+    assert jobs == "graf-train model=<a | b> x=(1)"
+    assert shell_lines("graf-bench threads=2") == (["graf-bench threads=2"], None)
+    bash = shutil.which("bash")
+    for claim in _claims():
+        if not claim.get("command"):
+            continue
+        lines, _ = shell_lines(str(claim["command"]))
+        assert lines and not any("<" in line for line in lines), claim["id"]
+        if bash:
+            p = subprocess.run([bash, "-n"], input="\n".join(lines), capture_output=True, text=True)
+            assert p.returncode == 0, f"{claim['id']}: {p.stderr}"

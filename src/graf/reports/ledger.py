@@ -120,8 +120,27 @@ def section(claim: dict, row: dict, cells: list[dict], figure: str | None, root:
         record(row["record"], root),
     ]
     if row["command"]:
-        parts.append("Command:\n\n```\n" + wrap(row["command"]) + "\n```")
+        lines, jobs = shell_lines(row["command"])
+        parts.append("Command:\n\n```bash\n" + "\n".join(wrap(line) for line in lines) + "\n```")
+        if jobs:
+            parts.append(f"Each job it runs (a value in `<...>` is one of its variants): `{jobs}`")
     return "\n\n".join(p for p in parts if p)
+
+
+def shell_lines(command: str) -> tuple[list[str], str | None]:
+    """A claims file's ``command`` as the exact shell lines to paste (its ``;``-separated commands, one a line) and
+    the form of each job it runs (the parenthesised part, where it has one: placeholders such as ``<scene>``, not
+    shell), so that the block a reader copies runs as it is."""
+    head, jobs, tail = command, None, ""
+    if (start := command.find(" (")) >= 0:
+        depth = 0
+        for i in range(start + 1, len(command)):
+            depth += {"(": 1, ")": -1}.get(command[i], 0)
+            if depth == 0:
+                head, jobs, tail = command[:start], command[start + 2 : i], command[i + 1 :]
+                break
+    lines = [c.strip() for c in f"{head}{tail}".split(";") if c.strip()]
+    return lines, jobs
 
 
 def _metric(claim: dict) -> tuple[str, str]:
