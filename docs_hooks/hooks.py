@@ -52,6 +52,7 @@ from pathlib import Path
 
 import curve_facts
 import page_words
+import record_links
 import reference
 import site_checks
 import tree_pages
@@ -351,8 +352,12 @@ SPHINX_ROLE = re.compile(r":(?:mod|func|class|meth|data|attr|exc|obj):(?=<code>)
 
 def on_page_content(html: str, page, config, files) -> str:
     """Docstrings written with Sphinx roles (``:func:`name```) render as the code span alone: mkdocstrings does
-    not read the roles, which would otherwise print literally on the API pages."""
-    return SPHINX_ROLE.sub("", html)
+    not read the roles, which would otherwise print literally on the API pages.  Every record path a page cites
+    becomes a link to it (:mod:`record_links`)."""
+    missing: list[str] = []
+    html = record_links.link_records(SPHINX_ROLE.sub("", html), page.url, ROOT, missing, page.file.src_uri)
+    PAGE_PROBLEMS.extend(f"{m}: a record path that is not in the repository" for m in missing)
+    return html
 
 
 def on_files(files, config):
