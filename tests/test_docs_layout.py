@@ -261,6 +261,11 @@ def site_problems(site: Path) -> list[str]:
                 continue
             path = unquote(u.path)
             target = (site / path.lstrip("/")) if path.startswith("/") else (f.parent / path)
+            if not target.resolve().is_relative_to(site.resolve()):  # a record's link out of site/ into the clone
+                target = (ROOT / "site" / f.parent.relative_to(site) / path).resolve()
+                if not (target.is_relative_to(ROOT / "sweeps") and target.exists()):
+                    out.append(f"{name}: broken link {ref} (out of the site: not a file of sweeps/)")
+                continue
             target = target / "index.html" if target.is_dir() else target
             if not target.exists():
                 out.append(f"{name}: broken link {ref}")
