@@ -170,7 +170,7 @@ def test_the_published_ledger_is_what_the_published_records_give():
 def test_a_target_row_judges_a_ratio_against_its_own_figure_and_says_by_how_much():
     """An issue's target (``against``) read as the ratio of two figures of a record (``over``): below the target
     the row says by how much it missed, and a lower-is-better target holds at or below its figure."""
-    from graf.reports.claims import judge_value
+    from graf.reports.claims.judge import judge_value
 
     record = {"rows": [{"s": 1.0, "slow": 2.5}, {"s": 1.5}]}
     faster = {"key": "rows.1.s", "over": "rows.0.s", "paper_value": 3.0, "against": "the target's"}
@@ -185,7 +185,7 @@ def test_a_target_row_judges_a_ratio_against_its_own_figure_and_says_by_how_much
 def test_a_paired_target_judges_each_cell_against_a_margin_or_a_share_of_spectra_and_says_by_how_much():
     """Issue 53's matrix targets: ahead of KNN by at least 1.0 dB in every cell (interval excluding 0), and better on
     at least 80% of each cell's spectra; short of either, the row names the cell furthest short and by how much."""
-    from graf.reports.claims import judge_paired
+    from graf.reports.claims.judge import judge_paired
     from graf.reports.statistics import paired_difference
 
     ids = range(40)
@@ -217,8 +217,8 @@ def test_a_paired_target_judges_each_cell_against_a_margin_or_a_share_of_spectra
     with pytest.raises(ConfigError, match="give margin or share, not both"):  # neither is silently dropped
         judge_paired({**claim, "share": 0.8}, data)
     # the ledger page's table of a share target shows each cell's share beside its difference
-    from graf.reports.claims import paired_cells
-    from graf.reports.ledger import platform
+    from graf.reports.claims.judge import paired_cells
+    from graf.reports.claims.ledger import platform
 
     shared = {**claim, "margin": None, "share": 0.8, "title": "t", "kind": "paired"}
     text = platform(shared, share, paired_cells(shared, data), None)
@@ -239,7 +239,7 @@ def test_the_published_ledger_page_is_a_summary_then_a_section_per_claim_with_it
     from pathlib import Path
 
     from graf.reports.claims import claim_cells
-    from graf.reports.ledger import page
+    from graf.reports.claims.ledger import page
 
     root = Path(__file__).resolve().parents[2]
     out = root / "sweeps" / "claims"
@@ -274,7 +274,7 @@ def test_the_claims_page_cites_the_paper_and_shows_the_ledger():
 
 
 def test_a_long_command_is_wrapped_into_lines_that_read_as_the_same_command():
-    from graf.reports.ledger import wrap
+    from graf.reports.claims.ledger import wrap
 
     command = "graf-bench threads=2 " + " ".join(f"'+model@models.m{i}=graf_cpu_scenes_ray_weights'" for i in range(4))
     lines = wrap(command, width=60).splitlines()
@@ -377,7 +377,7 @@ def test_every_command_of_the_ledger_runs_when_pasted():
     import shutil
     import subprocess
 
-    from graf.reports.ledger import shell_lines
+    from graf.reports.claims.ledger import shell_lines
 
     lines, jobs = shell_lines(
         "GRAF_NC_L=2,4 bash s.sh nc; GRAF_NC_L=6 bash s.sh nc (graf-train model=<a | b> x=(1)); graf-report runs=r"

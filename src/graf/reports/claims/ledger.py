@@ -1,5 +1,5 @@
 """The claims ledger as a page to read: ``claims.md`` (``docs/claims.md`` includes it) and a forest plot
-``<id>.png`` per claim with intervals, beside the machine form ``claims.csv`` (:mod:`graf.reports.claims`).
+``<id>.png`` per claim with intervals, beside the machine form ``claims.csv`` (:mod:`graf.reports.claims.judge`).
 
 The page opens with the counts per verdict, one line each, every claim named and linked to its section; the
 claims judged against another figure than the paper's (an issue's target: the claim's ``against``) are counted
@@ -42,7 +42,7 @@ TOKEN = re.compile(r"(?:'[^']*'|\"[^\"]*\"|\S)+")  # a word of a command, quotes
 
 def write_page(claims: list[dict], rows: list[dict], cells: dict[str, list[dict]], root: Path, out: Path) -> Path:
     """``out/claims.md`` of the ledger ``rows`` of ``claims``, and ``out/<id>.png`` for each claim with ``cells``
-    (:func:`graf.reports.claims.claim_cells`); a figure of a claim no longer in the ledger is removed."""
+    (:func:`graf.reports.claims.judge.claim_cells`); a figure of a claim no longer in the ledger is removed."""
     figures = set()
     for claim in claims:
         if cells.get(claim["id"]):

@@ -1,47 +1,10 @@
-"""graf-claims: the ledger of the paper's quantitative claims against the platform's records.
-
-Each claim of ``conf/claims.yaml`` names what the paper's supplement says, the platform record that answers it and
-how (``kind``):
-
-- ``paired``: rows of a study's ``intervals.json`` (:mod:`graf.reports.intervals`) selected by their cell
-  settings; the paper says ``method`` is ahead of ``reference`` on ``metric``.  Holds when every selected cell's
-  interval says ahead, refuted when one says behind, not reproduced when an interval includes 0.  A target's
-  ``margin`` (ahead by at least this much in every cell, the interval excluding 0) or ``share`` (better on at least
-  this share of each cell's spectra) is judged instead where given: holds when every cell reaches it, else not
-  reproduced, with the cell that falls furthest short and by how much.
-- ``value``: one figure of a JSON record (``key``: a dotted path, ``/`` kept inside names) against the paper's
-  ``paper_value``; holds when it reaches it in the better direction (``higher_is_better``), else not reproduced.
-- ``difference``: two figures of a record (``key`` minus ``minus``) against the paper's difference, the same rule.
-- ``change``: a change with L of the neighbor-count study (``intervals.json`` ``L_changes``: ``method``,
-  ``L_from``, ``L_to``, ``metric``).  With ``tolerance``: holds when the whole interval lies within it (a plateau);
-  else holds when the interval excludes 0 on the paper's side (the sign of ``paper_value``), refuted when it
-  excludes 0 on the other, not reproduced when it includes 0.
-- ``transfer``: the bands study's ``band_transfers`` (a model trained at another band minus the one trained at the
-  test band, on the same spectra; ``method``, ``metric``); the paper says the transfer is ``expect`` (``behind``).
-  Holds when every pair's interval says so, refuted when one says the other way, not reproduced when one includes 0.
-- ``note``: a claim the platform cannot check on its own terms (another GPU, another unit): not comparable, with
-  the platform's figure where it has one.
-
-Every claim may require the paper's density (``paper_density: true``): a record made on scenes cut below it (its
-``sim_num_tx``, or ``config.sim_num_tx``, set) makes the verdict "not comparable" with the count.  A claim whose
-record is missing is "not reproduced (no record)".
-
-The claims are ``conf/claims.yaml``'s, or the user's own file: ``claims=<file>``, or a ``claims.yaml`` in a config
-folder of the user's (``--config-dir``), which graf's own file of that name would otherwise hide
-(:func:`graf.reports.ledger.read_claims`).  A file that cannot be read, or a claim lacking what its kind reads,
-stops the command with one line naming the file and the problem, as does a ``records`` folder that does not exist.
-
-The ledger is ``claims.csv`` (the machine form) and ``results.json`` in ``out``, and the page to read, ``claims.md``
-(the docs page includes it), with a forest plot ``<id>.png`` per claim with intervals (:mod:`graf.reports.ledger`; a
-claim's ``title`` heads its section, and a ``paper_value`` of a paired claim is drawn on its plot); its inputs are
-the records alone, so it is rebuilt from them.
-"""
+"""How each claim is judged from its record (``kind``: paired, value, difference, change, transfer, note) and the
+ledger's rows and files (the rules: :mod:`graf.reports.claims`)."""
 
 from __future__ import annotations
 
 import csv
 import io
-import json
 import logging
 from pathlib import Path
 
@@ -50,7 +13,7 @@ from omegaconf import DictConfig
 from graf.app.config import task_wrapper
 from graf.errors import ConfigError
 from graf.io import atomic_write_bytes, atomic_write_json
-from graf.reports.ledger import (
+from graf.reports.claims.ledger import (
     VERDICTS,
     check_claim,
     check_claims,
@@ -59,44 +22,13 @@ from graf.reports.ledger import (
     value_interval,
     write_page,
 )
+from graf.reports.claims.records import density_reason, load_record, lookup, untrusted_timings
 from graf.reports.rows import short_scenes
 from graf.reports.statistics import HIGHER_IS_BETTER
 
 log = logging.getLogger("graf")
 
 COLUMNS = ("id", "source", "claim", "paper", "platform", "interval", "verdict", "reason", "record", "command")
-
-
-def lookup(record: dict, key: str):
-    """``record`` at the dotted ``key`` (a part may hold ``/``: ``metrics.test/psnr``); KeyError naming the part."""
-    node = record
-    for part in key.split("."):
-        if isinstance(node, list):
-            node = node[int(part)]
-        elif isinstance(node, dict) and part in node:
-            node = node[part]
-        else:
-            raise KeyError(part)
-    return node
-
-
-def _density_reason(record: dict) -> str | None:
-    """Why a record is not at the paper's density (its scenes cut to ``sim_num_tx`` positions), or None."""
-    n = record["sim_num_tx"] if "sim_num_tx" in record else (record.get("config") or {}).get("sim_num_tx")
-    counts = [c for c in (n if isinstance(n, list) else [n]) if c is not None]
-    if not counts:
-        return None
-    return f"made on {', '.join(map(str, counts))} positions per simulated layout (the paper: about 5,400)"
-
-
-def _load(root: Path, rel: str) -> dict | None:
-    path = root / rel
-    if not path.is_file():
-        return None
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ConfigError(f"{path}: not readable JSON ({exc})") from None
 
 
 def _match(row: dict, cell: dict | list) -> bool:
@@ -303,15 +235,20 @@ def judge(claim: dict, root: Path) -> dict:
     kind = claim["kind"]
     if kind == "note":
         row.update(platform=str(claim.get("platform", "")), verdict="not comparable", reason=str(claim["reason"]))
+        data = load_record(root, claim["record"]) if claim.get("key") else None
+        if untrusted := untrusted_timings(claim, data or {}):
+            row["reason"] += (
+                f"; a timing it quotes is not trusted, its record marks it disturbed ({'; '.join(untrusted)})"
+            )
         return row
-    data = _load(root, claim["record"])
+    data = load_record(root, claim["record"])
     if data is None:
         row.update(verdict="not reproduced", reason=f"no record yet: {claim['record']}")
         return row
     if claim.get("paper_density"):
-        why = _density_reason(data)
+        why = density_reason(data)
         if why:
-            judged = JUDGES[kind](claim, data)
+            judged = value_interval(claim, root) or JUDGES[kind](claim, data)
             row.update(platform=judged.get("platform", ""), interval=judged.get("interval", ""))
             row.update(verdict="not comparable", reason=why)
             return row
@@ -319,6 +256,8 @@ def judge(claim: dict, root: Path) -> dict:
     row.update({k: v for k, v in judged.items() if k in COLUMNS})
     if claim.get("reason"):
         row["reason"] = f"{row['reason']}; {claim['reason']}" if row["reason"] else str(claim["reason"])
+    if untrusted := untrusted_timings(claim, data):
+        row["reason"] += f"; a timing it reads is not trusted, its record marks it disturbed ({'; '.join(untrusted)})"
     return row
 
 
@@ -339,7 +278,7 @@ def claim_cells(claim: dict, root: Path) -> list[dict]:
         return [judged["cell"]] if "cell" in judged else []
     if claim.get("kind") not in CELLS:
         return []
-    data = _load(root, claim["record"])
+    data = load_record(root, claim["record"])
     return [] if data is None else CELLS[claim["kind"]](claim, data)
 
 
