@@ -394,3 +394,25 @@ def test_every_command_of_the_ledger_runs_when_pasted():
         if bash:
             p = subprocess.run([bash, "-n"], input="\n".join(lines), capture_output=True, text=True)
             assert p.returncode == 0, f"{claim['id']}: {p.stderr}"
+
+
+def test_a_slice_is_not_comparable_and_an_untrusted_timing_is_said():
+    """The page's own definitions: a record made on the embedded slice of a real scene is below the paper's
+    density (not comparable); a bench timing its record marks disturbed is named in the verdict's reason."""
+    from graf.reports.claims.records import density_reason, untrusted_timings
+
+    sliced = {
+        "n_train": 160,
+        "n_test": 40,
+        "config": {"scene": {"rfid_s23": {"name": "rfid_s23", "path": "embedded:x"}}},
+    }
+    assert density_reason(sliced) == "made on the embedded 200-position slice of rfid_s23 (the paper: the whole scene)"
+    assert density_reason({"config": {"scene": {"c": {"name": "c", "path": "data/c"}}}}) is None
+    bench = {"rows": [
+        {"preset": "graf", "scene": "c1", "disturbances": ["infer: spread 18% (limit 15%)", "train: load 0.4 cores"]},
+        {"preset": "nerf2", "scene": "c1", "disturbances": []},
+    ]}  # fmt: skip
+    claim = {"key": "rows.0.infer_s_per_spectrum", "over": "rows.1.infer_s_per_spectrum"}
+    assert untrusted_timings(claim, bench) == ["graf on c1: infer: spread 18% (limit 15%)"]  # its phase's only
+    assert untrusted_timings({"key": "rows.1.train_s_per_step"}, bench) == []
+    assert untrusted_timings({"key": "metrics.test/psnr"}, bench) == []
