@@ -227,7 +227,7 @@ def test_a_paired_target_judges_each_cell_against_a_margin_or_a_share_of_spectra
 
 
 SUMMARY = re.compile(r"^- \*\*(holds|refuted|not reproduced|not comparable)\*\* \((\d+)\): (.*)$", re.M)
-SECTION = re.compile(r"^## (.+) \{#(\w+)\}$", re.M)
+SECTION = re.compile(r"^##+ (.+) \{#(\w+)\}$", re.M)  # a claim's section (##) and its re-runs' parts (###)
 MAX_CELL = 60  # characters in a table cell of the page: its tables fit the site's column
 MAX_COLUMNS = 5
 
@@ -246,21 +246,27 @@ def test_the_published_ledger_page_is_a_summary_then_a_section_per_claim_with_it
     with open(out / "claims.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     text = (out / "claims.md").read_text()
-    counts = Counter()
+    claims = _claims()
+    rerun = {c["id"]: c["of"] for c in claims if c.get("of")}  # a re-run of a claim: a part of its section
+    counts, bases = Counter(), [r for r in rows if r["id"] not in rerun]
     for verdict, n, named in SUMMARY.findall(text):
-        counts[verdict] += int(n)
-        assert len(re.findall(r"\]\(#\w+\)", named)) == int(n)
-    assert counts == Counter(r["verdict"] for r in rows)
-    assert [i for _, i in SECTION.findall(text)] == [r["id"] for r in rows]
-    for r, part in zip(rows, re.split(r"^## ", text, flags=re.M)[1:]):
-        assert f"Verdict: **{r['verdict']}**." in part and (not r["command"] or "```\n" in part)
+        counts[verdict] += int(n)  # claims, not runs: a re-run is named beside its claim, not counted
+        linked = re.findall(r"\]\(#(\w+)\)", named)
+        assert len([i for i in linked if i not in rerun]) == int(n)
+        assert all(rerun[i] in linked for i in linked if i in rerun)
+    assert counts == Counter(r["verdict"] for r in bases) and sum(counts.values()) == len(bases)
+    order = [i for b in bases for i in [b["id"], *(r["id"] for r in rows if rerun.get(r["id"]) == b["id"])]]
+    assert [i for _, i in SECTION.findall(text)] == order
+    by_id = {r["id"]: r for r in rows}
+    for part in re.split(r"^##+ ", text, flags=re.M)[1:]:
+        r = by_id[re.search(r"\{#(\w+)\}", part).group(1)]
+        assert f"Verdict: **{r['verdict']}**." in part and (not r["command"] or "```bash\n" in part)
         if r["interval"]:  # a comparison: its cells' table and its forest plot, drawn and shown
             assert (out / f"{r['id']}.png").is_file() and f"](sweeps/claims/{r['id']}.png)" in part
             assert "| 95% interval |" in part
     for line in (x for x in text.splitlines() if x.startswith("|")):
         cells = [c.strip() for c in line.strip("|").split(" | ")]
         assert len(cells) <= MAX_COLUMNS and max(map(len, cells)) <= MAX_CELL, line
-    claims = _claims()
     assert text == page(claims, rows, {c["id"]: claim_cells(c, root) for c in claims}, root, out)
 
 
@@ -416,3 +422,22 @@ def test_a_slice_is_not_comparable_and_an_untrusted_timing_is_said():
     assert untrusted_timings(claim, bench) == ["graf on c1: infer: spread 18% (limit 15%)"]  # its phase's only
     assert untrusted_timings({"key": "rows.1.train_s_per_step"}, bench) == []
     assert untrusted_timings({"key": "metrics.test/psnr"}, bench) == []
+
+
+def test_a_rerun_must_name_an_earlier_claim():
+    import pytest
+
+    from graf.errors import ConfigError
+    from graf.reports.claims.claims_file import check_claims
+
+    base = {"id": "a", "kind": "note", "reason": "r"}
+    check_claims([base, {"id": "b", "kind": "note", "reason": "r", "of": "a"}])
+    for bad in ({"of": "z"}, {"of": "b"}):  # unknown; a re-run of a re-run
+        with pytest.raises(ConfigError, match="must name an earlier claim"):
+            check_claims(
+                [
+                    base,
+                    {"id": "b", "kind": "note", "reason": "r", "of": "a"},
+                    {"id": "c", "kind": "note", "reason": "r", **bad},
+                ]
+            )

@@ -29,15 +29,17 @@ record is missing is "not reproduced (no record)".
 
 The claims are ``conf/claims.yaml``'s, or the user's own file: ``claims=<file>``, or a ``claims.yaml`` in a config
 folder of the user's (``--config-dir``), which graf's own file of that name would otherwise hide
-(:func:`graf.reports.claims.ledger.read_claims`).  A file that cannot be read, or a claim lacking what its kind reads,
-stops the command with one line naming the file and the problem, as does a ``records`` folder that does not exist.
+(:func:`graf.reports.claims.claims_file.read_claims`).  A file that cannot be read, or a claim lacking what its kind
+reads, stops the command with one line naming the file and the problem, as does a ``records`` folder that does not
+exist.  A claim may be a re-run of an earlier one (``of``: the same claim on another record, at other budgets;
+``variant`` names how it differs): a part of that claim's section with its own verdict, not counted again.
 
 The ledger is ``claims.csv`` (the machine form) and ``results.json`` in ``out``, and the page to read, ``claims.md``
 (the docs page includes it), with a forest plot ``<id>.png`` per claim with intervals
 (:mod:`graf.reports.claims.ledger`; a claim's ``title`` heads its section, and a ``paper_value`` of a paired claim is
 drawn on its plot); its inputs are the records alone, so it is rebuilt from them.  The rooms: :mod:`.judge` (the
-verdicts and the command), :mod:`.records` (what a claim reads of its record), :mod:`.ledger` (the claims file and
-the page).
+verdicts and the command), :mod:`.records` (what a claim reads of its record), :mod:`.claims_file` (the claims
+themselves), :mod:`.ledger` (the page).
 """
 
 from graf.reports.claims.judge import claim_cells, claims, judge, ledger, write_ledger

@@ -13,15 +13,8 @@ from omegaconf import DictConfig
 from graf.app.config import task_wrapper
 from graf.errors import ConfigError
 from graf.io import atomic_write_bytes, atomic_write_json
-from graf.reports.claims.ledger import (
-    VERDICTS,
-    check_claim,
-    check_claims,
-    check_records,
-    read_claims,
-    value_interval,
-    write_page,
-)
+from graf.reports.claims.claims_file import check_claim, check_claims, check_records, read_claims
+from graf.reports.claims.ledger import VERDICTS, value_interval, write_page
 from graf.reports.claims.records import density_reason, load_record, lookup, untrusted_timings
 from graf.reports.rows import short_scenes
 from graf.reports.statistics import HIGHER_IS_BETTER

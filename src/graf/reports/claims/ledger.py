@@ -6,11 +6,6 @@ claims judged against another figure than the paper's (an issue's target: the cl
 apart.  Then one section per claim, headed by its ``title``: its source and what the paper says, the platform's
 figure (for a comparison: a table of its cells with their 95% intervals and the forest plot, drawn from the same
 interval records the verdict reads), the verdict and its reason, the record and the command.
-
-The claims themselves, before any record is read: where they come from (``conf/claims.yaml``, or the user's own
-file: :func:`claims_file`, :func:`read_claims`) and what each must hold (:func:`check_claims`).  A user's file that
-cannot be read, a claim lacking what its kind reads, and a ``records`` folder that does not exist are refused in one
-line naming the file, the claim or the folder.
 """
 
 from __future__ import annotations
@@ -22,15 +17,10 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt  # on the Agg backend: graf.plotting (below) sets it
 import numpy as np
-from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
-from graf.app.config import CONF_DIR, override_key
-from graf.errors import ConfigError
 from graf.io import atomic_write_bytes
 from graf.metrics.names import REGISTRY
 from graf.plotting import save_figure
-from graf.plugins import one_line
 from graf.reports.statistics import HIGHER_IS_BETTER, paired_difference
 from graf.run.per_spectrum import PER_SPECTRUM_FILE, read_per_spectrum
 
@@ -56,13 +46,16 @@ def write_page(claims: list[dict], rows: list[dict], cells: dict[str, list[dict]
 
 
 def page(claims: list[dict], rows: list[dict], cells: dict[str, list[dict]], root: Path, out: Path) -> str:
-    """The ledger's page: the summary, then a section per claim (in the config's order)."""
+    """The ledger's page: the summary, then a section per claim of the paper (in the config's order), a re-run of
+    it (``of``: the same claim on another record, at other budgets) a part of that section with its own verdict."""
     by_id = {c["id"]: c for c in claims}
     parts = [summary(claims, rows)]
     for row in rows:
-        claim = by_id[row["id"]]
-        figure = _link(out / f"{row['id']}.png", root) if cells.get(row["id"]) else None
-        parts.append(section(claim, row, cells.get(row["id"]) or [], figure, root))
+        if by_id[row["id"]].get("of"):
+            continue
+        for r in [row, *(r for r in rows if by_id[r["id"]].get("of") == row["id"])]:
+            figure = _link(out / f"{r['id']}.png", root) if cells.get(r["id"]) else None
+            parts.append(section(by_id[r["id"]], r, cells.get(r["id"]) or [], figure, root))
     return "\n\n".join(parts) + "\n"
 
 
@@ -80,21 +73,35 @@ def title(claim: dict) -> str:
 
 
 def summary(claims: list[dict], rows: list[dict]) -> str:
-    """The counts per verdict, one line each naming its claims (linked to their sections); the paper's claims
-    first, then each group judged against another figure (``against``)."""
+    """The claims counted per verdict, one line each naming its claims (linked to their sections), a claim's
+    re-runs (``of``) named beside it with their own verdicts, not counted again; the paper's claims first, then
+    each group judged against another figure (``against``)."""
     by_id = {c["id"]: c for c in claims}
     groups: dict[str | None, list[dict]] = {}
     for row in rows:
-        groups.setdefault(by_id[row["id"]].get("against"), []).append(row)
+        if not by_id[row["id"]].get("of"):
+            groups.setdefault(by_id[row["id"]].get("against"), []).append(row)
     out = []
     for against, group in sorted(groups.items(), key=lambda g: g[0] is not None):
         whose = "The paper's claims" if against is None else f"Judged against {against} figure, not the paper's"
         lines = [f"**{whose}** ({len(group)}):", ""]
         for verdict in VERDICTS:
-            named = [f"[{title(by_id[r['id']])}](#{r['id']})" for r in group if r["verdict"] == verdict]
+            named = [_named(r, rows, by_id) for r in group if r["verdict"] == verdict]
             lines.append(f"- **{verdict}** ({len(named)}): {', '.join(named) or 'none'}")
         out.append("\n".join(lines))
     return "\n\n".join(out)
+
+
+def _named(row: dict, rows: list[dict], by_id: dict) -> str:
+    """A claim linked to its section, with its re-runs' verdicts: ``[title](#id) (at the earlier budgets: ...)``."""
+    reruns = [r for r in rows if by_id[r["id"]].get("of") == row["id"]]
+    variants = [_variant(by_id[r["id"]]) for r in reruns]
+    also = "; ".join(f"[{v[:1].lower() + v[1:]}](#{r['id']}): {r['verdict']}" for v, r in zip(variants, reruns))
+    return f"[{title(by_id[row['id']])}](#{row['id']})" + (f" ({also})" if also else "")
+
+
+def _variant(claim: dict) -> str:
+    return str(claim.get("variant") or title(claim))
 
 
 def _stop(text: str) -> str:
@@ -112,9 +119,10 @@ def _sentence(text: str) -> str:
 def section(claim: dict, row: dict, cells: list[dict], figure: str | None, root: Path) -> str:
     """One claim's section: heading, source and statement, the platform's figure, verdict, record, command."""
     speaker = _sentence(claim.get("against", "the paper's").removesuffix("'s")).rstrip(".")  # The paper
+    said = f"*Source: {_stop(row['source'])}* {speaker}: {_sentence(row['claim'])} Its figure: {_stop(row['paper'])}"
     parts = [
-        f"## {title(claim)} {{#{row['id']}}}",
-        f"*Source: {_stop(row['source'])}* {speaker}: {_sentence(row['claim'])} Its figure: {_stop(row['paper'])}",
+        f"### {_variant(claim)} {{#{row['id']}}}" if claim.get("of") else f"## {title(claim)} {{#{row['id']}}}",
+        "" if claim.get("of") else said,
         platform(claim, row, cells, figure),
         f"Verdict: **{row['verdict']}**. {_sentence(row['reason'])}",
         record(row["record"], root),
@@ -243,102 +251,6 @@ def forest_plot(claim: dict, cells: list[dict], path: Path) -> Path:
     ax.set_title("\n".join(textwrap.wrap(title(claim), TITLE_CHARS)), fontsize=10)  # wrapped, never cut
     fig.legend(fontsize=7, loc="outside lower center", ncols=3, frameon=False)  # below: it hides no interval
     return save_figure(fig, path, dpi=100)
-
-
-# what each kind reads from its claim (besides id and kind): a claim lacking one is refused, not a KeyError
-NEEDS = {
-    "paired": ("record", "method", "reference", "metric"),
-    "value": ("record", "key", "paper_value"),
-    "difference": ("record", "key", "paper_value"),
-    "change": ("record", "method", "L_from", "L_to", "metric"),
-    "transfer": ("record", "method", "metric"),
-    "note": ("reason",),
-}
-
-
-def check_claim(claim, where: str = "claims", number: int | None = None) -> None:
-    """Refuse, in one line naming ``where`` (the claims file) and the claim, a claim the ledger cannot read: not a
-    mapping, no id, a kind it does not know, or a setting its kind reads left out."""
-    which = f"claim {number}" if number is not None else "a claim"
-    if not isinstance(claim, dict):
-        raise ConfigError(f"{where}: {which} is not a mapping of settings (id, kind, record, ...): {claim!r}")
-    if claim.get("id") in (None, ""):
-        raise ConfigError(f"{where}: {which} has no id")
-    kind = claim.get("kind")
-    if kind not in NEEDS:
-        raise ConfigError(f"{where}: claim {claim['id']!r}: kind must be one of {list(NEEDS)}, got {kind!r}")
-    missing = [k for k in NEEDS[kind] if claim.get(k) in (None, "")]
-    if kind == "change" and claim.get("tolerance") is None and claim.get("paper_value") is None:
-        missing.append("paper_value (or tolerance)")
-    if missing:
-        raise ConfigError(f"{where}: claim {claim['id']!r} (kind {kind}) lacks {', '.join(missing)}")
-
-
-def check_claims(claims, where: str = "claims") -> None:
-    """Refuse, in one line naming ``where``, claims the ledger cannot read: not a list, a claim
-    :func:`check_claim` refuses, or an id used twice."""
-    if not isinstance(claims, list) or not claims:
-        raise ConfigError(f"{where}: claims must be a non-empty list (each claim with id, kind, ...), got {claims!r}")
-    for number, claim in enumerate(claims, 1):
-        check_claim(claim, where, number)
-    ids = [c["id"] for c in claims]
-    dup = sorted({str(i) for i in ids if ids.count(i) > 1})
-    if dup:
-        raise ConfigError(f"{where}: claim ids used twice: {dup}")
-
-
-def claims_file(cfg: DictConfig) -> Path | None:
-    """The user's own claims file, or None for ``conf/claims.yaml``: ``claims=<file>`` (a path given for the
-    setting), else a ``claims.yaml`` in a config folder of the user's (``--config-dir``, ``hydra.searchpath``) of a
-    run of graf-claims' own config: Hydra finds graf's file of that name first and would silently use it instead."""
-    given = cfg.get("claims")
-    if isinstance(given, str):
-        return Path(given)
-    if not HydraConfig.initialized() or HydraConfig.get().job.config_name != "claims":
-        return None
-    for source in HydraConfig.get().runtime.config_sources:
-        folder = Path(source.path)
-        if source.schema == "file" and folder.resolve() != CONF_DIR.resolve() and (folder / "claims.yaml").is_file():
-            return folder / "claims.yaml"
-    return None
-
-
-def read_claims(cfg: DictConfig) -> tuple[DictConfig, list[dict], str]:
-    """``(cfg, claims, where)``: the run's config and its claims, from :func:`claims_file` when the user gave one
-    (its settings beside ``claims``, such as ``records`` and ``method``, apply unless the command line sets them),
-    else from ``cfg.claims``; ``where`` names their file.  A file that cannot be read as YAML, or holds no list of
-    claims, is refused in one line naming it; its claims are then checked (:func:`check_claims`)."""
-    path = claims_file(cfg)
-    where = "claims" if path is None else str(path)
-    if path is not None:
-        if not path.is_file():
-            raise ConfigError(f"claims={path}: no such claims file")
-        try:
-            node = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
-        except Exception as exc:  # noqa: BLE001 - the YAML parser's or OmegaConf's own, said with the file
-            raise ConfigError(f"{path}: not a readable claims file ({one_line(exc)})") from None
-        node = {"claims": node} if isinstance(node, list) else node
-        if not isinstance(node, dict) or not isinstance(node.get("claims"), list):
-            raise ConfigError(f"{path}: holds no list of claims (a 'claims:' list, each claim with id, kind, ...)")
-        given = {override_key(o) for o in HydraConfig.get().overrides.task} if HydraConfig.initialized() else set()
-        cfg = cfg.copy()
-        with open_dict(cfg):
-            for key, value in node.items():
-                if key == "claims" or (key not in ("defaults", "hydra") and key not in given):
-                    cfg[key] = value
-    try:
-        claims = OmegaConf.to_container(cfg.claims, resolve=True) if isinstance(cfg.claims, ListConfig) else cfg.claims
-    except Exception as exc:  # noqa: BLE001 - an interpolation the file's claims make that does not resolve
-        raise ConfigError(f"{where}: {one_line(exc)}") from None
-    check_claims(claims, where)
-    return cfg, claims, where
-
-
-def check_records(root: Path) -> None:
-    """Refuse a ``records`` folder that does not exist: every claim would be "not reproduced" for want of it."""
-    if not root.is_dir():
-        what = "is a file, not a folder" if root.exists() else "no such folder"
-        raise ConfigError(f"records={root}: {what} (the folder the claims' record paths are relative to)")
 
 
 def value_interval(claim: dict, root: Path) -> dict | None:
