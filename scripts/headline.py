@@ -1,10 +1,10 @@
-"""Write the main job's headline tables into the README (between their headline markers) from the published
-records ``sweeps/main_job/results.json`` and, where the README has its block, the accurate variant's
-``sweeps/main_job_accurate/results.json``, and the default tests' timed run (``sweeps/test_timing/results.json``,
-``scripts/time_tests.py``): ``python scripts/headline.py`` (``--check``: exit 1 if the README
-differs).
-The site's pages include the same table through ``<!-- gen: headline -->``; tests/test_docs_layout.py checks
-that the README's is up to date."""
+"""Write the main job's headline tables into the README (between their headline markers) from the published records
+``sweeps/main_job/results.json`` and, where the README has its block, the accurate variant's
+``sweeps/main_job_accurate/results.json``, the default tests' timed run (``sweeps/test_timing/results.json``,
+``scripts/time_tests.py``) and the set-up and main job timed as a newcomer runs them
+(``sweeps/newcomer_timing/results.json``, ``scripts/time_newcomer.sh``): ``python scripts/headline.py``
+(``--check``: exit 1 if the README differs). The site's pages include the same table through ``<!-- gen: headline
+-->``; tests/test_docs_layout.py checks that the README's is up to date."""
 
 from __future__ import annotations
 
@@ -43,6 +43,33 @@ def with_test_timing(text: str, record: dict) -> str:
     return f"{before}{start}{test_timing(record)}{end}{rest.split(end, 1)[1]}"
 
 
+NEWCOMER = "sweeps/newcomer_timing/results.json"  # scripts/time_newcomer.sh's record of the README's first command
+NEWCOMER_MARKERS = (f"<!-- newcomer-timing: generated from {NEWCOMER}; do not edit -->", "<!-- /newcomer-timing -->")
+
+
+def _mmss(seconds: float) -> str:
+    minutes, seconds = divmod(round(float(seconds)), 60)
+    return f"{minutes} min {seconds} s" if minutes else f"{seconds} s"
+
+
+def newcomer_timing(record: dict) -> str:
+    """The README's words for the set-up and the main job timed as a newcomer runs them (:data:`NEWCOMER`)."""
+    m = record.get("machine") or {}
+    return (
+        f"the set-up took {_mmss(record['setup_s'])} and the main job {_mmss(record['main_job_s'])} "
+        f"({m.get('cores')}-core {m.get('cpu')}, {record.get('date')}, commit {record.get('commit')}; `{NEWCOMER}`)"
+    )
+
+
+def with_block(text: str, markers: tuple[str, str], words: str) -> str:
+    """``text`` with the inline block between ``markers`` holding ``words``."""
+    start, end = markers
+    if start not in text or end not in text.split(start, 1)[1]:
+        raise UserError(f"no block ({start} ... {end}) to fill")
+    before, rest = text.split(start, 1)
+    return f"{before}{start}{words}{end}{rest.split(end, 1)[1]}"
+
+
 def main(argv: list[str]) -> int:
     readme = ROOT / "README.md"
     text = readme.read_text()
@@ -51,6 +78,8 @@ def main(argv: list[str]) -> int:
         new = with_headline(new, json.loads((ROOT / ACCURATE).read_text()), ACCURATE)
     if TEST_TIMING_MARKERS[0] in new:  # the default tests' timed run (scripts/time_tests.py)
         new = with_test_timing(new, json.loads((ROOT / TEST_TIMING).read_text()))
+    if NEWCOMER_MARKERS[0] in new:  # the set-up and the main job, timed as a newcomer (scripts/time_newcomer.sh)
+        new = with_block(new, NEWCOMER_MARKERS, newcomer_timing(json.loads((ROOT / NEWCOMER).read_text())))
     if "--check" in argv:
         return 0 if new == text else 1
     readme.write_text(new)
