@@ -12,6 +12,7 @@ from pathlib import Path
 
 from hydra import compose, initialize_config_dir
 from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.core.override_parser.types import ValueType
 from hydra.errors import ConfigCompositionException, MissingConfigException, OverrideParseException
 
 from graf.app.config import CONF_DIR
@@ -82,7 +83,10 @@ def unknown_option(group: str, value: str, choices) -> ConfigError:
 
 
 def group_values(override) -> list[str]:
-    """The options a config-group override names: each value of a sweep, each item of a list (``scene=[a,b]``)."""
+    """The options a config-group override names: each value of a sweep, each item of a list (``scene=[a,b]``); none
+    for a glob (``experiment=glob(compare_*)``), which only Hydra's config loader can expand: it checks those."""
+    if override.value_type == ValueType.GLOB_CHOICE_SWEEP:
+        return []
     given = override.sweep_string_iterator() if override.is_sweep_override() else [override.get_value_element_as_str()]
     out = []
     for value in given:
