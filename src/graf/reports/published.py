@@ -291,7 +291,7 @@ def choose_per_regime(
     rows = [r for r in rows if r["regime"] not in skip]
     ready, waiting = regimes_ready(rows, modes, continues)
     out = []
-    for regime in ready + [None]:
+    for regime in ready + [None] if ready else []:  # nothing ready (an own-run regime alone): no choice to print
         chosen, table = choose([r for r in rows if r["regime"] in ready and regime in (None, r["regime"])], modes)
         out.append((regime, chosen, table))
     choices = {regime: (chosen, table) for regime, chosen, table in out}
