@@ -138,3 +138,18 @@ def test_the_measured_spacing_is_the_median_nearest_neighbor_distance_and_grows_
     assert full.measured_spacing() == pytest.approx(float(d.min(dim=1).values.median()))
     assert thin.measured_spacing() > full.measured_spacing()
     assert full.split_summary()["measured_spacing_m"] == full.measured_spacing()
+
+
+def test_the_record_states_the_nearest_neighbor_the_tested_targets_use():
+    """results.json ``splits.nearest_neighbor_used``: the median over the tested targets of the distance to the
+    nearest neighbor they read, in metres and wavelengths; with ``exclude_within`` it lies beyond the exclusion."""
+    dense = _dm(neighbors=NeighborSelector(L=10, L_train=(3, 10), radius=None))
+    sparse = _dm(neighbors=NeighborSelector(L=10, L_train=(3, 10), radius=None, exclude_within=0.5))
+    rows, index, mask = dense.split_neighbors(dense.eval_split)
+    d = (dense.positions[index] - dense.positions[rows][:, None]).double().norm(dim=-1).masked_fill(~mask, float("inf"))
+    got = dense.nearest_neighbor_used()
+    assert got["median_m"] == pytest.approx(float(d.min(dim=1).values.median()), abs=1e-6)
+    assert got["median_wavelengths"] == pytest.approx(got["median_m"] / BAND.wavelength, abs=1e-3)
+    assert got["n_targets"] == len(rows) and dense.split_summary()["nearest_neighbor_used"] == got
+    far = sparse.nearest_neighbor_used()
+    assert far["median_wavelengths"] >= 0.5 > got["median_wavelengths"]

@@ -155,6 +155,28 @@ class SpectrumDataModule(SceneRows, L.LightningDataModule):
     def eval_rows(self) -> torch.Tensor:
         return self.split_neighbors(self.eval_split)[0]
 
+    def nearest_neighbor_used(self, name: str | None = None) -> dict | None:
+        """The geometry of evaluation split ``name`` (default: the one tested) as its methods see it: the median over
+        its targets of the distance to the nearest neighbor actually used (after ``neighbors.exclude_within``), in
+        metres and in wavelengths of each target's band; None without a target that has a neighbor."""
+        rows, index, mask = self.split_neighbors(name or self.eval_split)
+        if len(rows) == 0 or not bool(mask.any()):
+            return None
+        d = torch.linalg.vector_norm(self.positions[index].double() - self.positions[rows][:, None].double(), dim=-1)
+        nearest = d.masked_fill(~mask.bool(), float("inf")).min(dim=1).values
+        wavelengths = nearest / self.wavelength[self.row_scene[rows]].double()
+        found = torch.isfinite(nearest)
+        return {
+            "median_m": round(float(nearest[found].median()), 6),
+            "median_wavelengths": round(float(wavelengths[found].median()), 4),
+            "n_targets": int(found.sum()),
+        }
+
+    def split_summary(self) -> dict:
+        """What results.json records about the splits, with the tested split's neighbor geometry
+        (:meth:`nearest_neighbor_used`)."""
+        return {**super().split_summary(), "nearest_neighbor_used": self.nearest_neighbor_used()}
+
     def eval_neighbors(self) -> tuple[torch.Tensor, torch.Tensor]:
         """``(src_index [n_eval, L], src_mask [n_eval, L])`` used by ``test_dataloader``."""
         return self.split_neighbors(self.eval_split)[1:]
