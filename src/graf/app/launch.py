@@ -52,9 +52,7 @@ def again(*args: str) -> list[str]:
     ``python -m`` whether it was started as a console script or as a module; any other Hydra app (a test's) by its
     script.  ``tests/test_import_graph.py`` knows this launcher: only the sweeper calls it."""
     started = Path(sys.argv[0])
-    if started.name in commands():
-        return command(started.name, *args)
-    by_file = {m: n for n, m in commands().items() if m.replace(".", "/") + ".py" in started.as_posix()}
-    if by_file:
-        return command(next(iter(by_file.values())), *args)
-    return [sys.executable, str(started), *map(str, args)]
+    file = started.as_posix()
+    ours = (n for n, m in commands().items() if n == started.name or file.endswith(m.replace(".", "/") + ".py"))
+    name = next(ours, None)
+    return command(name, *args) if name else [sys.executable, str(started), *map(str, args)]
