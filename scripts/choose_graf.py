@@ -37,7 +37,6 @@ from pathlib import Path
 
 from graf.errors import UserError
 from graf.reports.published import (
-    BUDGET_WITHIN_DB,
     GAIN_PER_DOUBLING_DB,
     ahead_label,
     best_step,
@@ -47,6 +46,7 @@ from graf.reports.published import (
     own_run_regimes,
     still_gaining,
 )
+from graf.run.budgets import BUDGET_WITHIN_DB
 
 
 def main() -> None:

@@ -16,7 +16,8 @@ import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from graf.app.config import CONF_DIR, scene_band_config, single_scene_config
+from graf.app.config import CONF_DIR, scene_band_config
+from graf.app.spec import RunSpec
 from graf.sim.array import rotation_from_axes
 
 SCENES = ["rfid_s23", "small_room", "bedroom", "conference_v1", "office_v1", "outdoor"]
@@ -33,7 +34,7 @@ def main() -> None:
         for band_name in ("915mhz", "2.4ghz", "3ghz"):
             for name in SCENES:
                 cfg = compose(config_name="train", overrides=[f"scene={name}", f"band={band_name}"])
-                scene_cfg = single_scene_config(cfg, "voxel_table")
+                scene_cfg = RunSpec.of(cfg).one_scene("voxel_table")
                 scene, band = instantiate(scene_cfg), instantiate(scene_band_config(scene_cfg, cfg.get("band")))
                 if hasattr(scene, "geometry"):
                     bounds, gw = np.asarray(scene.geometry.bounds), np.asarray(scene.gateway["position"], float)

@@ -15,7 +15,8 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from graf.app.config import CONF_DIR, CONF_PATH, scene_band_config, scene_configs
+from graf.app.config import CONF_DIR, CONF_PATH, scene_band_config
+from graf.app.spec import RunSpec
 from graf.data.spectrum_set import DataFormatError
 from graf.errors import ConfigError
 from graf.reports.table import make_table
@@ -70,13 +71,15 @@ def test_every_config_group_option_composes():
                         else []
                     )
                     cfg = compose(config_name=config_name, overrides=overrides)
-                (scene,) = scene_configs(cfg.scene)
+                spec = RunSpec.of(cfg)
+                (scene,) = spec.scenes
                 assert scene._target_ and instantiate(scene_band_config(scene, cfg.get("band"))).frequency_hz > 0
                 if group in ("scene", "eval_scene"):  # every option also builds its object
                     # same / heldout name no scene themselves (heldout: the sweeps' held-out layouts, resolved
                     # from the training scenes; tested in test_optuna_sweeper.py)
-                    assert len(scene_configs(cfg[group])) == (f.stem not in ("same", "heldout"))
-                    for c in scene_configs(cfg[group]):
+                    selected = spec.scenes if group == "scene" else spec.eval_scenes
+                    assert len(selected) == (f.stem not in ("same", "heldout"))
+                    for c in selected:
                         instantiate(c)
                 elif group in ("band", "neighbors"):
                     instantiate(cfg[group])
@@ -97,7 +100,7 @@ def test_a_nerf2_folder_needs_its_band(compose_cfg, make_scene):
 
     def band_of(*overrides):
         cfg = compose_cfg("eval", overrides)
-        return scene_band_config(scene_configs(cfg.scene)[0], cfg.get("band")).name
+        return scene_band_config(RunSpec.of(cfg).scenes[0], cfg.get("band")).name
 
     assert band_of("scene=conference_v1") == "2.4ghz"  # simulated scenes: the paper's band unless band=...
     assert band_of("scene=conference_v1", "band=915mhz") == "915mhz"

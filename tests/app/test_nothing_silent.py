@@ -101,7 +101,7 @@ def test_a_stop_before_max_steps_that_is_not_the_users_is_warned_and_marked(comp
 
 
 def test_training_that_would_never_end_or_is_not_a_count_is_refused(compose_cfg):
-    from graf.run.train import check_training_length
+    from graf.run.resolve import check_training_length
 
     with pytest.raises(ConfigError, match="would never end"):
         check_training_length(compose_cfg("train", ("trainer.max_steps=-1", "trainer.max_epochs=-1")))

@@ -8,7 +8,8 @@ import hydra
 import pytest
 from hydra import compose, initialize_config_dir
 
-from graf.app.config import CONF_DIR, scene_configs
+from graf.app.config import CONF_DIR
+from graf.app.spec import RunSpec
 from graf.cli import train as graf_train
 from graf.run.build import check_not_validation_only
 from tests.app.test_bad_values import QUICK, _main, _one_line
@@ -57,7 +58,7 @@ def test_a_run_that_tests_on_a_validation_layout_is_refused_in_one_line(monkeypa
 
 def test_validating_on_a_validation_layout_is_allowed(compose_cfg):
     cfg = compose_cfg("train", ("scene=conference_v1", "eval_scene=[conference_v4,office_v4]", "test=false"))
-    check_not_validation_only(cfg, scene_configs(cfg.eval_scene))  # no refusal
+    check_not_validation_only(cfg, RunSpec.of(cfg).eval_scenes)  # no refusal
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
         regime = compose(config_name="curves").regimes.cross_family_val
     assert "eval_scene=[conference_v4,office_v4]" in regime.overrides and regime.max_steps >= 10_000

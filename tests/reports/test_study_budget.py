@@ -14,9 +14,10 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf
 
-from graf.app.config import CONF_DIR, study_budget, with_study_budget
+from graf.app.config import CONF_DIR
 from graf.errors import ConfigError
 from graf.reports.published import best_step, choose, still_gaining
+from graf.run.budgets import study_budget, with_study_budget
 from graf.run.train import warn_other_length
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -148,7 +149,7 @@ def test_every_study_budget_is_the_step_its_curve_s_rule_gives():
     """Each budget of ``study_size=paper`` names its curve (``study_budget_curves``), and is the step the studies' rule
     reads off it (the smallest step within BUDGET_WITHIN_DB of the curve's best validation PSNR) in the published
     curves: a budget typed into the config that its curve does not give fails here."""
-    from graf.reports.published import BUDGET_WITHIN_DB
+    from graf.run.budgets import BUDGET_WITHIN_DB
 
     paper = OmegaConf.load(CONF_DIR / "study_size" / "paper.yaml")
     rows = list(csv.DictReader(CURVES.open()))

@@ -205,7 +205,7 @@ def test_samplers_follow_the_space_and_the_objectives():
 
 
 def test_heldout_scenes_are_the_other_layouts_of_the_training_families():
-    from graf.app.config import heldout_scenes
+    from graf.app.spec import heldout_scenes
     from graf.errors import ConfigError
 
     assert heldout_scenes(["conference_v1"], "auto") == ["conference_v2", "conference_v3"]

@@ -12,7 +12,6 @@ import os
 import sys
 from pathlib import Path
 
-from hydra import compose
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf, open_dict
@@ -109,37 +108,6 @@ def check_bool(value, key: str) -> bool:
     return value
 
 
-def study_budget(budgets, model: str | None, default) -> int:
-    """The training steps a study gives ``model`` (a ``model=`` preset name) when its ``study_steps`` is left
-    null: its entry in ``budgets`` (the study size's ``study_budgets``: each method's budget chosen on its learning
-    curve), else ``default`` (``study_budget_default``)."""
-    key = f"study_budgets.{model}" if budgets and model in budgets else "study_budget_default"
-    steps = budgets[model] if key != "study_budget_default" else default
-    if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
-        raise ConfigError(f"{key}={steps!r}: a budget is a positive whole number of training steps")
-    return steps
-
-
-def with_study_budget(cfg: DictConfig) -> DictConfig:
-    """A study job's config with ``study_steps`` (and so ``trainer.max_steps``) filled in when it is null: the
-    model's budget (:func:`study_budget`), with one log line saying which.  A ``study_steps`` set anywhere (command
-    line or config file) is every model's budget."""
-    if "study_steps" not in cfg:
-        return cfg
-    model = HydraConfig.get().runtime.choices.get("model") if HydraConfig.initialized() else None
-    if cfg.study_steps is not None:
-        log.info("model=%s trains study_steps=%s (set in the config or on the command line)", model, cfg.study_steps)
-        return cfg
-    budgets = cfg.get("study_budgets") or {}
-    steps = study_budget(budgets, model, cfg.get("study_budget_default"))
-    why = "its study budget (study_budgets)" if model in budgets else "study_budget_default: no budget of its own"
-    log.info("model=%s trains %d steps, %s; study_steps=N sets another", model, steps, why)
-    cfg = cfg.copy()
-    with open_dict(cfg):
-        cfg.study_steps = steps
-    return cfg
-
-
 def override_key(override: str) -> str:
     """The key a command-line override sets: ``model`` for ``model=knn``, ``+trainer.x`` and ``~trainer.x`` ->
     ``trainer.x``."""
@@ -173,29 +141,6 @@ def check_shared_run_folder() -> None:
         f"{n} processes were started for this run (torchrun / srun), and each would name its own output folder "
         "after the second it started in: give them one, e.g. hydra.run.dir=outputs/ddp_run"
     )
-
-
-def scene_configs(node) -> list[DictConfig]:
-    """The scene configs a ``scene`` or ``eval_scene`` node selects, in order.  ``scene=conference_v1`` composes
-    to ``scene.conference_v1: {...}`` and ``scene=[conference_v1,office_v1]`` to one entry per scene (Hydra's
-    list selection; each option places ``scene_catalog/<name>`` under its own name); a flat config with a
-    ``_target_`` (graf-bench's ``scenes.<key>``) is one scene."""
-    if node is None:
-        return []
-    if isinstance(node, DictConfig) and "_target_" in node:
-        return [node]
-    return [v for v in node.values() if isinstance(v, DictConfig) and "_target_" in v]
-
-
-def single_scene_config(cfg: DictConfig, command: str) -> DictConfig:
-    """The one scene of a command that works on one scene (graf-simulate, graf-oracle, graf-synthesize)."""
-    scenes = scene_configs(cfg.get("scene"))
-    if len(scenes) != 1:
-        raise ConfigError(
-            f"{command} works on one scene; scene= selects {len(scenes)} "
-            f"({', '.join(str(s.get('name')) for s in scenes) or 'none'})"
-        )
-    return scenes[0]
 
 
 def _band_folders() -> list[Path]:
@@ -241,49 +186,6 @@ def scene_band_config(scene_cfg: DictConfig, run_band: DictConfig | None) -> Dic
 
 def hz(v: float) -> str:
     return f"{v / 1e9:.3g} GHz" if v >= 1e9 else f"{v / 1e6:.4g} MHz"
-
-
-def family(scene: str) -> str:
-    """A catalog scene's layout family: ``conference_v2`` -> ``conference`` (a scene without variants is its
-    own family)."""
-    return scene.rsplit("_v", 1)[0] if "_v" in scene and scene.rsplit("_v", 1)[1].isdigit() else scene
-
-
-def heldout_scenes(train: list[str], heldout) -> list[str]:
-    """``eval_scene=heldout``: the catalog scenes of the training scenes' families that the run does not train
-    on (``heldout: auto``; not the validation layouts, ``validation_only``, which are never tested), or those of a
-    list that share a family with a training scene."""
-    families = {family(n) for n in train}
-    if heldout == "auto":
-        paths = sorted((CONF_DIR / "scene_catalog").glob("*.yaml"))
-        candidates = [p.stem for p in paths if "\nvalidation_only: true" not in p.read_text()]
-    else:
-        candidates = [str(n) for n in heldout]
-        unknown = [n for n in candidates if not (CONF_DIR / "scene_catalog" / f"{n}.yaml").is_file()]
-        if unknown:
-            raise ConfigError(f"eval_scene.heldout: unknown scene(s) {', '.join(unknown)}")
-    return [n for n in candidates if family(n) in families and n not in train]
-
-
-def expand_heldout(cfg: DictConfig) -> DictConfig:
-    """The run's config with ``eval_scene=heldout`` replaced by the held-out scenes' configs (composed from
-    the catalog; their interpolations resolve in the run's config), or by nothing (a within-scene run) when
-    no training scene has a held-out layout."""
-    ev = cfg.get("eval_scene")
-    if not isinstance(ev, DictConfig) or "heldout" not in ev:
-        return cfg
-    train = [str(c.get("name")) for c in scene_configs(cfg.get("scene"))]
-    names = heldout_scenes(train, ev.heldout)
-    cfg = cfg.copy()
-    with open_dict(cfg):
-        if not names:
-            log.info("eval_scene=heldout: no held-out layout of %s: testing within-scene", ", ".join(train))
-            cfg.eval_scene = None
-            return cfg
-        composed = compose(config_name="train", overrides=[f"eval_scene=[{','.join(names)}]"])
-        cfg.eval_scene = OmegaConf.create(OmegaConf.to_container(composed.eval_scene, resolve=False))
-    log.info("eval_scene=heldout: testing on %s (held out from training on %s)", ", ".join(names), ", ".join(train))
-    return cfg
 
 
 def run_settings(cfg: DictConfig) -> dict:

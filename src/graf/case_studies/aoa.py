@@ -39,6 +39,7 @@ from omegaconf import DictConfig, OmegaConf
 from scipy.spatial.transform import Rotation
 
 from graf.app.config import output_dir, task_wrapper
+from graf.app.spec import RunSpec
 from graf.errors import ConfigError
 from graf.geometry.grid import N_AZIMUTH, N_ELEVATION
 from graf.io import atomic_write_json, atomic_write_text
@@ -121,7 +122,8 @@ def _load_run(folder: Path, data_root: str | None):
     cfg = OmegaConf.create(res["config"])
     if data_root is not None:
         cfg.data_root = data_root
-    _, _, _, dm = build_datamodule(cfg, "eval_scene" if cfg.get("eval_scene") else "scene")
+    spec = RunSpec.of(cfg)
+    _, _, _, dm = build_datamodule(spec, "eval_scene" if spec.eval_scenes else "scene")
     dm.setup("fit")
     if len(dm.sets) != 1:
         raise ConfigError(f"{folder}: graf-aoa reads runs tested on one scene, this one has {len(dm.sets)}")

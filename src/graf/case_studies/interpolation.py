@@ -54,7 +54,8 @@ from omegaconf import DictConfig, OmegaConf
 from scipy import stats
 from scipy.spatial.transform import Rotation
 
-from graf.app.config import output_dir, scene_configs, task_wrapper
+from graf.app.config import output_dir, task_wrapper
+from graf.app.spec import RunSpec
 from graf.data.neighbors import select_neighbors
 from graf.errors import ConfigError
 from graf.io import atomic_write_json
@@ -455,10 +456,10 @@ def _scene_record(cfg: DictConfig, d, band, scene_obj, out: Path) -> dict:
 def run(cfg: DictConfig) -> dict:
     """graf-interp: each scene's record (resumable per scene), written after each; printed one line per scene."""
     started = time.perf_counter()
-    configs = scene_configs(cfg.get("scene"))
-    if not configs:
+    spec = RunSpec.of(cfg)
+    if not spec.scenes:
         raise ConfigError("graf-interp: scene= selects no scene")
-    bands, scenes, _, dm = build_datamodule(cfg)
+    bands, scenes, _, dm = build_datamodule(spec)
     dm.setup("fit")
     out = output_dir(cfg)
     results = {"analysis": "interpolation", "scenes": {}, "config": OmegaConf.to_container(cfg, resolve=True)}

@@ -56,6 +56,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from graf.app.config import CONF_DIR, output_dir, task_wrapper
+from graf.app.spec import RunSpec
 from graf.case_studies.synthesis import load_model, synthesize
 from graf.errors import ConfigError
 from graf.io import atomic_write_json, atomic_write_text
@@ -154,7 +155,8 @@ def read_run(folder: Path, data_root: str | None) -> dict:
         cfg.data_root = data_root
     if cfg.get("data") is not None:  # the localizers see the whole test split; the synthesizer's quality is
         cfg.data.test_subset = None  # measured on its first quality_test_count (a run may have tested fewer)
-    _, _, _, dm = build_datamodule(cfg, "eval_scene" if cfg.get("eval_scene") else "scene")
+    spec = RunSpec.of(cfg)
+    _, _, _, dm = build_datamodule(spec, "eval_scene" if spec.eval_scenes else "scene")
     dm.setup("fit")
     if len(dm.sets) != 1:
         raise ConfigError(f"{folder}: graf-localize reads runs tested on one scene, this one has {len(dm.sets)}")

@@ -41,7 +41,8 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
-from graf.app.config import output_dir, single_scene_config, task_wrapper  # noqa: E402
+from graf.app.config import output_dir, task_wrapper
+from graf.app.spec import RunSpec  # noqa: E402
 from graf.io import atomic_write_json  # noqa: E402
 from graf.metrics import psnr_per_sample  # noqa: E402
 from graf.models.knn.weights import idw_weights  # noqa: E402
@@ -265,8 +266,9 @@ def run(cfg: DictConfig) -> dict:
     """graf-oracle: the oracle and IDW KNN on the scene's targets; results.json and the figure, a table printed."""
     started = time.perf_counter()
     oc = cfg.oracle
-    single_scene_config(cfg, "graf-oracle")
-    bands, _, neighbors, dm = build_datamodule(cfg)
+    spec = RunSpec.of(cfg)
+    spec.one_scene("graf-oracle")
+    bands, _, neighbors, dm = build_datamodule(spec)
     band = bands[0]
     dm.setup()
     rows, src_index, src_mask = select_targets(dm, oc.split)

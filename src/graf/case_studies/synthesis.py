@@ -25,7 +25,8 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from graf.app.config import output_dir, single_scene_config, task_wrapper
+from graf.app.config import output_dir, task_wrapper
+from graf.app.spec import RunSpec
 from graf.data.nerf2_files import read_positions
 from graf.data.nerf2_format import write_nerf2_folder
 from graf.data.spectrum_set import DataFormatError
@@ -79,8 +80,9 @@ def load_model(model_cfg: DictConfig, ckpt_path: str | None, what: str | None = 
 def run(cfg: DictConfig) -> dict:
     started = time.perf_counter()
     positions, had_header = read_query_positions(Path(cfg.positions))
-    single_scene_config(cfg, "graf-synthesize")
-    bands, _, neighbors, dm = build_datamodule(cfg)
+    spec = RunSpec.of(cfg)
+    spec.one_scene("graf-synthesize")
+    bands, _, neighbors, dm = build_datamodule(spec)
     band = bands[0]
     model = load_model(model_config_for_neighbors(cfg.model, neighbors), cfg.get("ckpt_path"))
     t0 = time.perf_counter()

@@ -17,9 +17,9 @@ from graf.app import config as app_config
 from graf.errors import ConfigError, UserError
 from graf.reports.rows import TEST_FIGURES, matrices, seed_means, seeds_told  # TEST_FIGURES: the registry's
 from graf.reports.table import fmt, md  # noqa: F401  (the views' markdown, read from here by the site and readme)
+from graf.run.budgets import BUDGET_WITHIN_DB
 
 FRACTIONS = ("-", "none", "f05", "f10", "f20", "f50", "f100")
-BUDGET_WITHIN_DB = 0.1  # the studies' budget rule: the smallest step within this of a curve's best validation PSNR
 GAIN_PER_DOUBLING_DB = 0.1  # a curve still gaining more than this per doubling of steps is extended (regime d30)
 VALIDATION_FIGURES = (("val_psnr", True), ("val_ssim", True), ("val_lpips", False))  # (key, higher is better)
 

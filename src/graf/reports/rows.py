@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from graf.app.config import family
+from graf.app.spec import family
 from graf.errors import ConfigError
 from graf.metrics.names import REGISTRY
 from graf.reports.axes import AXES, AXIS_NAMES

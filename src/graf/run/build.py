@@ -23,8 +23,8 @@ from graf.app.config import (
     output_dir,
     run_settings,
     scene_band_config,
-    scene_configs,
 )
+from graf.app.spec import RunSpec, as_spec
 from graf.console import is_terminal
 from graf.data.datamodule import SpectrumDataModule
 from graf.data.fingerprint import describe, differences, eval_scene_index, find_scene, next_index, register_scene
@@ -35,15 +35,16 @@ from graf.models.base import checkpoint_class, read_checkpoint
 log = logging.getLogger("graf")
 
 
-def build_datamodule(cfg: DictConfig, which: str = "scene", scene_indices=None):
-    """Bands, scenes, neighbor selector and the datamodule that joins them (``cfg.data``), for the scenes
-    of ``cfg[which]`` (``scene``: what is trained on; ``eval_scene``: what is tested).  The fine-tuning settings
-    (``cfg.finetune``: measured fraction,
-    its seed, the test neighbor pool) apply to the scenes trained on."""
-    configs = scene_configs(cfg.get(which))
+def build_datamodule(run: RunSpec | DictConfig, which: str = "scene", scene_indices=None):
+    """Bands, scenes, neighbor selector and the datamodule that joins them (``cfg.data``), for the run's scenes
+    (``which="scene"``: what is trained on; ``"eval_scene"``: what is tested).  The fine-tuning settings
+    (``cfg.finetune``: measured fraction, its seed, the test neighbor pool) apply to the scenes trained on."""
+    spec = as_spec(run)
+    cfg = spec.cfg
+    configs = spec.scenes if which == "scene" else spec.eval_scenes
     if not configs:
         raise ConfigError(f"{which}= selects no scene")
-    band_cfgs = [scene_band_config(c, cfg.get("band")) for c in configs]
+    band_cfgs = [scene_band_config(c, spec.band) for c in configs]
     bands = [hydra.utils.instantiate(b) for b in band_cfgs]
     scenes = [hydra.utils.instantiate(c) for c in configs]
     neighbors = hydra.utils.instantiate(cfg.neighbors)
@@ -145,12 +146,15 @@ def model_config_for_neighbors(node: DictConfig, neighbors: NeighborSelector, wh
     return node
 
 
-def build(cfg: DictConfig, trains: bool = True) -> BuiltRun:
-    """Instantiate band, scene, neighbor selector, datamodule (set up), model, loggers and trainer.  ``trains``:
-    whether the run trains the model on its scenes (graf-eval and a zero-shot test do not: a test scene is then
-    "within-scene" only when the checkpoint was trained on its content)."""
+def build(run: RunSpec | DictConfig, trains: bool = True) -> BuiltRun:
+    """Instantiate band, scene, neighbor selector, datamodule (set up), model, loggers and trainer of a run
+    (a :class:`~graf.app.spec.RunSpec`; a composed config is read into one).  ``trains``: whether the run trains the
+    model on its scenes (graf-eval and a zero-shot test do not: a test scene is then "within-scene" only when the
+    checkpoint was trained on its content)."""
+    spec = as_spec(run)
+    cfg = spec.cfg
     check_run_settings(cfg)
-    check_not_validation_only(cfg, scene_configs(cfg.get("eval_scene")) or scene_configs(cfg.get("scene")))
+    check_not_validation_only(cfg, spec.tested_scenes)
     if cfg.get("torch_threads"):
         torch.set_num_threads(int(cfg.torch_threads))
     if cfg.get("seed") is not None:
@@ -158,7 +162,7 @@ def build(cfg: DictConfig, trains: bool = True) -> BuiltRun:
     out = output_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
     source, known = checkpoint_scenes(cfg)
-    _, _, neighbors, datamodule = build_datamodule(cfg)
+    _, _, neighbors, datamodule = build_datamodule(spec)
     cfg = run_model_config(cfg, neighbors)
     datamodule.setup("fit" if trains else "test")  # checks the neighbors of the targets the run will select
     check_bands(cfg, known, datamodule, source)  # fine-tuning or testing a checkpoint at another band: a transfer
@@ -178,7 +182,7 @@ def build(cfg: DictConfig, trains: bool = True) -> BuiltRun:
         datamodule.set_scene_indices([k for k, _ in given])
         datamodule.scene_index_source = given[0][1]
     seen = table if trains or not known else known
-    evaluations = eval_datamodules(cfg, datamodule, table, seen=seen)
+    evaluations = eval_datamodules(spec, datamodule, table, seen=seen)
     check_per_scene(cfg, datamodule, evaluations, trains, seen)
     for ev in evaluations:
         if ev.datamodule is not datamodule:
@@ -263,7 +267,7 @@ def check_per_scene(cfg: DictConfig, datamodule, evaluations: list, trains: bool
         )
 
 
-def eval_datamodules(cfg: DictConfig, train_dm, table: dict | None = None, seen: dict | None = None) -> list[EvalScene]:
+def eval_datamodules(spec: RunSpec, train_dm, table: dict | None = None, seen: dict | None = None) -> list[EvalScene]:
     """What the final evaluations test (:class:`EvalScene`).  Without
     ``eval_scene`` (``eval_scene=same``) and ``eval_band`` the training datamodule itself (within-scene).
     Otherwise one datamodule per test scene (``eval_scene=same`` with an ``eval_band``: the training scenes at
@@ -274,16 +278,16 @@ def eval_datamodules(cfg: DictConfig, train_dm, table: dict | None = None, seen:
     fixed index of unseen scenes (:func:`graf.data.fingerprint.eval_scene_index`).  ``seen``: the scenes the model
     was trained on, by content (default: ``table``); a run that trains nothing (graf-eval of a checkpoint) passes
     the checkpoint's alone."""
-    configs = scene_configs(cfg.get("eval_scene"))
-    eval_band = cfg.get("eval_band")
+    configs = spec.eval_scenes
+    eval_band = spec.eval_band
     if not configs and not eval_band:
         within = seen is None or all(
             find_scene(seen, d.name, fp) is not None for d, fp in zip(train_dm.sets, train_dm.fingerprints())
         )
         return [EvalScene(train_dm.scene_name, train_dm, within)]
     if not configs:
-        configs = scene_configs(cfg.get("scene"))
-    band = load_band_config(str(eval_band)) if eval_band else cfg.get("band")
+        configs = spec.scenes
+    band = load_band_config(eval_band) if eval_band else spec.band
     if table is None:
         table = {}
         for d, fp, k in zip(train_dm.sets, train_dm.fingerprints(), train_dm.scene_index.tolist()):
@@ -298,9 +302,9 @@ def eval_datamodules(cfg: DictConfig, train_dm, table: dict | None = None, seen:
                 for key, v in (
                     ("eval_scene", scene),
                     ("band", band),
-                    ("neighbors", cfg.neighbors),
-                    ("data", cfg.data),
-                    ("data_root", cfg.get("data_root")),
+                    ("neighbors", spec.neighbors),
+                    ("data", spec.cfg.data),
+                    ("data_root", spec.cfg.get("data_root")),
                 )
             }
         )

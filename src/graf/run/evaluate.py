@@ -19,6 +19,7 @@ from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from graf.app.config import CONF_DIR, check_run_settings, output_dir, override_key, task_wrapper, with_baselines_switch
+from graf.app.spec import RunSpec
 from graf.interrupts import stage
 from graf.models.base import CheckpointError, check_checkpoint, checkpoint_class, read_checkpoint, safe_loading
 from graf.plugins import CONF_DIRS
@@ -87,7 +88,7 @@ def evaluate(cfg: DictConfig, overrides: Sequence[str] | None = None) -> Results
     with stage("set-up", lambda: not_done(out, aside, "nothing was tested")):
         check_run_settings(cfg)  # before a finished run's files are moved aside
         aside += [p for p in [set_aside_finished(out, [cfg.get("ckpt_path")])] if p]
-        built = build(cfg, trains=False)
+        built = build(RunSpec.of(cfg), trains=False)
         checkpoint = None
         if cfg.get("ckpt_path"):
             if overrides is None:

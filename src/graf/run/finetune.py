@@ -13,7 +13,8 @@ from pathlib import Path
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from graf.app.config import override_key, scene_configs
+from graf.app.config import override_key
+from graf.app.spec import RunSpec
 from graf.errors import ConfigError
 from graf.models.base import CheckpointError, check_checkpoint, read_checkpoint
 from graf.run.record import Finetune
@@ -69,7 +70,7 @@ def resolve_base(cfg: DictConfig) -> DictConfig:
         return cfg
     band = base.get("band")
     if band == "scene":
-        scenes = scene_configs(cfg.get("scene"))
+        scenes = RunSpec.of(cfg).scenes
         band = scenes[0].get("band") if scenes else None
         if not band:
             raise ConfigError("finetune.base.band=scene: the run's scene names no band of its own")

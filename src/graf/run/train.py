@@ -23,32 +23,19 @@ from lightning.pytorch.callbacks import Timer
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig
 
-from graf.app.config import (
-    check_run_settings,
-    expand_heldout,
-    family,
-    output_dir,
-    scene_configs,
-    task_wrapper,
-    with_baselines_switch,
-    with_study_budget,
-)
+from graf.app.config import output_dir, task_wrapper
+from graf.app.spec import RunSpec, family
 from graf.callbacks import Preemption, TargetCount, TrainingInterrupted
 from graf.data.splits import mixed_seed
 from graf.errors import ConfigError
 from graf.interrupts import stage
 from graf.io import atomic_write_json
 from graf.models.base import CheckpointError, read_checkpoint, safe_loading
+from graf.run.budgets import with_study_budget
 from graf.run.build import BuiltRun, build
-from graf.run.finetune import (
-    check_finetune,
-    finetune_config,
-    finetune_record,
-    job_overrides,
-    load_weights,
-    resolve_base,
-)
+from graf.run.finetune import finetune_record, job_overrides, load_weights
 from graf.run.record import Results, Resumed, RunFacts, RunResult, Timing, Training, finished_scene_metrics
+from graf.run.resolve import resolve_run
 from graf.run.resume import check_resume, interrupted, not_done, preempted, tested_after_training
 from graf.run.writer import set_aside_finished, test_and_report
 
@@ -84,21 +71,19 @@ def train(cfg: DictConfig) -> Results:
 
 
 def set_up(cfg: DictConfig, out: Path, aside: list[Path]) -> tuple[DictConfig, BuiltRun, Resumed | None, bool]:
-    """The run's config (held-out scenes, fine-tuning, the base model trained first when it is missing), the built
-    run, the checkpoint it resumes (checked) and whether it is a zero-shot test (``finetune=none``).  A finished
-    run's files in ``out`` are moved aside first (their folder is added to ``aside``), unless this run resumes it."""
-    cfg = expand_heldout(resolve_base(with_baselines_switch(cfg)))
-    check_run_settings(cfg)  # before a finished run's files are moved aside
-    check_finetune(cfg)
+    """The run resolved (:func:`graf.run.resolve.resolve_run`), its base model trained first when it is missing,
+    the built run, the checkpoint it resumes (checked) and whether it is a zero-shot test (``finetune=none``).  A
+    finished run's files in ``out`` are moved aside first (their folder is added to ``aside``), unless this run
+    resumes it."""
+    spec = resolve_run(cfg)  # every check before a finished run's files are moved aside
+    cfg = spec.cfg
     ft = cfg.get("finetune") or {}
     if ft.get("init_from"):
         ensure_base(cfg)
-        cfg = finetune_config(cfg)
-    check_training_length(cfg)
     if not is_inside(cfg.get("ckpt_path"), out):  # a resume of the run in this folder keeps its files
         aside += [p for p in [set_aside_finished(out, [ft.get("init_from")])] if p]
     zero_shot = bool(ft.get("init_from")) and ft.get("fraction") is None  # finetune=none
-    built = build(cfg, trains=not zero_shot)
+    built = build(spec, trains=not zero_shot)
     if ft.get("init_from"):
         load_weights(built.model, ft.init_from)
     # resume: refuse another class's, an old layout's or other settings' checkpoint up front
@@ -207,21 +192,6 @@ def check_last_checkpoint(trainer, out: Path) -> None:
         stale.unlink()
 
 
-def check_training_length(cfg: DictConfig) -> None:
-    """``trainer.max_steps`` governs training; epochs are unbounded unless ``trainer.max_epochs`` is set (a limit
-    of the user's own).  Refuse settings that are not counts, or that would never end."""
-    t = cfg.get("trainer") or {}
-    for key in ("max_steps", "max_epochs"):
-        v = t.get(key)
-        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < -1):
-            raise ConfigError(f"trainer.{key} must be an integer >= -1 (-1: no limit), got {v!r}")
-    if t.get("max_steps", -1) in (None, -1) and t.get("max_epochs", -1) in (None, -1):
-        raise ConfigError(
-            "trainer.max_steps=-1 and trainer.max_epochs=-1: training would never end; set "
-            "trainer.max_steps=N (optimiser steps)"
-        )
-
-
 def training_record(trainer, step0: int) -> Training:
     """What results.json records of the training length (``training``): the steps asked and reached, and why
     training stopped before ``max_steps`` when it did.  A stop that is not the user's own limit
@@ -284,8 +254,9 @@ def skip_reason(cfg: DictConfig) -> str | None:
     fixed band (measured data: rfid_s23 at 915 MHz); for a simulated scene it would repeat the job with the run's
     band."""
     if cfg.get("same_family_only"):
-        train = {family(str(c.get("name"))) for c in scene_configs(cfg.get("scene"))}
-        test = {family(str(c.get("name"))) for c in scene_configs(cfg.get("eval_scene"))}
+        spec = RunSpec.of(cfg)
+        train = {family(n) for n in spec.scene_names}
+        test = {family(n) for n in spec.eval_scene_names}
         if test and not test & train:
             return (
                 f"same_family_only: test scenes of family {', '.join(sorted(test))}, training scenes of "
@@ -298,8 +269,7 @@ def skip_reason(cfg: DictConfig) -> str | None:
     base = (cfg.get("finetune") or {}).get("base") or {}
     if base.get("band") != "scene":
         return None
-    scenes = scene_configs(cfg.get("scene"))
-    if not any(s.get("fixed_band") for s in scenes):
+    if not any(s.get("fixed_band") for s in RunSpec.of(cfg).scenes):
         return "finetune.base.band=scene on a scene simulated at any band: the same job as the one with the run's band"
     return None
 

@@ -19,7 +19,8 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from graf.app.config import output_dir, scene_band_config, single_scene_config, task_wrapper
+from graf.app.config import output_dir, scene_band_config, task_wrapper
+from graf.app.spec import RunSpec
 from graf.io import atomic_write_json
 from graf.metrics import psnr_per_sample
 from graf.sim.array import to_uint8
@@ -40,7 +41,7 @@ def _cpu_name() -> str:
 
 @task_wrapper
 def bench(cfg: DictConfig) -> dict:
-    scene_cfg = single_scene_config(cfg, "graf-bench-sim")
+    scene_cfg = RunSpec.of(cfg).one_scene("graf-bench-sim")
     band = hydra.utils.instantiate(scene_band_config(scene_cfg, cfg.get("band")))
     scene = hydra.utils.instantiate(scene_cfg)
     device = "cuda" if torch.cuda.is_available() else "cpu"

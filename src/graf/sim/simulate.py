@@ -17,7 +17,8 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from graf.app.config import output_dir, scene_band_config, single_scene_config, task_wrapper
+from graf.app.config import output_dir, scene_band_config, task_wrapper
+from graf.app.spec import RunSpec
 from graf.errors import ConfigError
 from graf.io import atomic_write_json, writable_dir
 from graf.sim.dataset import export_nerf2, generate
@@ -29,7 +30,7 @@ log = logging.getLogger("graf")
 @task_wrapper
 def simulate(cfg: DictConfig) -> dict:
     started = time.perf_counter()
-    scene_cfg = single_scene_config(cfg, "graf-simulate")
+    scene_cfg = RunSpec.of(cfg).one_scene("graf-simulate")
     band = hydra.utils.instantiate(scene_band_config(scene_cfg, cfg.get("band")))
     scene = hydra.utils.instantiate(scene_cfg)
     if not isinstance(scene, SimulatedScene):

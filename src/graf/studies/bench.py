@@ -93,6 +93,7 @@ from graf.app.config import (
     output_dir,
     task_wrapper,
 )
+from graf.app.spec import RunSpec
 from graf.errors import ConfigError
 from graf.run.build import build_datamodule, model_config_for_neighbors
 from graf.sim.simulate import simulate
@@ -199,7 +200,7 @@ def prepare_scene(cfg: DictConfig, key: str, spectra: int, train_steps: int):
             "data": OmegaConf.to_container(cfg.data, resolve=True),
         }
     )
-    bands, _, _, dm = build_datamodule(dcfg)
+    bands, _, _, dm = build_datamodule(RunSpec.of(dcfg))
     band = bands[0]
     dm.setup("fit")
     infer = [dm.eval_batch([i]) for i in range(min(spectra + 1, len(dm.eval_rows)))]
