@@ -15,18 +15,29 @@ from pathlib import Path
 
 from mkdocs.exceptions import PluginError
 
+from graf.metrics.names import choice_figures, curve_metrics
 from graf.reports import published
 
 CURVES = Path(__file__).resolve().parents[1] / "sweeps" / "learning_curves"
-# curves.csv's column, the KNN record's key, the format, and which way is better (1 higher, -1 lower, 0 neither)
-FIGURES = (
-    ("val_psnr", "val/psnr", ".2f", 1),
-    ("val_ssim", "val/ssim", ".3f", 1),
-    ("val_lpips", "val/lpips", ".3f", -1),
-    ("val_reliance_db", "val/reliance_db", ".2f", 0),
-)
-HEAD = ["method", "best PSNR (step)", "last step", "PSNR", "SSIM", "LPIPS", "reliance dB",
-        "dB per doubling (per decade), last two points", "first step past KNN: PSNR / SSIM / LPIPS"]  # fmt: skip
+
+
+def figures() -> tuple[tuple[str, str, str, int, str], ...]:
+    """curves.csv's column, the KNN record's key, the format, which way is better (1 higher, -1 lower, 0 neither)
+    and the label, of each metric on the curves (the registry's, a plugin's included), then the reliance."""
+    own = [(f"val_{m.name}", f"val/{m.name}", m.fmt, 1 if m.higher_is_better else -1, m.label) for m in curve_metrics()]
+    return (*own, ("val_reliance_db", "val/reliance_db", "{:.2f}", 0, "reliance dB"))
+
+
+def choice_columns() -> list[tuple[str, str, str, int, str]]:
+    """The figures the choice rules compare with KNN's (:data:`graf.metrics.names.CHOICE_METRICS`)."""
+    chosen = dict(choice_figures())
+    return [f for f in figures() if f[0] in chosen]
+
+
+def head() -> list[str]:
+    past = " / ".join(f[4] for f in choice_columns())
+    return ["method", "best PSNR (step)", "last step", *(f[4] for f in figures()),
+            "dB per doubling (per decade), last two points", f"first step past KNN: {past}"]  # fmt: skip
 
 
 def num(v) -> float | None:
@@ -39,8 +50,9 @@ def num(v) -> float | None:
 
 
 def fmt(v, spec: str) -> str:
+    """``v`` in ``spec`` (the registry's ``{:.2f}``, or a bare ``.2f``), n/a where it is missing."""
     x = num(v)
-    return "n/a" if x is None else format(x, spec)
+    return "n/a" if x is None else (spec.format(x) if "{" in spec else format(x, spec))
 
 
 def _read(path: Path) -> str:
@@ -54,7 +66,7 @@ def knn_line(regime: str) -> tuple[dict, int | None]:
     res = json.loads(_read(CURVES / regime / "knn" / "results.json"))
     evals = res.get("evaluations") or [res]
     line = {}
-    for _, key, _, _ in FIGURES:
+    for _, key, _, _, _ in figures():
         v = [x for x in (num((e.get("metrics") or {}).get(key)) for e in evals) if x is not None]
         line[key] = sum(v) / len(v) if v else None
     n = [(e.get("splits") or {}).get("n_val") for e in evals]
@@ -70,10 +82,10 @@ def slope(pts: list[dict]) -> str:
 
 
 def first_past(pts: list[dict], line: dict) -> str:
-    """The first step above KNN's line in PSNR and SSIM and below it in LPIPS ("never": no point is; "(not at N)":
-    the last point, N, is not)."""
+    """The first step past KNN's line in each choice figure (above it in PSNR and SSIM, below it in LPIPS; "never":
+    no point is; "(not at N)": the last point, N, is not)."""
     out = []
-    for col, key, _, better in FIGURES[:3]:
+    for col, key, _, better, _ in choice_columns():
         if line[key] is None:
             out.append("n/a")
             continue
@@ -95,13 +107,16 @@ def block(regime: str) -> str:
         known = [p for p in pts if num(p["val_psnr"]) is not None]
         best = max(known, key=lambda p: num(p["val_psnr"]), default=None)
         best_s = f"{fmt(best['val_psnr'], '.2f')} ({best['step']})" if best else "n/a"
-        last = [fmt(pts[-1][col], spec) for col, _, spec, _ in FIGURES]
+        last = [fmt(pts[-1].get(col), spec) for col, _, spec, _, _ in figures()]
         body.append([f"`{method}`", best_s, pts[-1]["step"], *last, slope(pts), first_past(pts, line)])
-    names = ("PSNR {} dB", "SSIM {}", "LPIPS {}", "reliance {} dB")
-    knn = ", ".join(n.format(fmt(line[key], spec)) for n, (_, key, spec, _) in zip(names, FIGURES))
+    units = {f"val/{m.name}": m.unit for m in curve_metrics()} | {"val/reliance_db": "dB"}
+    knn = ", ".join(
+        f"{label.removesuffix(' dB')} {fmt(line[key], spec)}{' ' + units[key] if units[key] else ''}"
+        for _, key, spec, _, label in figures()
+    )
     spectra = f"{n_val} validation spectra" if n_val is not None else "validation spectra not recorded"
     note = (
         f"*Generated from `sweeps/learning_curves/curves.csv` and `{regime}/knn/results.json`. Past KNN: above its "
         'line in PSNR and SSIM, below it in LPIPS; "(not at N)": the last point, N, is not past it.*'
     )
-    return f"KNN's line ({spectra}): {knn}.\n\n{published.md(HEAD, body)}\n\n{note}"
+    return f"KNN's line ({spectra}): {knn}.\n\n{published.md(head(), body)}\n\n{note}"

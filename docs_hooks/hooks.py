@@ -61,6 +61,7 @@ from mkdocs.structure.files import File
 
 import records
 from graf.errors import UserError
+from graf.metrics.names import curve_metrics
 from graf.reports import published
 from graf.reports import table as headline_table
 
@@ -151,7 +152,7 @@ def search(name: str) -> str:
     chosen = " ".join(f"`{k}={_param(str(v))}`" for k, v in best["params"].items())
     out.append(
         f"Chosen on validation: trial {best['trial']}, {chosen}; tested once (`best/`):\n\n"
-        + published.md(["test scene", "method", "PSNR", "SSIM", "LPIPS", "reliance dB", "val PSNR"], rows)
+        + published.md(["test scene", "method", *(x.label for x in curve_metrics()), "reliance dB", "val PSNR"], rows)
     )
     return "\n\n".join(out) + f"\n\n*Generated from `sweeps/{name}/trials.csv` and `best/`.*"
 
@@ -166,13 +167,10 @@ def _param(v: str) -> str:
 
 
 def _figures(m: dict) -> list[str]:
-    return [
-        _f(m.get("test/psnr"), ".2f"),
-        _f(m.get("test/ssim")),
-        _f(m.get("test/lpips")),
-        _f(m.get("test/reliance_db"), ".2f"),
-        _f(m.get("val/psnr"), ".2f"),
-    ]
+    """A search's tested figures: each metric the summaries show (the registry's ``on_curves``), the reliance, and
+    validation PSNR."""
+    own = [_f(m.get(f"test/{x.name}"), x.fmt.strip("{}:")) for x in curve_metrics()]
+    return [*own, _f(m.get("test/reliance_db"), ".2f"), _f(m.get("val/psnr"), ".2f")]
 
 
 def include(path: str) -> str:

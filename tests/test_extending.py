@@ -21,7 +21,15 @@ PLUGINS = ROOT / "tests" / "plugins"
 
 
 def _run(module: str, *args: str, env: dict) -> subprocess.CompletedProcess:
-    p = subprocess.run([sys.executable, "-m", module, *args], env=env, capture_output=True, text=True, timeout=600)
+    return _run_args(["-m", module, *args], env=env)
+
+
+def _run_code(code: str, *args: str) -> subprocess.CompletedProcess:
+    return _run_args(["-c", code, *args], env=_plugin_env())
+
+
+def _run_args(args: list[str], env: dict) -> subprocess.CompletedProcess:
+    p = subprocess.run([sys.executable, *args], env=env, capture_output=True, text=True, timeout=600)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
     return p
 
@@ -115,6 +123,44 @@ def test_every_method_of_the_platform_is_a_method():
         KNNModule().has_trainable_parameters is False
         and NeRF2Module(depth=2, width=16, skips=[]).uses_neighbors is False
     )
+
+
+CURVES_WITH_A_PLUGIN_METRIC = """
+import json, sys
+from pathlib import Path
+from omegaconf import OmegaConf
+sys.path.insert(0, sys.argv[2])  # the site's hooks (docs_hooks/: they import one another by name)
+import curve_facts as facts
+from hooks import _figures
+from graf.studies.curves import collect
+from graf.studies.curves_outputs import write_outputs
+
+out = Path(sys.argv[1])
+figures = {"val/psnr": 20.0, "val/ssim": 0.5, "val/lpips": 0.3, "val/reliance_db": 1.0, "val/peak_error": 12.5}
+for folder, m in (("r/knn", figures), ("r/toy/step_10", {**figures, "val/peak_error": 7.25})):
+    (out / folder).mkdir(parents=True)
+    (out / folder / "results.json").write_text(json.dumps({"global_step": 10, "metrics": m}))
+cfg = OmegaConf.create({"regimes": {"r": {"max_steps": 10}}, "methods": {"toy": {}}, "steps": [10]})
+rows, knn = collect(out, cfg)
+write_outputs(out, rows, knn, [])
+facts.CURVES = out
+print(json.dumps({"block": facts.block("r"), "search": _figures({"test/peak_error": 3.0, "test/psnr": 20.0})}))
+"""
+
+
+def test_a_registered_metric_reaches_the_curves_and_the_sites_tables(tmp_path):
+    """graf-curves' table, csv and figure, the site's curve facts and its search tables read the registry: a
+    plugin's metric is in each, with its label, unit and number format."""
+    p = _run_code(CURVES_WITH_A_PLUGIN_METRIC, str(tmp_path), str(ROOT / "docs_hooks"))
+    seen = json.loads(p.stdout.splitlines()[-1])
+    assert "val_peak_error" in (tmp_path / "curves.csv").read_text().splitlines()[0]
+    assert (
+        "| val peak error |" in (tmp_path / "curves.md").read_text()
+        and "| 7.2 |" in (tmp_path / "curves.md").read_text()
+    )
+    assert (tmp_path / "curves.png").is_file()
+    assert "peak error 12.5 deg" in seen["block"] and "| 7.2 |" in seen["block"]  # KNN's line, the point's figure
+    assert seen["search"][:5] == ["20.00", "-", "-", "3.0", "-"]  # PSNR, SSIM, LPIPS, peak error, reliance
 
 
 def test_a_registration_too_late_to_reach_every_reader_is_refused():

@@ -25,7 +25,8 @@ class Metric:
     per_spectrum: ``(pred [N, H, W], target [N, H, W]) -> [N]`` (values in [0, 1]); or
     factory: a dotted path to the torchmetrics class that computes it (the built-in four, with their own
         settings: PSNR's data range, LPIPS's weights); one of the two.
-    aggregate: ``mean`` over the split's non-empty spectra (the only one so far)."""
+    aggregate: ``mean`` over the split's non-empty spectra (the only one so far).
+    on_curves: drawn and tabled by graf-curves (MSE is not: PSNR shows it on a log scale)."""
 
     name: str
     label: str
@@ -35,6 +36,7 @@ class Metric:
     per_spectrum: Callable | None = None
     factory: str | None = None
     aggregate: str = "mean"
+    on_curves: bool = True
 
     def __post_init__(self):
         if (self.per_spectrum is None) == (self.factory is None):
@@ -57,7 +59,7 @@ _CLASSES = "graf.metrics.spectrum_metrics"
 REGISTRY: dict[str, Metric] = {
     m.name: m
     for m in (
-        Metric("mse", "MSE", "", False, "{:.4f}", factory=f"{_CLASSES}.SpectrumMSE"),
+        Metric("mse", "MSE", "", False, "{:.4f}", factory=f"{_CLASSES}.SpectrumMSE", on_curves=False),
         Metric("psnr", "PSNR", "dB", True, "{:.2f}", factory=f"{_CLASSES}.SpectrumPSNR"),
         Metric("ssim", "SSIM", "", True, "{:.3f}", factory=f"{_CLASSES}.SpectrumSSIM"),
         Metric("lpips", "LPIPS", "", False, "{:.3f}", factory=f"{_CLASSES}.SpectrumLPIPS"),
@@ -120,6 +122,21 @@ def check_metric_names(names) -> None:
             f"metric(s) {', '.join(unknown)} not declared in graf.metrics.names.REGISTRY (known: "
             f"{', '.join((*REGISTRY, *COUNT_NAMES))}): declare each with its label, unit and direction"
         )
+
+
+# The figures the choice rules compare with KNN's (a mode or budget is chosen where it leads KNN in all of them,
+# docs/learning-curves.md): named here, their directions read from REGISTRY.
+CHOICE_METRICS = ("psnr", "ssim", "lpips")
+
+
+def curve_metrics() -> tuple[Metric, ...]:
+    """The metrics graf-curves draws and tables (``on_curves``), in :data:`REGISTRY`'s order: a plugin's included."""
+    return tuple(m for m in REGISTRY.values() if m.on_curves)
+
+
+def choice_figures() -> tuple[tuple[str, bool], ...]:
+    """``(val_<name>, higher is better)`` of :data:`CHOICE_METRICS`: a curve row's columns the choice rules read."""
+    return tuple((f"val_{n}", REGISTRY[n].higher_is_better) for n in CHOICE_METRICS)
 
 
 def record_order(metrics: dict) -> dict:

@@ -15,13 +15,14 @@ from omegaconf import OmegaConf
 
 from graf.app import config as app_config
 from graf.errors import ConfigError, UserError
+from graf.metrics.names import choice_figures
 from graf.reports.rows import TEST_FIGURES, matrices, seed_means, seeds_told  # TEST_FIGURES: the registry's
 from graf.reports.table import fmt, md  # noqa: F401  (the views' markdown, read from here by the site and readme)
 from graf.run.budgets import BUDGET_WITHIN_DB
 
 FRACTIONS = ("-", "none", "f05", "f10", "f20", "f50", "f100")
 GAIN_PER_DOUBLING_DB = 0.1  # a curve still gaining more than this per doubling of steps is extended (regime d30)
-VALIDATION_FIGURES = (("val_psnr", True), ("val_ssim", True), ("val_lpips", False))  # (key, higher is better)
+VALIDATION_FIGURES = choice_figures()  # (key, higher is better) of the choice rules' figures (graf.metrics.names)
 
 
 def reliance_matrix(rows: list[dict]) -> str:
@@ -379,7 +380,7 @@ def leading_knn(
     and its KNN line (``knn``: curves' results.json ``knn[regime]``): the points that lead KNN in all three
     validation figures (higher PSNR and SSIM, lower LPIPS); of those, the highest validation PSNR, and among the
     points within ``within_db`` of it the fewest steps.  (the chosen point or None, every point with ``leads``)."""
-    line = {"val_psnr": knn.get("val/psnr"), "val_ssim": knn.get("val/ssim"), "val_lpips": knn.get("val/lpips")}
+    line = {k: knn.get(k.replace("_", "/", 1)) for k, _ in VALIDATION_FIGURES}
     if any(v is None for v in line.values()):
         raise UserError(f"curves: regime {regime} has no KNN line with PSNR, SSIM and LPIPS")
     table = []

@@ -41,6 +41,7 @@ from graf.app.config import output_dir, task_wrapper
 from graf.app.launch import command
 from graf.errors import Preempted
 from graf.io import atomic_write_json
+from graf.metrics.names import curve_metrics
 from graf.run.evaluation import short_device
 from graf.studies.curves_outputs import write_outputs
 from graf.studies.curves_settings import check_settings, own_runs, subset
@@ -54,9 +55,10 @@ QUIET = ["logger=none", "plot_count=0", "baselines=null", "test=false", "trainer
 
 
 def val_figures(result: dict) -> dict:
-    """``{val/psnr, val/ssim, val/lpips, val/reliance_db}`` of a run: its own, or the mean over its evaluations
-    (a cross-scene run validates each scene on its own)."""
-    keys = ("val/psnr", "val/ssim", "val/lpips", "val/reliance_db")
+    """``{val/<metric>, val/reliance_db}`` of a run, for each metric on the curves (:func:`curve_metrics`, a
+    plugin's included): its own, or the mean over its evaluations (a cross-scene run validates each scene on its
+    own)."""
+    keys = (*(f"val/{m.name}" for m in curve_metrics()), "val/reliance_db")
     evals = result.get("evaluations") or [{"metrics": result.get("metrics") or {}}]
     out = {}
     for k in keys:
@@ -104,10 +106,7 @@ def collect(out: Path, cfg: DictConfig) -> tuple[list[dict], dict]:
                         "regime": rname,
                         "method": mname,
                         "step": int(r.get("global_step", step)),
-                        "val_psnr": v["val/psnr"],
-                        "val_ssim": v["val/ssim"],
-                        "val_lpips": v["val/lpips"],
-                        "val_reliance_db": v["val/reliance_db"],
+                        **{k.replace("/", "_", 1): x for k, x in v.items()},
                         "fit_s": None if fit_s is None else round(fit_s, 1),
                         "s_per_step": t.get("fit_s_per_step"),
                         # where the point's training attempts ran, in order (seconds differ by orders of magnitude)
