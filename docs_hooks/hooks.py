@@ -15,6 +15,8 @@ A page asks for a generated block with a directive on a line of its own:
   ``sweeps/compare_rfid_s23/table.md``, ...), included as it is;
 - ``<!-- gen: choose PATH -->``: GRaF's modes ranked on validation from a ``curves.csv``
   (:func:`graf.reports.published.choose`, as ``scripts/choose_graf.py``);
+- ``<!-- gen: choosing BENCH -->``: each preset's cost from a graf-bench record and its quality from the study records
+  (:mod:`choosing`);
 - ``<!-- gen: curve_facts REGIME -->``: a learning-curve regime's facts (its KNN line; per method the best and last
   point, the last slope, the first step past KNN) from ``sweeps/learning_curves/`` (:mod:`curve_facts`);
 - ``<!-- gen: code PATH -->``: a source file of the repository as a code block (the worked examples' plugin);
@@ -50,6 +52,7 @@ import math
 import re
 from pathlib import Path
 
+import choosing
 import curve_facts
 import page_words
 import record_links
@@ -69,7 +72,9 @@ ROOT = Path(__file__).resolve().parents[1]
 SWEEPS = ROOT / "sweeps"
 API_NAV = "API reference"
 DIRECTIVE = re.compile(
-    r"^<!-- gen: (study|search|include|code|page|choose|leads_knn|curve_facts|layout|headline|records) (\S+) -->$", re.M
+    r"^<!-- gen: (study|search|include|code|page|choose|leads_knn|curve_facts|layout|headline|records|choosing) "
+    r"(\S+) -->$",
+    re.M,
 )
 RESULTS_NAV = "Results"  # the navigation's section whose pages hide the table of contents (WIDE_PAGES)
 WIDE_PAGES: set[str] = set()  # filled by on_config
@@ -333,7 +338,7 @@ def on_page_markdown(markdown: str, page, config, files) -> str:
         kind, arg = m.group(1), m.group(2)
         makers = {"study": study, "search": search, "include": include, "code": code, "page": page_file,
                   "choose": choose, "leads_knn": leads_knn, "curve_facts": curve_facts.block, "layout": layout,
-                  "headline": headline, "records": records_page}  # fmt: skip
+                  "headline": headline, "records": records_page, "choosing": choosing.table}  # fmt: skip
         text = makers[kind](arg)
         return text if kind == "code" else site_checks.fit_tables(text, width)
 

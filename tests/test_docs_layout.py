@@ -431,3 +431,11 @@ def test_the_readme_headline_is_the_published_main_job_record():
     for page in ("docs/index.md", "docs/getting-started.md"):
         assert f"<!-- gen: headline {HEADLINE} -->" in (ROOT / page).read_text(), page
     assert readme.count(HEADLINE_MARKERS[0]) == 1
+
+
+def test_the_choosing_tables_own_data_steps_are_graf_trains_default():
+    """The choosing table's "your data" column times graf-train's default length, read from the trainer config."""
+    text = (ROOT / "docs_hooks" / "choosing.py").read_text()
+    steps = int(re.search(r"^OWN_DATA_STEPS = (\d+)", text, re.M).group(1))
+    default = yaml.safe_load((ROOT / "src" / "graf" / "conf" / "trainer" / "default.yaml").read_text())["max_steps"]
+    assert steps == default
