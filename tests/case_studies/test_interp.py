@@ -66,8 +66,11 @@ def test_interp_on_a_traced_room_measures_fine_scales_and_the_curvature(tmp_path
         raise AssertionError("a finished scene was traced again")
 
     monkeypatch.setattr(interp, "fine_part", no_trace)
+    figure = tmp_path / "out" / s["figure"]
+    figure.unlink()  # a kept scene's figure is drawn again from its record
     again = run(cfg)
     assert again["complete"] and again["scenes"]["small_room"]["curvature"] == k
+    assert figure.is_file()
 
 
 def test_a_layout_variants_removed_objects_are_left_out_of_the_map():

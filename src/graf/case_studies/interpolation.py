@@ -467,8 +467,11 @@ def run(cfg: DictConfig) -> dict:
     lines = []
     for d, band, scene_obj in zip(dm.sets, bands, scenes):
         kept = _kept(done.get(d.name), band, len(d.positions), scene_obj, cfg.interp)
-        if kept is not None:
-            log.info("%s: kept from the earlier run (%s)", d.name, out / "results.json")
+        if kept is not None:  # its figure is drawn again from its record (the figure code may be newer)
+            log.info("%s: kept from the earlier run (%s); its figure redrawn", d.name, out / "results.json")
+            objects = footprints(scene_obj) if kept.get("kmap") else []
+            parts = (kept.get("fine"), kept.get("curvature"), kept.get("kmap"))
+            _plot(out / kept["figure"], d.name, kept["dataset"], *parts, objects, float(band.wavelength))
         rec = kept if kept is not None else _scene_record(cfg, d, band, scene_obj, out)
         results["scenes"][d.name] = rec
         lines.append(_summary_line(d.name, rec, float(band.wavelength)))
