@@ -53,12 +53,13 @@ def test_a_listed_model_gets_its_budget_and_any_other_the_default():
 
 
 def test_a_paper_density_study_job_trains_its_model_s_budget():
+    paper = OmegaConf.load(CONF_DIR / "study_size" / "paper.yaml").study_budgets
     _, steps = _job_config("experiment=cross_scene_matrix")  # the studies' GRaF, the default model
-    assert steps == 1000
-    _, steps = _job_config("experiment=cross_scene_matrix", "model=knn_dl")
-    assert steps == 3000
-    _, steps = _job_config("experiment=cross_scene_matrix", "model=nerf2_study")  # no budget: the default
-    assert steps == 300
+    assert steps == paper.graf_cpu_scenes_ray_weights
+    _, steps = _job_config("experiment=cross_scene_matrix", "model=knn_dl", "study_budget_default=7")
+    assert steps == paper.knn_dl
+    _, steps = _job_config("experiment=cross_scene_matrix", "model=nerf2_study", "study_budget_default=7")
+    assert steps == 7  # no budget of its own: the default
     cfg, steps = _job_config("experiment=neighbor_count", "study_steps=7")
     assert steps == 7 and cfg.study_steps == 7
     _, steps = _job_config("experiment=cross_scene_matrix", "study_size=quick")  # the smoke size has no budgets
@@ -80,22 +81,26 @@ def test_a_study_steps_set_in_a_config_file_wins_over_the_budget(tmp_path):
 
 
 def test_the_budgets_are_the_published_paper_density_curves_choice():
-    """study_budgets holds what the rule gives on the published curves of regime cross_family_val (validated on
-    layouts no study tests on): the chosen GRaF mode's preset at the smallest step within 0.1 dB of its best
-    validation PSNR, and KNN-DL's by the same rule."""
-    rows = [r for r in csv.DictReader(CURVES.open()) if r["regime"] == "cross_family_val"]
-    mode, _ = choose(rows, ["pooled", "ray", "ray_knn", "ray_weights"])
+    """study_budgets holds the preset of the GRaF mode chosen on regime cross_family_val (validated on layouts no
+    study tests on), and each budget is what the rule gives on regime matrix_recipe_val (the matrix job's own recipe,
+    on the same validation layouts): the smallest step within BUDGET_WITHIN_DB of the best validation PSNR."""
+    from graf.run.budgets import BUDGET_WITHIN_DB
+
+    rows = list(csv.DictReader(CURVES.open()))
+    mode, _ = choose(
+        [r for r in rows if r["regime"] == "cross_family_val"], ["pooled", "ray", "ray_knn", "ray_weights"]
+    )
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         budgets = compose("train", overrides=["experiment=cross_scene_matrix"]).study_budgets
     GlobalHydra.instance().clear()
     budgets = dict(budgets)
-    per_scene = budgets.pop("rf_gs")  # no curve at this density (per scene): fixed before its runs, GRaF's there then
+    per_scene = budgets.pop("rf_gs")  # a per-scene method: its own curve (regime paper_within), tested below
     assert isinstance(per_scene, int) and per_scene >= 1
-    within = {"within_db": 0.1}
+    recipe = [r for r in rows if r["regime"] == "matrix_recipe_val"]
     assert budgets == {
-        MODE_PRESETS[mode]: best_step(rows, mode, **within),
-        "knn_dl": best_step(rows, "knn_dl", **within),
+        MODE_PRESETS[mode]: best_step(recipe, mode, within_db=BUDGET_WITHIN_DB),
+        "knn_dl": best_step(recipe, "knn_dl", within_db=BUDGET_WITHIN_DB),
     }
     assert (CONF_DIR / "model" / f"{MODE_PRESETS[mode]}.yaml").is_file()
 
