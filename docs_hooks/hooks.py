@@ -14,7 +14,7 @@ A page asks for a generated block with a directive on a line of its own:
 - ``<!-- gen: include PATH -->``: a markdown table a command wrote (``sweeps/learning_curves/curves.md``,
   ``sweeps/compare_rfid_s23/table.md``, ...), included as it is;
 - ``<!-- gen: choose PATH -->``: GRaF's modes ranked on validation from a ``curves.csv``
-  (:func:`graf.reports.published.choose`, as ``scripts/choose_graf.py``);
+  (:func:`graf.reports.choices.choose`, as ``scripts/choose_graf.py``);
 - ``<!-- gen: choosing BENCH -->``: each preset's cost from a graf-bench record and its quality from the study records
   (:mod:`choosing`);
 - ``<!-- gen: curve_facts REGIME -->``: a learning-curve regime's facts (its KNN line; per method the best and last
@@ -65,6 +65,7 @@ from mkdocs.structure.files import File
 import records
 from graf.errors import UserError
 from graf.metrics.names import curve_metrics
+from graf.reports import choices as curve_choices
 from graf.reports import published
 from graf.reports import table as headline_table
 
@@ -189,7 +190,7 @@ def code(path: str) -> str:
 
 
 def leads_knn(regime: str) -> str:
-    """The main job's rule on a regime's points (:func:`graf.reports.published.leading_knn`): each point, whether it
+    """The main job's rule on a regime's points (:func:`graf.reports.choices.leading_knn`): each point, whether it
     leads the regime's KNN line in all three validation figures, and the choice."""
     curves = SWEEPS / "learning_curves"
     with open(_record(curves / "curves.csv"), newline="") as fh:
@@ -197,7 +198,7 @@ def leads_knn(regime: str) -> str:
     knn = json.loads(_record(curves / "results.json").read_text()).get("knn", {}).get(regime)
     if knn is None:
         raise PluginError(f"docs: sweeps/learning_curves/results.json has no KNN line of regime {regime}")
-    chosen, table = published.leading_knn(rows, knn, regime)
+    chosen, table = curve_choices.leading_knn(rows, knn, regime)
     body = [[f"`{t['mode']}`", t["step"], _f(t["val_psnr"], ".2f"), _f(t["val_ssim"]), _f(t["val_lpips"]),
              "yes" if t["leads"] else "no"] for t in table]  # fmt: skip
     body.append(["KNN (line)", "-", _f(knn["val/psnr"], ".2f"), _f(knn["val/ssim"]), _f(knn["val/lpips"]), "-"])
@@ -207,15 +208,15 @@ def leads_knn(regime: str) -> str:
 
 
 def choose(path: str) -> str:
-    """GRaF's neighbor-feature mode ranked on validation (:func:`graf.reports.published.choose`), per regime and
+    """GRaF's neighbor-feature mode ranked on validation (:func:`graf.reports.choices.choose`), per regime and
     over all."""
     with open(_record(ROOT / path), newline="") as fh:
         rows = list(csv.DictReader(fh))
     modes = ["pooled", "ray", "ray_knn", "ray_weights"]
     out = []
     try:
-        choices, waiting, beside = published.choose_per_regime(
-            rows, modes, published.continued_regimes(), published.own_run_regimes()
+        choices, waiting, beside = curve_choices.choose_per_regime(
+            rows, modes, curve_choices.continued_regimes(), curve_choices.own_run_regimes()
         )
     except UserError as e:
         raise PluginError(f"docs: {path}: {e}") from e
@@ -232,7 +233,7 @@ def choose(path: str) -> str:
     for regime, parent, chosen, table in beside:
         body = [
             [t["regime"], t["step"], f"`{t['mode']}`", t["point"], _f(t["val_psnr"], ".2f"), _f(t["val_ssim"]),
-             _f(t["val_lpips"]), published.ahead_label(t)]
+             _f(t["val_lpips"]), curve_choices.ahead_label(t)]
             for t in table
         ]  # fmt: skip
         ahead = sorted({t["mode"] for t in table if t["ahead"]})

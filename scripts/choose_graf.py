@@ -10,7 +10,7 @@ budget) makes no choice of its own: beside the other's choice it prints the chos
 curve's best and last points, with the figures in which each is ahead of the choice.  The 150-position studies
 took regime (b)'s choice, ``cross_family``; the paper-density studies take regime (c)'s, ``cross_family_paper``,
 then (d)'s, ``cross_family_val``; the main job takes regime (a)'s, ``rfid_sparse``.
-The rule is :func:`graf.reports.published.choose`, applied per regime by ``choose_per_regime`` (the site's
+The rule is :func:`graf.reports.choices.choose`, applied per regime by ``choose_per_regime`` (the site's
 table of the choice uses it too).
 
 Options: ``--regime R`` only that regime; ``--max-step N`` only the points at or below N steps (the main job's
@@ -18,7 +18,7 @@ choice within its time: ``--regime rfid_sparse --max-step 300``); ``--within-db 
 the smallest step within D dB of its curve's best validation PSNR, and whether the curve still gains more than
 0.1 dB per doubling of steps (the rule of regime ``cross_family_val``: then it goes on to 30,000).
 
-``--leads-knn REGIME`` applies the main job's rule instead (:func:`graf.reports.published.leading_knn`, stated in
+``--leads-knn REGIME`` applies the main job's rule instead (:func:`graf.reports.choices.leading_knn`, stated in
 ``conf/experiment/graf_rfid_s23.yaml``): of the points of REGIME that lead its KNN line in all three validation
 figures, the highest validation PSNR (within 0.1 dB: the fewest steps); the KNN line is read from the
 ``results.json`` beside the curves file.
@@ -36,7 +36,7 @@ import sys
 from pathlib import Path
 
 from graf.errors import UserError
-from graf.reports.published import (
+from graf.reports.choices import (
     GAIN_PER_DOUBLING_DB,
     ahead_label,
     best_step,

@@ -12,7 +12,7 @@ started only if the deadline leaves it time, each stopped (SIGTERM: state saved)
 2. **curves** (validation only): ``graf-curves`` regime ``cross_family_paper`` (trained on conference_v1 +
    office_v1 at full density, validated zero-shot on their v2 layouts), the GRaF modes pooled, ray, ray_knn,
    ray_weights and KNN-DL, one process each, at once, until ``--curves-until`` or ``--curves-deadline``.
-3. **choice**, fixed before any curve was seen: the mode by :func:`graf.reports.published.choose` (the best
+3. **choice**, fixed before any curve was seen: the mode by :func:`graf.reports.choices.choose` (the best
    mean rank of validation PSNR, SSIM and LPIPS at the largest step every mode reached); each trained method's
    budget is the point of its own curve with the highest validation PSNR (the smaller on a tie), lowered to the
    largest point whose predicted training time (the curve's measured seconds per step) fits the time left.
@@ -155,7 +155,7 @@ def curves(args, data: Path, work: Path, extra: list[str]) -> dict:
 def budget(rows: list[dict], method: str, seconds: float, fallback: int) -> dict:
     """A method's budget: its curve's best validation-PSNR point (the smaller on a tie), lowered to the largest
     point whose predicted seconds (steps x the curve's measured s/step) fit ``seconds``."""
-    from graf.reports.published import best_step
+    from graf.reports.choices import best_step
 
     pts = sorted(
         (int(r["step"]), float(r["val_psnr"]), float(r["s_per_step"] or 0))
@@ -175,7 +175,7 @@ def budget(rows: list[dict], method: str, seconds: float, fallback: int) -> dict
 
 
 def choose_all(args, rows: list[dict]) -> dict:
-    from graf.reports.published import choose
+    from graf.reports.choices import choose
 
     modes = [m for m in MODES if any(r["method"] == m for r in rows)]
     if modes:

@@ -66,6 +66,55 @@ def carries(arg: ast.expr, held: set[str]) -> bool:
     return False
 
 
+def holders(fn: ast.FunctionDef, param: str) -> set[str]:
+    """The names in ``fn`` that hold the config: ``param``, and names assigned from a call that took it."""
+    held = {param}
+    for node in ast.walk(fn):
+        if isinstance(node, ast.Assign) and isinstance(node.value, ast.Call):
+            if any(carries(a, held) for a in node.value.args):
+                held |= {t.id for t in node.targets if isinstance(t, ast.Name)}
+    return held
+
+
+def reads_selection(fn: ast.FunctionDef) -> bool:
+    """Whether ``fn`` reads a scene selection: ``.get("scene")`` or ``.get("eval_scene")``."""
+    return any(
+        isinstance(n, ast.Call)
+        and isinstance(n.func, ast.Attribute)
+        and n.func.attr == "get"
+        and n.args
+        and isinstance(n.args[0], ast.Constant)
+        and n.args[0].value in ("scene", "eval_scene")
+        for n in ast.walk(fn)
+    )
+
+
+def callee(node: ast.Call, mod: str, funcs: dict, imports: dict) -> tuple[str, str] | None:
+    """(module, function) a call names: one of its module's, an imported one, or an imported class's method."""
+    f = node.func
+    name = f.id if isinstance(f, ast.Name) else None
+    if name is None and isinstance(f, ast.Attribute) and isinstance(f.value, ast.Name):
+        name = f"{f.value.id}.{f.attr}"
+    if name is None:
+        return None
+    if name in funcs[mod]:
+        return mod, name
+    if name in imports[mod]:
+        return imports[mod][name]
+    if "." in name and name.split(".")[0] in imports[mod]:  # a class's classmethod: RunSpec.of
+        m, cls = imports[mod][name.split(".")[0]]
+        return m, f"{cls}.{name.split('.')[1]}"
+    return None
+
+
+def landing(node: ast.Call, held: set[str], target_fn: ast.FunctionDef) -> str | None:
+    """The parameter of ``target_fn`` the config lands in when ``node`` passes it (None: it is not passed)."""
+    params = [a.arg for a in target_fn.args.args if a.arg not in ("self", "cls")]
+    landed = [params[i] for i, a in enumerate(node.args) if carries(a, held) and i < len(params)]
+    landed += [k.arg for k in node.keywords if k.arg and carries(k.value, held)]
+    return landed[0] if landed else None
+
+
 def walk(start: str, src: Path) -> dict:
     mods = modules(src)
     funcs = {m: functions(t) for m, t in mods.items()}
@@ -77,58 +126,24 @@ def walk(start: str, src: Path) -> dict:
         if fn is None or (mod, name, param) in seen:
             return
         seen.add((mod, name, param))
-        held = {param}
-        for node in ast.walk(fn):  # names assigned from a call that took the config hold it too
-            if isinstance(node, ast.Assign) and isinstance(node.value, ast.Call):
-                if any(carries(a, held) for a in node.value.args):
-                    held |= {t.id for t in node.targets if isinstance(t, ast.Name)}
-        for node in ast.walk(fn):
-            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "get":
-                if (
-                    node.args
-                    and isinstance(node.args[0], ast.Constant)
-                    and node.args[0].value in ("scene", "eval_scene")
-                ):
-                    readers.add(f"{mod}:{name}")
-            if not isinstance(node, ast.Call):
+        if reads_selection(fn):
+            readers.add(f"{mod}:{name}")
+        held = holders(fn, param)
+        for node in (n for n in ast.walk(fn) if isinstance(n, ast.Call)):
+            target = callee(node, mod, funcs, imports)
+            target_fn = funcs.get(target[0], {}).get(target[1]) if target else None
+            into = landing(node, held, target_fn) if target_fn else None
+            if into is None:
                 continue
-            callee = node.func.id if isinstance(node.func, ast.Name) else None
-            if callee is None and isinstance(node.func, ast.Attribute) and isinstance(node.func.value, ast.Name):
-                callee = f"{node.func.value.id}.{node.func.attr}"
-            if callee is None:
-                continue
-            if callee in funcs[mod]:
-                target = (mod, callee)
-            elif callee in imports[mod]:
-                target = imports[mod][callee]
-            elif "." in callee and callee.split(".")[0] in imports[mod]:  # a class's classmethod: RunSpec.of
-                m, cls = imports[mod][callee.split(".")[0]]
-                target = (m, f"{cls}.{callee.split('.')[1]}")
-            else:
-                continue
-            positions = [i for i, a in enumerate(node.args) if carries(a, held)]
-            keywords = [k.arg for k in node.keywords if k.arg and carries(k.value, held)]
-            if not positions and not keywords:
-                continue
-            cfn = funcs.get(target[0], {}).get(target[1])
-            if cfn is None:
-                continue
-            params = [a.arg for a in cfn.args.args if a.arg not in ("self", "cls")]
-            landed = [params[i] for i in positions if i < len(params)] + keywords
-            if not landed:
-                continue
-            if target[0] == mod:
-                counts["stays"] += 1
-            else:
-                counts["visits"] += 1
+            kind = "stays" if target[0] == mod else "visits"
+            counts[kind] += 1
+            if kind == "visits":
                 visits[target[0]] += 1
-                if target[0] in path:
-                    counts["climbs"] += 1
-            go(target[0], target[1], landed[0], path + (target[0],))
+                counts["climbs"] += target[0] in path
+            go(target[0], target[1], into, path + (target[0],))
 
     m, f = start.split(":")
-    fn = funcs[m][f]
-    go(m, f, fn.args.args[0].arg, (m,))
+    go(m, f, funcs[m][f].args.args[0].arg, (m,))
     return {"counts": counts, "visits": visits, "readers": sorted(readers), "functions": len(seen)}
 
 

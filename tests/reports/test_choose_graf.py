@@ -1,4 +1,4 @@
-"""graf.reports.published.choose (scripts/choose_graf.py, the site): the studies' GRaF is chosen from validation
+"""graf.reports.choices.choose (scripts/choose_graf.py, the site): the studies' GRaF is chosen from validation
 curves by a fixed rule."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from graf.errors import UserError
-from graf.reports import published as choose_graf
+from graf.reports import choices as choose_graf
 
 
 def _row(regime, method, step, psnr, ssim, lpips):
@@ -103,7 +103,7 @@ def test_a_continues_key_naming_no_regime_stops_with_the_file_and_key(tmp_path, 
 def test_the_main_jobs_rule_takes_the_best_point_that_leads_knn_in_all_three_figures():
     """The main job's rule (conf/experiment/graf_rfid_s23.yaml): a point ahead in PSNR but behind in LPIPS is out;
     of the points ahead in all three, the highest PSNR, the fewest steps within 0.1 dB; none: None."""
-    from graf.reports.published import leading_knn
+    from graf.reports.choices import leading_knn
 
     def row(mode, step, psnr, ssim, lpips):
         return {"regime": "m", "method": mode, "step": str(step), "val_psnr": str(psnr), "val_ssim": str(ssim),

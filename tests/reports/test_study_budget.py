@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 
 from graf.app.config import CONF_DIR
 from graf.errors import ConfigError
-from graf.reports.published import best_step, choose, still_gaining
+from graf.reports.choices import best_step, choose, still_gaining
 from graf.run.budgets import study_budget, with_study_budget
 from graf.run.train import warn_other_length
 

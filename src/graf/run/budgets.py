@@ -2,7 +2,7 @@
 
 A study job (an ``experiment`` of ``conf/experiment/base/study.yaml``) leaves ``study_steps`` null; the budget of its
 ``model=`` preset is then its entry in the study size's ``study_budgets`` (``conf/study_size/paper.yaml``), read off
-that model's learning curve by :data:`BUDGET_WITHIN_DB`'s rule (:func:`graf.reports.published.best_step` applies
+that model's learning curve by :data:`BUDGET_WITHIN_DB`'s rule (:func:`graf.reports.choices.best_step` applies
 it; ``tests/reports/test_study_budget.py`` fails when a budget there disagrees with its curve), else
 ``study_budget_default``.
 """

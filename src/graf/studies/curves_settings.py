@@ -7,7 +7,7 @@ from omegaconf import DictConfig, ListConfig
 
 from graf.app.config import check_int
 from graf.errors import ConfigError, as_override
-from graf.reports.published import continued_regimes
+from graf.reports.choices import continued_regimes
 
 
 def subset(items, keep, what: str) -> dict:
@@ -40,7 +40,7 @@ def check_settings(cfg: DictConfig) -> None:
     switch the periodic saves, and the curve's resume chain, off), every ``steps`` list (``steps=abc`` was read
     letter by letter) and budget, each regime's ``each_point``, ``only_regimes`` and ``only_methods``, and that a
     regime's ``continues`` names another regime (the site's check,
-    :func:`graf.reports.published.continued_regimes`)."""
+    :func:`graf.reports.choices.continued_regimes`)."""
     check_int(cfg.get("until"), "until", none=True)
     check_int(cfg.get("threads"), "threads", none=True)
     check_int(cfg.checkpoint_every, "checkpoint_every")
