@@ -2,6 +2,7 @@ from __future__ import annotations
 
 import os
 import signal
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,8 @@ from graf.data.nerf2_format import write_nerf2_folder
 
 os.environ.setdefault("WANDB_MODE", "offline")
 os.environ.setdefault("WANDB_SILENT", "true")
+# graf-curves' checkpoints (checkpoint_root) go to a folder of the test run, not to the user's ~/.cache/graf
+os.environ.setdefault("GRAF_CHECKPOINTS", tempfile.mkdtemp(prefix="graf-test-checkpoints-"))
 if os.environ.get("PYTEST_XDIST_WORKER"):  # pytest -n 2: one core per worker, for its own work and its subprocesses
     os.environ["OMP_NUM_THREADS"] = "1"  # (two workers of two threads each on two cores slow each other many times)
     import torch

@@ -32,6 +32,8 @@ def test_no_new_checkpoint_is_under_version_control():
     probe = "sweeps/learning_curves/any_regime/ray_weights/step_300/checkpoints/last.ckpt"
     ignored = subprocess.run(["git", "check-ignore", "-q", "--no-index", probe], cwd=ROOT)
     assert ignored.returncode == 0, f"{probe} is not ignored by .gitignore"
+    link = "sweeps/learning_curves/any_regime/ray_weights/step_300/checkpoints"  # a link under checkpoint_root
+    assert subprocess.run(["git", "check-ignore", "-q", "--no-index", link], cwd=ROOT).returncode == 0
 
 
 @pytest.mark.skipif(shutil.which("git") is None or not (ROOT / ".git").exists(), reason="not a git checkout")

@@ -59,7 +59,10 @@ def test_curves_run_resume_and_validate_only(tmp_path, make_scene):
     res = json.loads((out / "results.json").read_text())
     assert [r["step"] for r in res["rows"] if r["method"] == "pooled"] == [1, 2, 3]
     assert (out / "curves.png").is_file() and "knn (line)" in (out / "curves.md").read_text()
-    assert sorted(p.parent.parent.name for p in (out / "tiny" / "pooled").rglob("last.ckpt")) == ["step_3"]
+    kept = [
+        p.name for p in sorted((out / "tiny" / "pooled").glob("step_*")) if (p / "checkpoints" / "last.ckpt").is_file()
+    ]
+    assert kept == ["step_3"]  # (each point's checkpoints/ links under checkpoint_root: rglob would not follow it)
     # a run of a subset (one method, an earlier until) trains nothing and keeps every other published row
     subset = [a for a in args if not a.startswith("only_methods=")] + ["only_methods=[pooled]", "until=1"]
     p = subprocess.run(subset, capture_output=True, text=True, timeout=600)
@@ -353,3 +356,25 @@ def test_the_studies_and_the_main_job_have_curves_of_their_own_recipe():
     assert {"data.batch_size=4", "data.val_fraction=0.1", "scene=[conference_v1]"} <= set(m.overrides)
     assert "model.use_scene_index=true" in c.methods.ray_weights.regimes.matrix_recipe_val
     assert list(main.overrides) == ["experiment=graf_rfid_s23"] and max(main.steps) == main.max_steps
+
+
+def test_a_points_checkpoints_live_under_the_checkpoint_root_and_go_with_it(tmp_path):
+    """checkpoint_root: a point's checkpoints/ links to a folder outside the record (the point's path mirrored under
+    the root); dropping them removes the folder and the link; a point with a folder of its own keeps it."""
+    from graf.studies.curves import drop_checkpoints, link_checkpoints
+
+    folder, root = tmp_path / "sweeps" / "r" / "m" / "step_300", tmp_path / "outside"
+    link_checkpoints(folder, root)
+    link = folder / "checkpoints"
+    assert link.is_symlink() and link.resolve().is_relative_to(root.resolve())
+    (link / "last.ckpt").write_bytes(b"x")
+    target = link.resolve()
+    assert (target / "last.ckpt").is_file()
+    drop_checkpoints(folder)
+    assert not link.exists() and not link.is_symlink() and not target.exists()
+    own = tmp_path / "own"
+    (own / "checkpoints").mkdir(parents=True)
+    link_checkpoints(own, root)  # a folder of its own stays a folder
+    assert not (own / "checkpoints").is_symlink()
+    link_checkpoints(tmp_path / "inside", None)  # null: nothing linked, the run makes its own folder
+    assert not (tmp_path / "inside").exists()

@@ -279,6 +279,7 @@ def _run_curve(cfg: DictConfig, out: Path, env: dict, rname: str, mname: str, ba
             f"callbacks.model_checkpoint.every_n_train_steps={min(step, int(cfg.checkpoint_every))}",
             f"hydra.run.dir={folder}",
         ]
+        link_checkpoints(folder, cfg.get("checkpoint_root"))
         start = resume_from(folder, prev)
         if start is not None:
             cmd.append(f"ckpt_path={start}")
@@ -297,7 +298,7 @@ def _run_curve(cfg: DictConfig, out: Path, env: dict, rname: str, mname: str, ba
         if not cfg.get("keep_checkpoints"):  # the curve resumes from its newest last.ckpt only
             _remove_checkpoints(folder, prev)
             if own:  # nothing resumes from a run of its own once it is done
-                shutil.rmtree(folder / "checkpoints", ignore_errors=True)
+                drop_checkpoints(folder)
         # a point that now succeeded is no longer a failure (an earlier attempt's record goes)
         failed = [f for f in failed if (f["regime"], f["method"], f["step"]) != (rname, mname, step)]
         atomic_write_json(out / "failed.json", failed)
@@ -327,4 +328,27 @@ def _remove_checkpoints(folder: Path, prev: Path | None) -> None:
         if f.name != "last.ckpt":  # ModelCheckpoint's copy of the same weights
             f.unlink()
     if prev is not None:
-        shutil.rmtree(prev / "checkpoints", ignore_errors=True)
+        drop_checkpoints(prev)
+
+
+def link_checkpoints(folder: Path, root) -> None:
+    """With ``checkpoint_root`` set, a point's ``checkpoints/`` is a link to a folder under it (the point's absolute
+    path mirrored there), so the checkpoints a curve resumes from stay outside the repository; a point that already
+    has a folder of its own keeps it."""
+    link = folder / "checkpoints"
+    if root is None or link.exists() or link.is_symlink():
+        return
+    target = Path(str(root)).expanduser() / folder.resolve().relative_to(folder.resolve().anchor) / "checkpoints"
+    target.mkdir(parents=True, exist_ok=True)
+    folder.mkdir(parents=True, exist_ok=True)
+    link.symlink_to(target, target_is_directory=True)
+
+
+def drop_checkpoints(folder: Path) -> None:
+    """Remove a point's checkpoints: the folder, or the linked one and its link (``checkpoint_root``)."""
+    link = folder / "checkpoints"
+    if link.is_symlink():
+        shutil.rmtree(link.resolve(), ignore_errors=True)
+        link.unlink()
+    else:
+        shutil.rmtree(link, ignore_errors=True)
