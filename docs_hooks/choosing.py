@@ -1,11 +1,11 @@
-"""``<!-- gen: choosing BENCH -->``: the numbers of "Choosing a model", from the records.
+"""``<!-- gen: choosing sweeps -->``: the numbers of "Choosing a model", from the records of the runs themselves.
 
-Per preset: its training seconds per step and its seconds per spectrum on the CPU (the graf-bench record ``BENCH``,
-each preset at its own rays per step, on the embedded real scene and a simulated room), its study budget
-(``conf/study_size/paper.yaml``'s, the rule's) and what training to it costs there, what 1,000 steps (graf-train's
-default: your own data) cost, the fastest GPU training on record (the learning curves' points trained on one GPU
-alone), and its quality on record at the studies' budgets with the paired verdicts against KNN.  Nothing here is
-typed: a figure the records lack prints as "-" and says why below the table.
+Per preset: its training seconds per step and its seconds per spectrum at test, the median over the jobs of the record
+that trained it as the studies (or the main job) do, with the torch threads they ran on; its study budget
+(``conf/study_size/paper.yaml``'s, the rule's) and what training to it costs; the fastest GPU point on record (the
+learning curves' points trained on one GPU alone); and its quality on record at the studies' budgets with the paired
+verdicts against KNN.  A row times "your own data": the own-data how-to's GRaF at graf-train's default 1,000 steps,
+at the main job's seconds per step.  A figure the records lack prints as "-".
 """
 
 from __future__ import annotations
@@ -24,12 +24,15 @@ ROOT = Path(__file__).resolve().parents[1]
 STUDY_SIZE = ROOT / "src" / "graf" / "conf" / "study_size" / "paper.yaml"
 CURVES = ROOT / "sweeps" / "learning_curves" / "curves.csv"
 OWN_DATA_STEPS = 1000  # conf/trainer/default.yaml's max_steps (checked in tests/test_docs_layout.py)
+OWN_DATA_PRESET = "graf_cpu_ray_weights"  # the own-data how-to's GRaF
+MATRIX = "cross_scene_matrix_paper_val"  # the matrix with GRaF at its budget (KNN-DL at (d)'s 3,000 steps)
+RECIPE = "cross_scene_matrix_paper_recipe"  # KNN-DL at its budget (300 steps); GRaF's half still to run
 # preset, what it is for, its quality's record (a study folder with intervals.json and rows.json) and the method
 # name there, and its learning curves' method (for the GPU seconds per step)
 PRESETS = (
-    ("knn", "no training", "cross_scene_matrix_paper_val", "knn", None),
-    ("knn_dl", "learned interpolation", "cross_scene_matrix_paper_val", "knn-dl", "knn_dl"),
-    ("graf_cpu_scenes_ray_weights", "GRaF of the studies", "cross_scene_matrix_paper_val", "graf-ray-weights",
+    ("knn", "no training", RECIPE, "knn", None),
+    ("knn_dl", "learned interpolation", RECIPE, "knn-dl", "knn_dl"),
+    ("graf_cpu_scenes_ray_weights", "GRaF of the studies", MATRIX, "graf-ray-weights",
      "ray_weights"),
     ("graf_cpu_ray_weights", "GRaF of the main job", "main_job", "graf-ray-weights", "ray_weights"),
     ("rf_gs", "per-scene, no rays", "rf_gs_paper", "rf-gs", "rf_gs"),
@@ -51,6 +54,17 @@ def _seconds(s: float | None) -> str:
     if s < 120:
         return f"{s:.0f} s"
     return f"{s / 60:.0f} min" if s < 7200 else f"{s / 3600:.1f} h"
+
+
+# where each preset's seconds are read: a study's jobs or one run ("job", folder, method), or a curve's CPU points
+# ("curve", regime, method)
+TIMING = {
+    "knn_dl": ("job", RECIPE, "knn-dl"),
+    "graf_cpu_scenes_ray_weights": ("job", MATRIX, "graf-ray-weights"),
+    "graf_cpu_ray_weights": ("job", "main_job", "graf-ray-weights"),
+    "rf_gs": ("job", "rf_gs_paper", "rf-gs"),
+    "nerf2_cpu": ("curve", "rfid_sparse", "nerf2"),
+}
 
 
 def budgets() -> tuple[dict, int]:
@@ -105,50 +119,96 @@ def quality(study: str, method: str, budget: int) -> str:
     return f"{said}; against KNN {ahead} ahead, {len(verdicts) - ahead - behind} level, {behind} behind"
 
 
-def _pair(a: float | None, b: float | None) -> str:
-    return "-" if a is None and b is None else f"{_seconds(a)} / {_seconds(b)}"
+def budget_label(preset: str, budget: int, own: dict) -> str:
+    if preset == "knn":
+        return "none"
+    return f"{budget:,}" if preset in own else f"{budget:,} (study_budget_default)"
 
 
-def table(bench: str) -> str:
-    """Two tables: what each preset costs (the bench record's real scene, then its simulated room), and its quality
-    on record at the studies' budgets."""
-    record = json.loads(_read(ROOT / bench / "results.json"))
-    by = {(r["preset"], r["scene"]): r for r in record["rows"] if not r.get("error")}
-    scenes = list(dict.fromkeys(r["scene"] for r in record["rows"]))
-    if len(scenes) != 2:
-        raise PluginError(f"docs: {bench}/results.json: the choosing table reads a real scene and a room, not {scenes}")
-    real, room = scenes
+def job_timing(folder: str, method: str) -> tuple[float | None, float | None, int | None, int]:
+    """(median training s/step, median test s/spectrum, torch threads, jobs) over the jobs of ``method`` under
+    ``sweeps/<folder>`` (a study) or of ``sweeps/<folder>/results.json`` (one run)."""
+    base = ROOT / "sweeps" / folder
+    files = [base / "results.json"] if (base / "results.json").is_file() else sorted(base.glob("*/results.json"))
+    jobs = [json.loads(f.read_text()) for f in files]
+    jobs = [j for j in jobs if j.get("method") == method and j.get("timing")]
+    if not jobs:
+        raise PluginError(f"docs: sweeps/{folder} holds no job of {method} with its timing")
+    step = [j["timing"]["fit_s_per_step"] for j in jobs if j["timing"].get("fit_s_per_step")]
+    spec = [j["timing"]["test_s_per_spectrum"] for j in jobs if j["timing"].get("test_s_per_spectrum")]
+    threads = {(j.get("config") or {}).get("torch_threads") for j in jobs}
+    return (
+        statistics.median(step) if step else None,
+        statistics.median(spec) if spec else None,
+        threads.pop() if len(threads) == 1 else None,
+        len(jobs),
+    )
+
+
+def curve_timing(regime: str, method: str) -> tuple[float | None, int]:
+    """(median s/step of the curve's points trained on the CPU, points) of ``method`` in ``regime``."""
+    rows = [r for r in csv.DictReader(_read(CURVES).splitlines()) if r["regime"] == regime and r["method"] == method]
+    step = [float(r["s_per_step"]) for r in rows if r.get("device") == "cpu" and r.get("s_per_step")]
+    return (statistics.median(step) if step else None), len(step)
+
+
+def table(arg: str) -> str:
+    """Two tables: what each preset costs, from the runs that trained it, and its quality on record at the studies'
+    budgets."""
+    if arg != "sweeps":
+        raise PluginError(f"docs: <!-- gen: choosing {arg} -->: the table is made from sweeps")
     own, default = budgets()
     gpu = gpu_step_s()
-    cost, good, missing = [], [], []
+    cost, good = [], []
     for preset, role, study, method, curve in PRESETS:
         budget = own.get(preset, default)
-        a, b = by.get((preset, real)) or {}, by.get((preset, room)) or {}
-        missing += [f"`{preset}` on {sc}" for sc, r in ((real, a), (room, b)) if not r]
-        step_real, step_room = a.get("train_s_per_step"), b.get("train_s_per_step")
+        source = TIMING.get(preset)
+        step = spec = threads = None
+        where = "-"
+        if source and source[0] == "curve":
+            step, n = curve_timing(source[1], source[2])
+            where = f"`sweeps/learning_curves/` ({source[1]}, {n} points)"
+        elif source:
+            step, spec, threads, n = job_timing(source[1], source[2])
+            on = "torch's default threads" if threads is None else f"{threads} thread{'s' if threads != 1 else ''}"
+            jobs = f"{n} job{'s' if n > 1 else ''}"
+            where = f"`sweeps/{source[1]}/` ({jobs}, {on})"
         cost.append(
             [
                 f"`{preset}`",
-                "nothing to train" if preset == "knn" else _pair(step_real, step_room),
-                _pair(a.get("infer_s_per_spectrum"), b.get("infer_s_per_spectrum")),
-                "none" if preset == "knn" else f"{budget:,}" + ("" if preset in own else " (default)"),
-                "-" if step_room is None else _seconds(step_room * budget),
-                "-" if step_real is None else _seconds(step_real * OWN_DATA_STEPS),
+                "nothing to train" if preset == "knn" else _seconds(step),
+                _seconds(spec),
+                budget_label(preset, budget, own),
+                "-" if step is None or preset == "knn" else _seconds(step * budget),
                 "-" if curve not in gpu else f"{gpu[curve][0]:.3g} s ({gpu[curve][1]})",
+                where,
             ]
         )
         good.append([f"`{preset}`", role, quality(study, method, budget) if study else "-"])
-    machine = f"{record.get('device')}, {record.get('threads')} threads"
-    head = ["preset", f"s/step ({real} / {room})", "s/spectrum", "study budget (steps)", f"to the budget ({room})",
-            f"{OWN_DATA_STEPS:,} steps ({real})", "s/step on one GPU"]  # fmt: skip
+    step, spec, threads, _ = job_timing(*TIMING[OWN_DATA_PRESET][1:])
+    cost.append(
+        [
+            f"your own data: `{OWN_DATA_PRESET}`",
+            _seconds(step),
+            _seconds(spec),
+            f"{OWN_DATA_STEPS:,} (graf-train's default)",
+            _seconds(step * OWN_DATA_STEPS),
+            "-",
+            f"`sweeps/{TIMING[OWN_DATA_PRESET][1]}/` (the main job)",
+        ]
+    )
+    head = ["preset", "training s/step", "s/spectrum at test", "study budget (steps)", "training to the budget",
+            "s/step on one GPU", "timed in"]  # fmt: skip
     out = published.md(head, cost) + (
-        f"\n\n*Generated from `{bench}/results.json` ({machine}; each preset at its own rays per step), "
-        "`conf/study_size/paper.yaml` (the budgets) and `sweeps/learning_curves/curves.csv` (the fastest point "
-        "trained on one GPU alone)." + (f" Not in the bench record: {', '.join(missing)}." if missing else "") + "*"
+        "\n\n*Generated from the runs' `results.json` (`timing`: the median over a record's jobs), "
+        "`conf/study_size/paper.yaml` (the budgets) and `sweeps/learning_curves/curves.csv` (NeRF2's CPU points, and "
+        "the fastest point trained on one GPU alone). The CPU figures are the 2-core CPUs each record's README names: "
+        "a study trains on a simulated room, the main job and NeRF2's curve on the embedded real scene.*"
     )
     out += "\n\n" + published.md(["preset", "for", "test PSNR at the studies' budget"], good)
     out += (
-        "\n\n*Generated from `sweeps/cross_scene_matrix_paper_val/` (zero-shot across layouts, 3 seeds), "
+        f"\n\n*Generated from `sweeps/{RECIPE}/` (KNN and KNN-DL) and `sweeps/{MATRIX}/` (GRaF; zero-shot across "
+        "layouts, 3 seeds), "
         "`sweeps/rf_gs_paper/` (within each room, 3 seeds) and `sweeps/main_job/`: the mean over the record's cells "
         "and seeds; a verdict against KNN is a paired 95% interval per cell.*"
     )

@@ -15,7 +15,7 @@ A page asks for a generated block with a directive on a line of its own:
   ``sweeps/compare_rfid_s23/table.md``, ...), included as it is;
 - ``<!-- gen: choose PATH -->``: GRaF's modes ranked on validation from a ``curves.csv``
   (:func:`graf.reports.choices.choose`, as ``scripts/choose_graf.py``);
-- ``<!-- gen: choosing BENCH -->``: each preset's cost from a graf-bench record and its quality from the study records
+- ``<!-- gen: choosing sweeps -->``: each preset's cost and quality from the records of the runs that trained it
   (:mod:`choosing`);
 - ``<!-- gen: curve_facts REGIME -->``: a learning-curve regime's facts (its KNN line; per method the best and last
   point, the last slope, the first step past KNN) from ``sweeps/learning_curves/`` (:mod:`curve_facts`);
