@@ -7,7 +7,7 @@ those selections (:func:`_scene_selection`).  The run functions (:mod:`graf.run.
 trained and tested on, the bands, the neighbour selector's config, the training steps and the output folder.
 
 Resolving a run (the study budget, the baselines switch, the fine-tuning base, the held-out layouts) happens in
-:func:`graf.run.train.resolve_run`; :meth:`RunSpec.of` reads a config that is already resolved.
+:func:`graf.run.resolve.resolve_run`; :meth:`RunSpec.of` reads a config that is already resolved.
 """
 
 from __future__ import annotations

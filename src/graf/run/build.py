@@ -20,7 +20,6 @@ from graf.app.config import (
     check_run_settings,
     hz,
     load_band_config,
-    output_dir,
     run_settings,
     scene_band_config,
 )
@@ -47,7 +46,7 @@ def build_datamodule(run: RunSpec | DictConfig, which: str = "scene", scene_indi
     band_cfgs = [scene_band_config(c, spec.band) for c in configs]
     bands = [hydra.utils.instantiate(b) for b in band_cfgs]
     scenes = [hydra.utils.instantiate(c) for c in configs]
-    neighbors = hydra.utils.instantiate(cfg.neighbors)
+    neighbors = hydra.utils.instantiate(spec.neighbors)
     ft = cfg.get("finetune") or {}
     measured = (
         {
@@ -159,7 +158,7 @@ def build(run: RunSpec | DictConfig, trains: bool = True) -> BuiltRun:
         torch.set_num_threads(int(cfg.torch_threads))
     if cfg.get("seed") is not None:
         L.seed_everything(int(cfg.seed), workers=True, verbose=False)
-    out = output_dir(cfg)
+    out = spec.output_dir
     out.mkdir(parents=True, exist_ok=True)
     source, known = checkpoint_scenes(cfg)
     _, _, neighbors, datamodule = build_datamodule(spec)

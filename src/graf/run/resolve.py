@@ -1,8 +1,9 @@
 """A run resolved once: the config a graf-train job runs, read into one :class:`~graf.app.spec.RunSpec`.
 
-Resolving applies, in this order: the study budget (:func:`graf.run.budgets.with_study_budget`), the command line's
-``baselines={}``, the fine-tuning base's folder and checkpoint, ``eval_scene=heldout``'s layouts, and the
-fine-tuning steps and learning rate; then the settings are checked, before anything is built, trained or moved.
+Resolving applies, in this order, to a config whose study budget is already filled in
+(:func:`graf.run.budgets.with_study_budget`, which graf-train applies first: a finished job is recognised by it): the
+command line's ``baselines={}``, the fine-tuning base's folder and checkpoint, ``eval_scene=heldout``'s layouts, and
+the fine-tuning steps and learning rate; then the settings are checked, before anything is built, trained or moved.
 The run functions read the spec it returns, not the config's groups.
 """
 
@@ -13,13 +14,13 @@ from omegaconf import DictConfig
 from graf.app.config import check_run_settings, with_baselines_switch
 from graf.app.spec import RunSpec, expand_heldout
 from graf.errors import ConfigError
-from graf.run.budgets import with_study_budget
 from graf.run.finetune import check_finetune, finetune_config, resolve_base
 
 
 def resolve_run(cfg: DictConfig) -> RunSpec:
-    """The spec of the run ``cfg`` composes, resolved and checked (one clear error for a bad setting)."""
-    cfg = expand_heldout(resolve_base(with_baselines_switch(with_study_budget(cfg))))
+    """The spec of the run ``cfg`` composes (its study budget filled in), resolved and checked (one clear error for a
+    bad setting)."""
+    cfg = expand_heldout(resolve_base(with_baselines_switch(cfg)))
     check_run_settings(cfg)
     check_finetune(cfg)
     if (cfg.get("finetune") or {}).get("init_from"):
