@@ -44,3 +44,36 @@ def test_the_records_tree_holds_no_code():
         ["git", "ls-files", "--cached", "sweeps/*.py", "sweeps/*.sh"], cwd=ROOT, capture_output=True, text=True
     ).stdout.split()
     assert tracked == []
+
+
+def test_figures_are_palette_pngs_that_look_the_same_at_a_fraction_of_the_size(tmp_path):
+    """Every regeneration of a record's figure stays in git's history, so figures are saved once, by
+    ``graf.plotting.save_figure``, as 256-colour palettes: a spectrum heatmap keeps its look (no pixel moves by more
+    than a few levels of 255) at under half the bytes of matplotlib's RGBA."""
+    import matplotlib.pyplot as plt
+    import numpy as np
+    from PIL import Image
+
+    from graf.plotting import SPECTRUM_CMAP, save_figure
+
+    def heatmap():
+        fig, ax = plt.subplots(figsize=(6, 3))
+        yy, xx = np.mgrid[0:90, 0:360]
+        ax.imshow(np.sin(xx / 40.0) * np.cos(yy / 15.0), cmap=SPECTRUM_CMAP, aspect="auto")
+        ax.set_title("id 7: predicted (21.3 dB)")
+        return fig
+
+    rgba = tmp_path / "rgba.png"
+    fig = heatmap()
+    fig.savefig(rgba, dpi=100)
+    plt.close(fig)
+    saved = save_figure(heatmap(), tmp_path / "record" / "spectra.png", dpi=100)
+    assert sorted(p.name for p in saved.parent.iterdir()) == ["spectra.png"]  # written atomically, no leftovers
+    with Image.open(saved) as im:
+        assert im.mode == "P"
+        palette = np.asarray(im.convert("RGB"), dtype=int)
+    with Image.open(rgba) as im:
+        full = np.asarray(im.convert("RGB"), dtype=int)
+    assert palette.shape == full.shape
+    assert np.percentile(np.abs(palette - full), 99) <= 8
+    assert saved.stat().st_size < 0.5 * rgba.stat().st_size

@@ -12,7 +12,7 @@ import numpy as np
 
 from graf.io import atomic_write_json
 from graf.metrics.names import REGISTRY
-from graf.plotting import SPECTRUM_CMAP, SPECTRUM_LABEL, shared_limits
+from graf.plotting import SPECTRUM_CMAP, SPECTRUM_LABEL, save_figure, shared_limits
 from graf.reports.rows import TEST_FIGURES, label_hz, matrices, seed_means, seeds_told, short_scenes
 
 LABELS = {m.label: m for m in REGISTRY.values()}
@@ -54,8 +54,7 @@ def matrix_figures(rows: list[dict], out: Path) -> dict:
         fig.colorbar(im, ax=axes[0].tolist(), shrink=0.9, label=unit)
         fig.suptitle(f"test {name}: trained on (rows) x tested on (columns), {told}; one colour scale")
         path = out / f"matrix_{name.lower()}.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
+        save_figure(fig, path, dpi=110)
         written.append(path.name)
     atomic_write_json(out / "matrix.json", mats)
     return {"figures": written, "matrices": mats}
@@ -88,8 +87,7 @@ def curve_figure(data: dict, xlabel: str, path: Path, title: str) -> None:
         ax.grid(alpha=0.3)
     axes.flat[0].legend(fontsize=8)
     fig.suptitle(title)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 def band_figure(rows: list[dict], path: Path) -> dict:
@@ -119,8 +117,7 @@ def band_figure(rows: list[dict], path: Path) -> dict:
         ax.set_title(f"{m}: test PSNR (dB)", fontsize=9)
     if im is not None:
         fig.colorbar(im, ax=axes[0].tolist(), shrink=0.8, label="test PSNR (dB), one scale for every method")
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
     return mats
 
 
@@ -172,7 +169,6 @@ def spectra_grids(rows: list[dict], runs: Path, out: Path, axes: list[str], refe
         fig.colorbar(axs[0, 0].images[0], ax=axs.ravel().tolist(), shrink=0.9, label=SPECTRUM_LABEL)
         fig.suptitle(f"{scene} ({band}): true (top) and predicted spectra, the same test positions")
         path = out / f"spectra_{scene}{'_' + band.replace(' ', '') if 'eval_band' in axes else ''}.png"
-        fig.savefig(path, dpi=100)
-        plt.close(fig)
+        save_figure(fig, path, dpi=100)
         written.append(path.name)
     return written

@@ -58,6 +58,8 @@ def plot(path: Path, rows: list[dict], knn: dict) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from graf.plotting import save_figure
+
     regimes = sorted({r["regime"] for r in rows} | set(knn))
     # one colour per method in every panel, so a method reads the same across regimes
     cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
@@ -85,5 +87,4 @@ def plot(path: Path, rows: list[dict], knn: dict) -> None:
             ax.set_title(rname)
             ax.grid(alpha=0.3)
         axes[i][0].legend(fontsize=8)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)

@@ -214,6 +214,8 @@ def plot(path: Path, rows: list[dict]) -> None:
     import matplotlib.pyplot as plt
     import matplotlib.ticker
 
+    from graf.plotting import save_figure
+
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
     knobs = list(dict.fromkeys(r["knob"] for r in rows))
     # one marker and one colour per knob, the same in every panel
@@ -235,10 +237,7 @@ def plot(path: Path, rows: list[dict]) -> None:
             uniq = dict(zip(labels, handles))
             ax.legend(uniq.values(), uniq.keys(), fontsize=7)
     fig.tight_layout()
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    os.replace(tmp, path)
+    save_figure(fig, path, dpi=110)
 
 
 def _draw_points(ax, sr: list[dict], cost: str, front: str, markers: dict) -> None:

@@ -17,7 +17,6 @@ from __future__ import annotations
 import csv
 import io
 import logging
-import os
 import warnings
 from pathlib import Path
 
@@ -148,8 +147,9 @@ def write_figures(study: optuna.Study, out: Path, names: list[str]) -> list[str]
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from optuna.visualization import matplotlib as ovm
+
+    from graf.plotting import save_figure
 
     complete = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
     target = (lambda t: t.values[0]) if len(study.directions) > 1 else None
@@ -179,10 +179,7 @@ def write_figures(study: optuna.Study, out: Path, names: list[str]) -> list[str]
             fig = ax.figure if hasattr(ax, "figure") else ax.flat[0].figure
             fig.set_size_inches(8, 5)
             fig.tight_layout()
-            tmp = out / f".{name}.{os.getpid()}.png.tmp"
-            fig.savefig(tmp, dpi=110, format="png")
-            tmp.replace(out / f"{name}.png")
-            plt.close(fig)
+            save_figure(fig, out / f"{name}.png", dpi=110)
             written.append(f"{name}.png")
         except Exception as exc:  # a figure Optuna cannot draw for this study (e.g. one distinct value)
             log.warning("figure %s not drawn: %s: %s", name, type(exc).__name__, exc)
