@@ -46,7 +46,7 @@ def _plugin_env(**extra: str) -> dict:
 
 @pytest.fixture(scope="module")
 def study(tmp_path_factory) -> Path:
-    """Four jobs of the toy method (L 2 and 4, neighbors dense and sparse), KNN tested beside each, and their report."""
+    """Four jobs of the toy method (L 2 and 4, two search radii), KNN tested beside each, and their report."""
     sweep = tmp_path_factory.mktemp("extending") / "study"
     env = _plugin_env()
     _run(
@@ -54,7 +54,7 @@ def study(tmp_path_factory) -> Path:
         "-m",
         "model=neighbor_mean",  # found in the plugin's own conf folder (toy_plugin: add_conf)
         "neighbors.L=2,4",
-        "neighbors.exclude_within=0.0,0.25",
+        "neighbors.radius=5.0,10.0",
         "data.test_subset=8",
         "logger=none",
         "plot_count=0",
@@ -90,10 +90,10 @@ def test_a_registered_metric_reaches_the_records_the_report_and_a_figure(study):
 @pytest.mark.slow  # moved from the default run to keep it under 5 min on the 2-core machine (issue 68)
 def test_a_registered_axis_splits_the_tables_and_the_intervals_cells(study):
     table = (study / "report.md").read_text()
-    assert "exclude_within" in table
+    assert "radius" in table
     rows = json.loads((study / "intervals.json").read_text())["rows"]
-    assert {r["exclude_within"] for r in rows} == {"0.0", "0.25"}  # one cell per value, each paired on its own
-    assert json.loads((study / "report.json").read_text())["axes"] == ["L", "exclude_within"]
+    assert {r["radius"] for r in rows} == {"5.0", "10.0"}  # one cell per value, each paired on its own
+    assert json.loads((study / "report.json").read_text())["axes"] == ["L", "radius"]
 
 
 @pytest.mark.slow  # moved from the default run to keep it under 5 min on the 2-core machine (issue 68)

@@ -40,10 +40,8 @@ def peak_error_deg(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 register_metric(Metric("peak_error", "peak error", "deg", False, "{:.1f}", per_spectrum=peak_error_deg))
 
 
-# --- a study axis: how sparse the neighbors are (no known transmitter within this many wavelengths), one entry
-register_axis(
-    Axis("exclude_within", of_job=lambda r: ((r.get("config") or {}).get("neighbors") or {}).get("exclude_within"))
-)
+# --- a study axis: the neighbour search radius (wavelengths), one entry
+register_axis(Axis("radius", of_job=lambda r: ((r.get("config") or {}).get("neighbors") or {}).get("radius")))
 
 
 # --- a method: the plain mean of the neighbors' spectra (nothing to train), the Method interface

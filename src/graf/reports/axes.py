@@ -94,6 +94,9 @@ AXES: tuple[Axis, ...] = (
     Axis("train_band", of_job=lambda r: " + ".join(band_label(h) for h in trained_on(r)[1]), untrained="-"),
     Axis("finetune", of_job=finetune_label),
     Axis("L", of_job=lambda r: ((r.get("config") or {}).get("neighbors") or {}).get("L")),
+    # the neighbour-distance study's axis: candidates closer than this many wavelengths are left out, at training
+    # and at test (neighbors.exclude_within), for the model and the baselines tested beside it alike
+    Axis("exclude_within", of_job=lambda r: ((r.get("config") or {}).get("neighbors") or {}).get("exclude_within")),
     Axis("eval_scene", of_evaluation=lambda r, ev: ev["eval_scene"]),
     Axis("eval_band", of_evaluation=lambda r, ev: band_label(ev.get("band_hz"))),
 )

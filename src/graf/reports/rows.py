@@ -45,16 +45,20 @@ def ft_fraction(label: str) -> float | None:
     return None
 
 
+LEFT_OUT = {"base", "validation"}  # folders of a study record that hold no study job
+
+
 def result_files(runs: Path) -> list[Path]:
-    """The ``results.json`` files of ``runs`` (a folder, or one file), those under ``base/`` folders left out."""
+    """The ``results.json`` files of ``runs`` (a folder, or one file), those under ``base/`` folders (a study's base
+    models) and ``validation/`` folders (a study's validation jobs, :mod:`graf.reports.distance`) left out."""
     if not runs.exists():
         raise ConfigError(f"graf-report: {runs} does not exist")
     if runs.is_file():
         files = [runs]
     else:  # runs may be one run's own folder: its results.json counts
-        files = [f for f in sorted(runs.rglob("results.json")) if "base" not in f.relative_to(runs).parts[:-1]]
+        files = [f for f in sorted(runs.rglob("results.json")) if not LEFT_OUT & set(f.relative_to(runs).parts[:-1])]
     if not files:
-        raise ConfigError(f"graf-report: no results.json under {runs} (base/ folders are left out)")
+        raise ConfigError(f"graf-report: no results.json under {runs} (base/ and validation/ folders are left out)")
     return files
 
 

@@ -38,6 +38,7 @@ from graf.app.config import task_wrapper
 from graf.app.launch import command
 from graf.io import atomic_write_bytes, atomic_write_json
 from graf.reports.axes import AXIS_NAMES
+from graf.reports.distance import write_distance
 from graf.reports.figures import band_figure, curve_figure, matrix_figures, spectra_grids
 from graf.reports.intervals import write_intervals
 from graf.reports.readme import refresh
@@ -160,10 +161,13 @@ def make_report(runs: Path, out: Path, reference: dict, compare_with: list[Path]
         # a band x band matrix of one layout (bands); not when the band changes with the test scene
         summary["band_matrix"] = band_figure(rows, out / "band_matrix.png")
         summary["figures"].append("band_matrix.png")
-    elif "eval_scene" in axes and "trained_on" in axes and "L" not in axes and "finetune" not in axes:
+    elif "eval_scene" in axes and "trained_on" in axes and not {"L", "finetune", "exclude_within"} & set(axes):
         m = matrix_figures(rows, out)
         summary["matrix"] = m["matrices"]
         summary["figures"] += m["figures"]
+    if "exclude_within" in axes and (distance := write_distance(runs, out)) is not None:
+        summary["figures"].append("vs_distance.png")
+        summary["advice"] = distance["advice"]
     summary["figures"] += spectra_grids(rows, runs, out, axes, reference)
     intervals = write_intervals(runs, out, compare_with)
     if intervals is not None:

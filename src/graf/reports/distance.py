@@ -1,0 +1,290 @@
+"""The neighbour-distance study (``conf/experiment/neighbor_distance.yaml``): what each learned method gains over KNN
+and over KNN-DL as the nearest neighbour it may use moves away from the target, in wavelengths of the scene's band.
+
+From a study folder's per-spectrum records (:func:`graf.reports.intervals.collect_spectra`), per family (the
+training scene's, its test layouts pooled: 240 paired spectra for two layouts of 120) and per distance
+(``neighbors.exclude_within``):
+
+- each trained method minus KNN and minus KNN-DL, with the paired interval of :mod:`graf.reports.statistics`;
+- GRaF's mode chosen on validation at that distance (:func:`validation_choice`, from the study's ``validation/``
+  jobs: each GRaF mode validated zero-shot on its family's validation layout), and the chosen mode's figures as
+  "GRaF";
+- the geometry each cell's methods saw: the median over its targets of the distance to the nearest neighbour
+  actually used, in wavelengths and centimetres (``splits.nearest_neighbor_used`` of each evaluation);
+- the distance from which a learned method leads KNN with an interval above 0 at that distance and every larger one
+  (:func:`leads_from`), per family and for both families at once; and the sentence that turns a survey's spacing
+  into a choice (:func:`advice`).
+
+Writes ``distance.json`` and ``vs_distance.png``; graf-report's README block shows :func:`markdown`.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from graf.io import atomic_write_json
+from graf.reports.intervals import CELL, collect_spectra
+from graf.reports.rows import LEFT_OUT, evaluations
+from graf.reports.statistics import paired_difference
+from graf.reports.table import read_run_result
+
+AXIS = "exclude_within"
+VALIDATION_DIR = "validation"  # the study's validation jobs: <record>/validation/ (graf-report's tables leave it out)
+GRAF = "graf"  # the chosen GRaF mode's label in the figures and tables
+C = 299_792_458.0
+NAMES = {GRAF: "GRaF (the mode chosen at each distance)", "knn": "KNN", "knn-dl": "KNN-DL"}
+
+
+def is_graf(method: str) -> bool:
+    return method.startswith("graf")
+
+
+def validation_choice(runs: Path) -> dict[str, dict]:
+    """``{distance: {"mode", "val_psnr": {mode: mean over families}}}``: at each distance, the GRaF mode with the
+    higher mean validation PSNR over the study's validation jobs (``<runs>/validation/``, ``test=false``, each
+    trained on one family's training layout and validated on that family's validation layout); a tie goes to the
+    mode first by name.  Empty without validation jobs."""
+    psnr: dict = defaultdict(lambda: defaultdict(list))
+    folder = Path(runs) / VALIDATION_DIR
+    for f in sorted(folder.rglob("results.json")) if folder.is_dir() else []:
+        result = read_run_result(f)
+        value = ((result or {}).get("metrics") or {}).get("val/psnr")
+        if result is None or value is None or not is_graf(str(result.get("method"))):
+            continue
+        distance = str(((result.get("config") or {}).get("neighbors") or {}).get(AXIS))
+        psnr[distance][result["method"]].append(float(value))
+    out = {}
+    for distance, modes in psnr.items():
+        means = {m: float(np.mean(v)) for m, v in sorted(modes.items())}
+        out[distance] = {"mode": sorted(means, key=lambda m: (-means[m], m))[0], "val_psnr": means}
+    return out
+
+
+def geometry(runs: Path) -> dict[tuple[str, str, str], dict]:
+    """``{(trained on, distance, test layout): nearest neighbour used}`` (median metres and wavelengths over the
+    layout's targets) from the study's jobs: the test neighbours depend on the layout and the distance alone, so any
+    job of the cell gives them."""
+    out = {}
+    for f in sorted(Path(runs).rglob("results.json")):
+        if LEFT_OUT & set(f.relative_to(runs).parts[:-1]):
+            continue
+        result = read_run_result(f)
+        if result is None:
+            continue
+        distance = str(((result.get("config") or {}).get("neighbors") or {}).get(AXIS))
+        trained = "+".join(result.get("train_scenes") or [result.get("scene")])
+        for ev in evaluations(result):
+            used = (ev.get("splits") or {}).get("nearest_neighbor_used")
+            if used and ev.get("band_hz"):
+                wavelength = C / float(ev["band_hz"])
+                out.setdefault((trained, distance, ev["eval_scene"]), {**used, "wavelength_m": wavelength})
+    return out
+
+
+def _pooled(cell_runs: list[dict], method: str) -> list[dict] | None:
+    """One method's runs over the family's test layouts: ``[{(layout, id): psnr}]`` per seed (baselines: one run);
+    None when a layout lacks the method or its seeds differ between layouts."""
+    per_layout = [(layout, methods.get(method)) for layout, methods in cell_runs]
+    if any(seeds is None for _, seeds in per_layout):
+        return None
+    seeds = sorted(per_layout[0][1], key=str)
+    if any(sorted(s, key=str) != seeds for _, s in per_layout):
+        return None
+    return [{(layout, i): v for layout, s in per_layout for i, v in s[seed]["psnr"].items()} for seed in seeds]
+
+
+def differences(cells: dict, choice: dict[str, dict]) -> dict[str, dict[str, dict]]:
+    """``{family (trained on): {distance: {method: {"vs_knn", "vs_knn-dl"}}}}``: each trained method (and ``graf``,
+    the mode chosen at that distance) minus KNN and KNN-DL on the family's pooled test spectra."""
+    at = {name: CELL.index(name) for name in ("trained_on", "eval_scene", AXIS)}
+    groups: dict = defaultdict(list)
+    for key, methods in cells.items():
+        if key[at["trained_on"]] in ("-", "None", ""):
+            continue
+        groups[(key[at["trained_on"]], key[at[AXIS]])].append((key[at["eval_scene"]], methods))
+    out: dict = defaultdict(dict)
+    for (family, distance), cell_runs in sorted(groups.items()):
+        cell_runs.sort(key=lambda x: x[0])
+        methods = sorted({m for _, ms in cell_runs for m in ms} - {"knn"})
+        refs = {r: _pooled(cell_runs, r) for r in ("knn", "knn-dl")}
+        row = {}
+        for method in methods:
+            runs = _pooled(cell_runs, method)
+            if runs is None:
+                continue
+            row[method] = {
+                f"vs_{r}": paired_difference(runs, ref, "psnr")
+                for r, ref in refs.items()
+                if ref is not None and r != method
+            }
+        chosen = (choice.get(distance) or {}).get("mode")
+        if chosen in row:
+            row[GRAF] = {**row[chosen], "mode": chosen}
+        out[family][distance] = row
+    return dict(out)
+
+
+def leads_from(points: dict[str, dict], method: str, reference: str = "knn") -> float | None:
+    """The smallest distance from which ``method`` leads ``reference`` (interval above 0) at that distance and at
+    every larger one of ``points`` (``{distance: {method: {"vs_<reference>"}}}``); None when it does not lead at
+    the largest."""
+    found = None
+    for distance in sorted(points, key=float, reverse=True):
+        c = (points[distance].get(method) or {}).get(f"vs_{reference}")
+        if c is None or c["verdict"] != "ahead":
+            break
+        found = float(distance)
+    return found
+
+
+def thresholds(diffs: dict) -> dict[str, dict]:
+    """``{method: {"vs_knn": {family: distance or None, "all": ...}, "vs_knn-dl": ...}}`` (:func:`leads_from`): the
+    distance from which the method leads, per family and in every family at once (the largest of theirs)."""
+    methods = sorted({m for fam in diffs.values() for row in fam.values() for m in row})
+    out = {}
+    for m in methods:
+        out[m] = {}
+        for ref in ("knn", "knn-dl"):
+            if m == ref:
+                continue
+            per = {fam: leads_from(points, m, ref) for fam, points in sorted(diffs.items())}
+            per["all"] = None if any(v is None for v in per.values()) or not per else max(per.values())
+            out[m][f"vs_{ref}"] = per
+    return out
+
+
+def _wl(distance: float) -> str:
+    return f"{distance:g} wavelength{'' if distance == 1 else 's'}"
+
+
+def _cm(distance: float, wavelength_m: float | None) -> str:
+    return "" if wavelength_m is None else f" ({100 * distance * wavelength_m:.0f} cm at these layouts' band)"
+
+
+def advice(record: dict) -> str:
+    """The sentence that turns a survey's spacing into a choice, from the record's thresholds alone."""
+    t, largest = record["thresholds"], max((float(d) for d in record["distances"]), default=0.0)
+    wl = record.get("wavelength_m")
+    graf, dl = (t.get(GRAF) or {}).get("vs_knn", {}).get("all"), (t.get("knn-dl") or {}).get("vs_knn", {}).get("all")
+    over_dl = (t.get(GRAF) or {}).get("vs_knn-dl", {}).get("all")
+    if graf is None and dl is None:
+        return (
+            f"Up to {_wl(largest)}{_cm(largest, wl)} between a target and its nearest measured neighbour, "
+            "neither learned method leads KNN in every family with an interval above 0: in these rooms a "
+            "nearest-neighbour mean of the survey is the choice."
+        )
+    parts = []
+    if graf is not None:
+        parts.append(
+            f"If your nearest measurements are {_wl(graf)}{_cm(graf, wl)} or farther from where you "
+            "predict, GRaF leads KNN in every family"
+            + (f", and KNN-DL too from {_wl(over_dl)}" if over_dl is not None else "")
+        )
+    if dl is not None:
+        parts.append(f"KNN-DL leads KNN from {_wl(dl)}{_cm(dl, wl)}")
+    closer = min(v for v in (graf, dl) if v is not None)
+    return "; ".join(parts) + f". Closer than {_wl(closer)}, no learned method leads KNN in every family: use KNN."
+
+
+def write_distance(runs: Path, out: Path) -> dict | None:
+    """The study's distance record (``distance.json``) and figure (``vs_distance.png``) under ``out``; None when
+    the study does not vary ``neighbors.exclude_within``."""
+    cells, _ = collect_spectra(runs)
+    distances = sorted({k[CELL.index(AXIS)] for k in cells}, key=float)
+    if len(distances) < 2:
+        return None
+    choice = validation_choice(runs)
+    diffs = differences(cells, choice)
+    geo = geometry(runs)
+    wavelengths = sorted({g["wavelength_m"] for g in geo.values()})
+    record = {
+        "distances": distances,
+        "choice": choice,
+        "differences": diffs,
+        "thresholds": thresholds(diffs),
+        "geometry": [
+            {"trained_on": k[0], AXIS: k[1], "eval_scene": k[2], **v} for k, v in sorted(geo.items())
+        ],  # fmt: skip
+        "wavelength_m": wavelengths[0] if len(wavelengths) == 1 else None,
+    }
+    record["advice"] = advice(record)
+    atomic_write_json(out / "distance.json", record)
+    figure(record, out / "vs_distance.png")
+    return record
+
+
+def figure(record: dict, path: Path) -> None:
+    """GRaF (the chosen mode) and KNN-DL minus KNN (left), GRaF minus KNN-DL (right), against the distance, one
+    line per family and method, with the 95% intervals as bars."""
+    import matplotlib.pyplot as plt
+
+    from graf.plotting import save_figure
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), constrained_layout=True)
+    panels = (("vs_knn", (GRAF, "knn-dl"), "minus KNN"), ("vs_knn-dl", (GRAF,), "minus KNN-DL"))
+    for ax, (ref, methods, title) in zip(axes, panels):
+        for i, (family, points) in enumerate(sorted(record["differences"].items())):
+            for j, m in enumerate(methods):
+                xs, ys, lo, hi = [], [], [], []
+                for d in sorted(points, key=float):
+                    c = (points[d].get(m) or {}).get(ref)
+                    if c is not None:
+                        xs.append(float(d) + 0.04 * (2 * i + j))  # side by side, never hidden behind another
+                        ys.append(c["diff"])
+                        lo.append(c["diff"] - c["low"])
+                        hi.append(c["high"] - c["diff"])
+                if xs:
+                    label = f"{NAMES.get(m, m)}, trained on {family}"
+                    ax.errorbar(xs, ys, yerr=[lo, hi], marker="os"[j], ls="-" if m == GRAF else "--", capsize=3,
+                                color=f"C{i}", label=label)  # fmt: skip
+        ax.axhline(0.0, color="k", lw=0.8)
+        ax.set_xlabel("neighbours left out within (wavelengths): neighbors.exclude_within")
+        ax.set_ylabel(f"test PSNR {title} (dB)")
+        ax.set_title(f"{title}, same-family test layouts pooled, 95% intervals", fontsize=10)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="best")
+    save_figure(fig, path, dpi=100)
+
+
+def _fmt(c: dict | None) -> str:
+    if c is None:
+        return "-"
+    mark = {"ahead": " (ahead)", "behind": " (behind)"}.get(c["verdict"], "")
+    return f"{c['diff']:+.2f} [{c['low']:+.2f}, {c['high']:+.2f}]{mark}"
+
+
+def markdown(record: dict) -> str:
+    """The distance record as a README section: per family and distance, the mode chosen on validation, the
+    nearest neighbour used, and the paired differences; then the thresholds and the advice."""
+    geo = defaultdict(list)
+    for g in record["geometry"]:
+        geo[(g["trained_on"], g[AXIS])].append(
+            f"{g['eval_scene']}: {g['median_wavelengths']:.2f} λ, {100 * g['median_m']:.1f} cm"
+        )
+    head = ["trained on", "left out within (λ)", "GRaF mode (validation)", "nearest used (median)",
+            "GRaF - KNN", "GRaF - KNN-DL", "KNN-DL - KNN"]  # fmt: skip
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for family, points in sorted(record["differences"].items()):
+        for d in sorted(points, key=float):
+            row = points[d]
+            g, dl = row.get(GRAF) or {}, row.get("knn-dl") or {}
+            used = "; ".join(geo.get((family, d), [])) or "-"
+            cells = [family, f"{float(d):g}", g.get("mode", "-"), used,
+                     _fmt(g.get("vs_knn")), _fmt(g.get("vs_knn-dl")), _fmt(dl.get("vs_knn"))]  # fmt: skip
+            lines.append("| " + " | ".join(cells) + " |")
+    said = []
+    for m, refs in sorted(record["thresholds"].items()):
+        for ref, per in refs.items():
+            v = per.get("all")
+            said.append(
+                f"- {NAMES.get(m, m)} over {NAMES[ref.removeprefix('vs_')]}: "
+                + (f"leads from {_wl(v)} in every family" if v is not None else "no distance in every family")
+                + " ("
+                + ", ".join(f"{f}: {'-' if x is None else f'{x:g}'}" for f, x in per.items() if f != "all")
+                + ")"
+            )
+    return "\n".join([*lines, "", "Where each learned method leads (interval above 0 at that distance and beyond):",
+                      "", *said, "", f"**{record['advice']}**"])  # fmt: skip

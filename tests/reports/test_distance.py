@@ -1,0 +1,122 @@
+"""The neighbour-distance study's report (graf.reports.distance): synthetic study jobs (three seeds of two GRaF modes
+and KNN-DL, KNN beside them, two families of two test layouts, three distances) and validation jobs go through
+graf-report; the record gives each family's paired differences on the pooled layouts, the mode chosen on
+validation, the geometry, the distance from which each method leads, and the sentence built from them."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from graf.reports.distance import GRAF, advice, leads_from, validation_choice
+from graf.reports.study import make_report
+from graf.run.per_spectrum import write_per_spectrum
+
+FAMILIES = {"conference_v1": ["conference_v2", "conference_v3"], "office_v1": ["office_v2", "office_v3"]}
+IDS = list(range(300, 420))
+BAND_HZ = 2.4e9
+# method -> distance -> lift over KNN (dB): GRaF's ray_knn mode gains as neighbours thin out, ray_weights less;
+# KNN-DL gains a little at 4 wavelengths only
+LIFT = {
+    "graf-ray-weights": {0.0: 0.0, 1.0: 0.4, 4.0: 0.8},
+    "graf-ray-knn": {0.0: 0.0, 1.0: 0.6, 4.0: 1.5},
+    "knn-dl": {0.0: 0.0, 1.0: 0.0, 4.0: 0.5},
+}
+
+
+def _result(method, seed, trained, distance, evaluations, metrics=None):
+    return {
+        "method": method,
+        "scene": trained,
+        "train_scenes": [trained],
+        "train_bands_hz": [BAND_HZ],
+        "band_hz": BAND_HZ,
+        "metrics": metrics or {"test/psnr": 0.0},
+        "config": {"seed": seed, "sim_num_tx": None, "neighbors": {"L": 10, "exclude_within": distance}},
+        "per_spectrum": "per_spectrum.csv.gz",
+        "evaluations": evaluations,
+    }
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    root = tmp_path_factory.mktemp("neighbor_distance")
+    rng = np.random.default_rng(5)
+    for trained, layouts in FAMILIES.items():
+        for distance in (0.0, 1.0, 4.0):
+            knn = {s: rng.normal(18.0 - distance, 3.0, len(IDS)) for s in layouts}
+            for method, lift in LIFT.items():
+                for seed in (0, 1, 2):
+                    rows, evals = [], []
+                    for s in layouts:
+                        mine = knn[s] + lift[distance] + rng.normal(0.0, 0.2, len(IDS))
+                        for m, values in ((method, mine), ("knn", knn[s])):
+                            rows += [{"eval_scene": s, "method": m, "id": i, "mse": 10 ** (-v / 10), "psnr": v,
+                                      "ssim": 0.5, "lpips": 0.3} for i, v in zip(IDS, values)]  # fmt: skip
+                        used = {"median_m": 0.05 + 0.125 * distance, "median_wavelengths": 0.4 + distance}
+                        evals.append({"eval_scene": s, "band_hz": BAND_HZ, "metrics": {}, "baselines": {},
+                                      "splits": {"nearest_neighbor_used": {**used, "n_targets": 120}}})  # fmt: skip
+                    job = root / f"model={method},scene={trained},exclude_within={distance},seed={seed}"
+                    job.mkdir()
+                    write_per_spectrum(job / "per_spectrum.csv.gz", rows)
+                    (job / "results.json").write_text(json.dumps(_result(method, seed, trained, distance, evals)))
+            for method in ("graf-ray-weights", "graf-ray-knn"):  # validation: ray_knn ahead from 1 wavelength on
+                val = 20.0 + (0.3 if (method == "graf-ray-knn") == (distance > 0) else 0.0)
+                job = root / "validation" / f"model={method},scene={trained},exclude_within={distance}"
+                job.mkdir(parents=True)
+                result = _result(method, 0, trained, distance, [], {"val/psnr": val, "test/psnr": None})
+                (job / "results.json").write_text(json.dumps({**result, "per_spectrum": None}))
+    return root
+
+
+def test_the_mode_is_chosen_on_the_validation_jobs_at_each_distance(study):
+    choice = validation_choice(study)
+    assert {d: c["mode"] for d, c in choice.items()} == {
+        "0.0": "graf-ray-weights",
+        "1.0": "graf-ray-knn",
+        "4.0": "graf-ray-knn",
+    }
+    assert choice["1.0"]["val_psnr"] == pytest.approx({"graf-ray-knn": 20.3, "graf-ray-weights": 20.0})
+
+
+def test_the_distance_record_pools_each_family_and_states_where_each_method_leads(study, tmp_path):
+    out = tmp_path / "report"
+    summary = make_report(study, out, {"L": 10, "finetune": "f20", "exclude_within": 1.0})
+    assert "exclude_within" in summary["axes"] and "vs_distance.png" in summary["figures"]
+    assert not any(f.startswith("matrix_") for f in summary["figures"])  # distances are not one matrix
+    record = json.loads((out / "distance.json").read_text())
+    conf = record["differences"]["conference_v1"]
+    assert conf["1.0"][GRAF]["mode"] == "graf-ray-knn" and conf["0.0"][GRAF]["mode"] == "graf-ray-weights"
+    c = conf["4.0"][GRAF]["vs_knn"]
+    assert c["n_spectra"] == 2 * len(IDS) and c["n_seeds"] == 3  # both test layouts, paired, three seeds
+    assert c["diff"] == pytest.approx(1.5, abs=0.05) and c["verdict"] == "ahead"
+    assert conf["0.0"]["knn-dl"]["vs_knn"]["verdict"].startswith("level")
+    t = record["thresholds"]
+    assert t[GRAF]["vs_knn"] == {"conference_v1": 1.0, "office_v1": 1.0, "all": 1.0}
+    assert t["knn-dl"]["vs_knn"]["all"] == 4.0
+    assert t[GRAF]["vs_knn-dl"]["all"] == 1.0
+    geo = {(g["trained_on"], g["exclude_within"], g["eval_scene"]): g for g in record["geometry"]}
+    assert geo[("office_v1", "4.0", "office_v3")]["median_wavelengths"] == pytest.approx(4.4)
+    assert record["wavelength_m"] == pytest.approx(299_792_458.0 / BAND_HZ)
+    assert record["advice"].startswith("If your nearest measurements are 1 wavelength (12 cm")
+    assert "KNN-DL leads KNN from 4 wavelengths" in record["advice"]
+    readme = (out / "README.md").read_text()
+    assert "## Neighbour distance" in readme and record["advice"] in readme
+    assert "conference_v2: 1.40 λ, 17.5 cm" in readme
+    assert (out / "vs_distance.png").stat().st_size > 0
+
+
+def test_leads_from_needs_every_larger_distance_and_the_advice_says_when_nothing_leads():
+    def c(verdict):
+        return {"verdict": verdict}
+
+    points = {"0.0": {"m": {"vs_knn": c("ahead")}}, "1.0": {"m": {"vs_knn": c("level")}},
+              "4.0": {"m": {"vs_knn": c("ahead")}}}  # fmt: skip
+    assert leads_from(points, "m") == 4.0  # ahead at 0 but not at 1: it leads from 4 only
+    assert leads_from({"0.0": {"m": {"vs_knn": c("behind")}}}, "m") is None
+    none = {"thresholds": {GRAF: {"vs_knn": {"all": None}}, "knn-dl": {"vs_knn": {"all": None}}},
+            "distances": ["0.0", "4.0"], "wavelength_m": 0.125}  # fmt: skip
+    assert advice(none).startswith("Up to 4 wavelengths (50 cm at these layouts' band)")
+    assert "nearest-neighbour mean" in advice(none)
