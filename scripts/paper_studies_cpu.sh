@@ -3,7 +3,7 @@
 # run it again after an interruption and every finished job is skipped (the studies' skip_finished); a job stopped
 # mid-way starts over.  From the repository's root, with the project installed (bash scripts/setup.sh):
 #
-#   bash scripts/paper_studies_cpu.sh [matrix] [nc] [bands] [unseen]        (no argument: all four, in this order)
+#   bash scripts/paper_studies_cpu.sh [matrix] [nc] [bands] [unseen] [distance]   (no argument: the first four)
 #
 # Each trained model runs its budget from the paper-density learning curves (regime cross_family_val, validated on
 # layouts no study tests on: GRaF graf_cpu_scenes_ray_weights 1,000 steps, KNN-DL 3,000; study_budgets in
@@ -25,6 +25,11 @@
 #           GRAF_UNSEEN_FINETUNE=none,f20 picks the fractions (the ledger's Tables 1-4 need these two) and
 #           GRAF_UNSEEN_BASE_BAND=2.4ghz the base models (2.4ghz: the paper's protocol; scene: also 915 MHz bases for
 #           rfid_s23, one more GRaF training).
+#   distance the neighbour-distance study (experiment=neighbor_distance): KNN-DL and GRaF's ray_weights and ray_knn
+#           trained on conference_v1 and office_v1 with every neighbour within d wavelengths left out, d in
+#           GRAF_DISTANCES (0.0,4.0,1.0: the ends and the middle first; the full axis adds 0.5,2.0), tested on the
+#           family's other layouts, seeds 0-2, into sweeps/neighbor_distance_paper (GRAF_DISTANCE: another record);
+#           first each GRaF mode's validation job per distance (<record>/validation/), which choose the mode.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 TRAIN=${GRAF_TRAIN:-.venv/bin/graf-train}
@@ -41,6 +46,8 @@ declare -A STEPS=([graf_cpu_scenes_ray_weights]=${GRAF_STEPS:-$(budget graf_cpu_
 declare -A THREADS=([graf_cpu_scenes_ray_weights]=2 [knn_dl]=1)
 BANDS=${GRAF_BANDS:-915mhz,1.8ghz,2.4ghz,3ghz}  # the bands the bands study trains at and tests at
 UNSEEN_FT=${GRAF_UNSEEN_FINETUNE:-none,f05,f10,f20,f50,f100}  # the fine-tuning fractions unseen tests
+DISTANCE=${GRAF_DISTANCE:-sweeps/neighbor_distance_paper}  # the neighbour-distance record
+DISTANCES=${GRAF_DISTANCES:-0.0,4.0,1.0}  # its distances (wavelengths), in the order run: the ends, then the middle
 UNSEEN_BAND=${GRAF_UNSEEN_BASE_BAND:-2.4ghz,scene}  # the base models unseen starts from
 STUDIES=("$@")
 [ ${#STUDIES[@]} -gt 0 ] || STUDIES=(matrix nc bands unseen)
@@ -88,8 +95,28 @@ for study in "${STUDIES[@]}"; do
             "finetune.base.band=$UNSEEN_BAND" torch_threads=2 "${COMMON[@]}" \
             hydra.sweep.dir=sweeps/unseen_layouts_paper
         ;;
+    distance)  # validation jobs first (they choose GRaF's mode per distance), then the study, seed-major
+        for d in ${DISTANCES//,/ }; do
+            for model in graf_cpu_scenes_ray_weights graf_cpu_scenes_ray_knn; do
+                say "distance: validation, $model exclude_within=$d"
+                "$TRAIN" experiment=neighbor_distance "model=$model" scene=conference_v1 seed=0 \
+                    "neighbors.exclude_within=$d" 'eval_scene=[conference_v4,office_v4]' test=false validate=true \
+                    torch_threads=2 "${COMMON[@]}" hydra.sweep.dir="$DISTANCE/validation"
+            done
+        done
+        for seed in 0 1 2; do
+            for d in ${DISTANCES//,/ }; do
+                for model in knn_dl graf_cpu_scenes_ray_weights graf_cpu_scenes_ray_knn; do
+                    threads=$([ "$model" = knn_dl ] && echo 1 || echo 2)
+                    say "distance: $model exclude_within=$d seed=$seed"
+                    "$TRAIN" experiment=neighbor_distance "model=$model" 'scene=conference_v1,office_v1' "seed=$seed" \
+                        "neighbors.exclude_within=$d" "torch_threads=$threads" "${COMMON[@]}" hydra.sweep.dir="$DISTANCE"
+                done
+            done
+        done
+        ;;
     *)
-        echo "unknown study '$study': one of matrix, nc, bands, unseen" >&2
+        echo "unknown study '$study': one of matrix, nc, bands, unseen, distance" >&2
         exit 2
         ;;
     esac

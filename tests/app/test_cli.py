@@ -78,7 +78,7 @@ def test_every_config_group_option_composes():
                     # same / heldout name no scene themselves (heldout: the sweeps' held-out layouts, resolved
                     # from the training scenes; tested in test_optuna_sweeper.py)
                     selected = spec.scenes if group == "scene" else spec.eval_scenes
-                    assert len(selected) == (f.stem not in ("same", "heldout", "validation"))
+                    assert len(selected) == (f.stem not in ("same", "heldout"))
                     for c in selected:
                         instantiate(c)
                 elif group in ("band", "neighbors"):

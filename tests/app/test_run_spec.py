@@ -41,25 +41,3 @@ def test_a_spec_names_the_scenes_trained_and_tested_on(compose_cfg):
     within = RunSpec.of(compose_cfg("train", ("scene=conference_v1",)))
     assert within.eval_scenes == () and within.tested_scenes == within.scenes
     assert within.one_scene("graf-simulate").name == "conference_v1"
-
-
-def test_eval_scene_validation_reads_the_validation_layouts_of_the_training_families(compose_cfg):
-    """``eval_scene=validation``: the families' validation layouts alone (the layouts ``heldout`` never tests), so
-    a run that chooses something validates zero-shot on layouts no study tests on; a scene with none validates
-    within-scene."""
-    from hydra import initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
-    from graf.app.config import CONF_DIR
-    from graf.app.spec import expand_heldout, heldout_scenes
-
-    assert heldout_scenes(["conference_v1"], "validation") == ["conference_v4"]
-    assert heldout_scenes(["conference_v1", "office_v2"], "validation") == ["conference_v4", "office_v4"]
-    assert heldout_scenes(["rfid_s23"], "validation") == []
-    assert "conference_v4" not in heldout_scenes(["conference_v1"], "auto")
-    office = compose_cfg("train", ("scene=office_v1", "eval_scene=validation", "test=false"))
-    rfid = compose_cfg("train", ("scene=rfid_s23", "eval_scene=validation"))
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):  # as a command's run is
-        assert RunSpec.of(expand_heldout(office)).eval_scene_names == ["office_v4"]
-        assert expand_heldout(rfid).eval_scene is None

@@ -101,14 +101,12 @@ def family(scene: str) -> str:
 
 def heldout_scenes(train: list[str], heldout) -> list[str]:
     """``eval_scene=heldout``: the catalog scenes of the training scenes' families that the run does not train
-    on (``heldout: auto``; not the validation layouts, ``validation_only``, which are never tested), those of a
-    list that share a family with a training scene, or (``heldout: validation``, ``eval_scene=validation``) the
-    validation layouts of those families alone: what a run that validates zero-shot (``test=false``) reads."""
+    on (``heldout: auto``; not the validation layouts, ``validation_only``, which are never tested), or those of a
+    list that share a family with a training scene."""
     families = {family(n) for n in train}
-    if heldout in ("auto", "validation"):
+    if heldout == "auto":
         paths = sorted((CONF_DIR / "scene_catalog").glob("*.yaml"))
-        wanted = heldout == "validation"
-        candidates = [p.stem for p in paths if ("\nvalidation_only: true" in p.read_text()) == wanted]
+        candidates = [p.stem for p in paths if "\nvalidation_only: true" not in p.read_text()]
     else:
         candidates = [str(n) for n in heldout]
         unknown = [n for n in candidates if not (CONF_DIR / "scene_catalog" / f"{n}.yaml").is_file()]
@@ -126,16 +124,15 @@ def expand_heldout(cfg: DictConfig) -> DictConfig:
         return cfg
     train = RunSpec.of(cfg).scene_names
     names = heldout_scenes(train, ev.heldout)
-    option, verb = ("validation", "validating") if ev.heldout == "validation" else ("heldout", "testing")
     cfg = cfg.copy()
     with open_dict(cfg):
         if not names:
-            log.info("eval_scene=%s: no such layout of %s: %s within-scene", option, ", ".join(train), verb)
+            log.info("eval_scene=heldout: no held-out layout of %s: testing within-scene", ", ".join(train))
             cfg.eval_scene = None
             return cfg
         composed = compose(config_name="train", overrides=[f"eval_scene=[{','.join(names)}]"])
         cfg.eval_scene = OmegaConf.create(OmegaConf.to_container(composed.eval_scene, resolve=False))
-    log.info("eval_scene=%s: %s on %s (held out from training on %s)", option, verb, ", ".join(names), ", ".join(train))
+    log.info("eval_scene=heldout: testing on %s (held out from training on %s)", ", ".join(names), ", ".join(train))
     return cfg
 
 

@@ -42,23 +42,30 @@ def is_graf(method: str) -> bool:
     return method.startswith("graf")
 
 
+def _val_psnr(result: dict) -> list[float]:
+    """A validation job's PSNR on each layout it validated on (its evaluations'; else its headline figure)."""
+    values = [(ev.get("metrics") or {}).get("val/psnr") for ev in evaluations(result)]
+    values = [float(v) for v in values if v is not None]
+    headline = (result.get("metrics") or {}).get("val/psnr")
+    return values or ([float(headline)] if headline is not None else [])
+
+
 def validation_choice(runs: Path) -> dict[str, dict]:
-    """``{distance: {"mode", "val_psnr": {mode: mean over families}}}``: at each distance, the GRaF mode with the
-    higher mean validation PSNR over the study's validation jobs (``<runs>/validation/``, ``test=false``, each
-    trained on one family's training layout and validated on that family's validation layout); a tie goes to the
-    mode first by name.  Empty without validation jobs."""
+    """``{distance: {"mode", "val_psnr": {mode: mean}}}``: at each distance, the GRaF mode with the higher mean
+    validation PSNR over the study's validation jobs (``<runs>/validation/``, ``test=false``: trained as a study job
+    and validated zero-shot on the validation layouts conference_v4 and office_v4, which no study tests on; the
+    mean over the jobs and their layouts); a tie goes to the mode first by name.  Empty without validation jobs."""
     psnr: dict = defaultdict(lambda: defaultdict(list))
     folder = Path(runs) / VALIDATION_DIR
     for f in sorted(folder.rglob("results.json")) if folder.is_dir() else []:
         result = read_run_result(f)
-        value = ((result or {}).get("metrics") or {}).get("val/psnr")
-        if result is None or value is None or not is_graf(str(result.get("method"))):
+        if result is None or not is_graf(str(result.get("method"))):
             continue
         distance = str(((result.get("config") or {}).get("neighbors") or {}).get(AXIS))
-        psnr[distance][result["method"]].append(float(value))
+        psnr[distance][result["method"]] += _val_psnr(result)
     out = {}
     for distance, modes in psnr.items():
-        means = {m: float(np.mean(v)) for m, v in sorted(modes.items())}
+        means = {m: float(np.mean(v)) for m, v in sorted(modes.items()) if v}
         out[distance] = {"mode": sorted(means, key=lambda m: (-means[m], m))[0], "val_psnr": means}
     return out
 
