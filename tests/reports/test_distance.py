@@ -107,8 +107,12 @@ def test_the_distance_record_pools_each_family_and_states_where_each_method_lead
     geo = {(g["trained_on"], g["exclude_within"], g["eval_scene"]): g for g in record["geometry"]}
     assert geo[("office_v1", "4.0", "office_v3")]["median_wavelengths"] == pytest.approx(4.4)
     assert record["wavelength_m"] == pytest.approx(299_792_458.0 / BAND_HZ)
-    assert record["advice"].startswith("If your nearest measurements are 1 wavelength (12 cm")
-    assert "KNN-DL leads KNN from 4 wavelengths" in record["advice"]
+    assert record["advice"] == (
+        "If your nearest measurements are 1 wavelength (12 cm at these layouts' band) or farther from where you "
+        "predict (tested up to 4 wavelengths), GRaF leads KNN in every family; GRaF leads KNN-DL from 1 wavelength "
+        "(12 cm at these layouts' band); KNN-DL leads KNN from 4 wavelengths (50 cm at these layouts' band). Closer "
+        "than 1 wavelength, no learned method leads KNN in every family: use KNN."
+    )
     readme = (out / "README.md").read_text()
     assert "## Neighbour distance" in readme and record["advice"] in readme
     assert "conference_v2: 1.40 λ, 17.5 cm" in readme
@@ -127,3 +131,5 @@ def test_leads_from_needs_every_larger_distance_and_the_advice_says_when_nothing
             "distances": ["0.0", "4.0"], "wavelength_m": 0.125}  # fmt: skip
     assert advice(none).startswith("Up to 4 wavelengths (50 cm at these layouts' band)")
     assert "nearest-neighbour mean" in advice(none)
+    everywhere = {**none, "thresholds": {"knn-dl": {"vs_knn": {"all": 0.0}}}}
+    assert advice(everywhere) == ("KNN-DL leads KNN at every distance tested (0 to 4 wavelengths).")

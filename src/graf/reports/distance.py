@@ -172,27 +172,38 @@ def _cm(distance: float, wavelength_m: float | None) -> str:
 
 
 def advice(record: dict) -> str:
-    """The sentence that turns a survey's spacing into a choice, from the record's thresholds alone."""
-    t, largest = record["thresholds"], max((float(d) for d in record["distances"]), default=0.0)
-    wl = record.get("wavelength_m")
+    """The sentence that turns a survey's spacing into a choice, from the record's thresholds alone (a method that
+    leads from the smallest distance tested leads "at every distance tested")."""
+    t, wl = record["thresholds"], record.get("wavelength_m")
+    tested = sorted(float(d) for d in record["distances"]) or [0.0]
+    span = f"{tested[0]:g} to {_wl(tested[-1])}"
+
+    def since(x: float) -> str:
+        return f"at every distance tested ({span})" if x <= tested[0] else f"from {_wl(x)}{_cm(x, wl)}"
+
     graf, dl = (t.get(GRAF) or {}).get("vs_knn", {}).get("all"), (t.get("knn-dl") or {}).get("vs_knn", {}).get("all")
     over_dl = (t.get(GRAF) or {}).get("vs_knn-dl", {}).get("all")
     if graf is None and dl is None:
         return (
-            f"Up to {_wl(largest)}{_cm(largest, wl)} between a target and its nearest measured neighbour, "
+            f"Up to {_wl(tested[-1])}{_cm(tested[-1], wl)} between a target and its nearest measured neighbour, "
             "neither learned method leads KNN in every family with an interval above 0: in these rooms a "
             "nearest-neighbour mean of the survey is the choice."
         )
     parts = []
-    if graf is not None:
+    if graf is not None and graf > tested[0]:
         parts.append(
-            f"If your nearest measurements are {_wl(graf)}{_cm(graf, wl)} or farther from where you "
-            "predict, GRaF leads KNN in every family"
-            + (f", and KNN-DL too from {_wl(over_dl)}" if over_dl is not None else "")
+            f"If your nearest measurements are {_wl(graf)}{_cm(graf, wl)} or farther from where you predict (tested "
+            f"up to {_wl(tested[-1])}), GRaF leads KNN in every family"
         )
+    elif graf is not None:
+        parts.append(f"GRaF leads KNN in every family {since(graf)}")
+    if over_dl is not None:
+        parts.append(f"GRaF leads KNN-DL {since(over_dl)}")
     if dl is not None:
-        parts.append(f"KNN-DL leads KNN from {_wl(dl)}{_cm(dl, wl)}")
+        parts.append(f"KNN-DL leads KNN {since(dl)}")
     closer = min(v for v in (graf, dl) if v is not None)
+    if closer <= tested[0]:
+        return "; ".join(parts) + "."
     return "; ".join(parts) + f". Closer than {_wl(closer)}, no learned method leads KNN in every family: use KNN."
 
 
