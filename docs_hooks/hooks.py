@@ -17,6 +17,8 @@ A page asks for a generated block with a directive on a line of its own:
   (:func:`graf.reports.choices.choose`, as ``scripts/choose_graf.py``);
 - ``<!-- gen: choosing sweeps -->``: each preset's cost and quality from the records of the runs that trained it
   (:mod:`choosing`);
+- ``<!-- gen: distance sweeps/<record> -->``: the neighbour-distance study's advice, figure and table, or how far its
+  run has got (:mod:`distance`);
 - ``<!-- gen: curve_facts REGIME -->``: a learning-curve regime's facts (its KNN line; per method the best and last
   point, the last slope, the first step past KNN) from ``sweeps/learning_curves/`` (:mod:`curve_facts`);
 - ``<!-- gen: code PATH -->``: a source file of the repository as a code block (the worked examples' plugin);
@@ -54,6 +56,7 @@ from pathlib import Path
 
 import choosing
 import curve_facts
+import distance
 import page_words
 import record_links
 import reference
@@ -73,8 +76,8 @@ ROOT = Path(__file__).resolve().parents[1]
 SWEEPS = ROOT / "sweeps"
 API_NAV = "API reference"
 DIRECTIVE = re.compile(
-    r"^<!-- gen: (study|search|include|code|page|choose|leads_knn|curve_facts|layout|headline|records|choosing) "
-    r"(\S+) -->$",
+    r"^<!-- gen: (study|search|include|code|page|choose|leads_knn|curve_facts|layout|headline|records|choosing|"
+    r"distance) (\S+(?: \S+)*) -->$",
     re.M,
 )
 RESULTS_NAV = "Results"  # the navigation's section whose pages hide the table of contents (WIDE_PAGES)
@@ -339,12 +342,18 @@ def on_page_markdown(markdown: str, page, config, files) -> str:
         kind, arg = m.group(1), m.group(2)
         makers = {"study": study, "search": search, "include": include, "code": code, "page": page_file,
                   "choose": choose, "leads_knn": leads_knn, "curve_facts": curve_facts.block, "layout": layout,
-                  "headline": headline, "records": records_page, "choosing": choosing.table}  # fmt: skip
+                  "headline": headline, "records": records_page, "choosing": choosing.table,
+                  "distance": distance.block}  # fmt: skip
         text = makers[kind](arg)
         return text if kind == "code" else site_checks.fit_tables(text, width)
 
     markdown = reference.expand(markdown, page.file.src_uri, fit=lambda text: site_checks.fit_tables(text, width))
     markdown = DIRECTIVE.sub(expand, markdown)
+    PAGE_PROBLEMS.extend(
+        f"{page.file.src_uri}: {line.strip()} is not a generator this site knows (docs_hooks/hooks.py DIRECTIVE)"
+        for line in markdown.splitlines()
+        if line.startswith("<!-- gen:")
+    )
     problems = page_words.development_words(markdown, page.file.src_uri)
     problems += page_words.shell_problems(markdown, page.file.src_uri)
     PAGE_PROBLEMS.extend(problems)

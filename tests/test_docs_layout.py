@@ -439,3 +439,32 @@ def test_the_choosing_tables_own_data_steps_are_graf_trains_default():
     steps = int(re.search(r"^OWN_DATA_STEPS = (\d+)", text, re.M).group(1))
     default = yaml.safe_load((ROOT / "src" / "graf" / "conf" / "trainer" / "default.yaml").read_text())["max_steps"]
     assert steps == default
+
+
+def test_the_distance_block_shows_the_record_or_how_far_its_run_has_got(tmp_path):
+    """``<!-- gen: distance ... -->``: before the record, the jobs finished out of the planned grid (the experiment's
+    sweep: methods x training scenes x distances x the paper's 3 seeds, plus one validation job per GRaF mode and
+    distance); with it, its advice, figure and table (the front page's ``brief``: no table)."""
+    from docs_hooks import distance
+
+    sweep = yaml.safe_load((ROOT / "src/graf/conf/experiment/neighbor_distance.yaml").read_text())["hydra"]["sweeper"]
+    grid = {k: str(v).split(",") for k, v in sweep["params"].items()}
+    modes = [m for m in grid["model"] if m.startswith("graf")]
+    assert distance.planned_jobs(
+        distances=len(grid["neighbors.exclude_within"]), methods=len(grid["model"]), families=len(grid["scene"]),
+        modes=len(modes),
+    ) == distance.planned_jobs()  # fmt: skip
+    (tmp_path / "job").mkdir(parents=True)
+    (tmp_path / "job" / "results.json").write_text("{}")
+    assert "1 of its 60 jobs have finished" in distance.block(str(tmp_path))
+    c = {"diff": 0.5, "low": 0.2, "high": 0.8, "verdict": "ahead", "n_seeds": 3}
+    record = {
+        "distances": ["0.0", "4.0"], "choice": {}, "wavelength_m": 0.125, "advice": "Use GRaF beyond 4 wavelengths.",
+        "differences": {"conference_v1": {"4.0": {"graf": {"vs_knn": c, "mode": "graf-ray-knn"}}}},
+        "thresholds": {"graf": {"vs_knn": {"conference_v1": 4.0, "all": 4.0}}}, "geometry": [],
+    }  # fmt: skip
+    (tmp_path / "distance.json").write_text(json.dumps(record))
+    full, brief = distance.block(str(tmp_path)), distance.block(f"{tmp_path} brief")
+    assert full.startswith("**Use GRaF beyond 4 wavelengths.**") and "vs_distance.png" in full
+    assert "| conference_v1 | 4 | graf-ray-knn |" in full and "| conference_v1 |" not in brief
+    assert "3 seed(s) per point (1 of 60 jobs so far" in brief
