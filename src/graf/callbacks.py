@@ -1,8 +1,9 @@
-"""Callbacks: the test predictions for results files and figures, the periodic and final checkpoints, and the
-pre-emption stop."""
+"""Callbacks: the test predictions for results files and figures, the periodic and final checkpoints, the
+pre-emption stop, and the threads a run goes on beside busy processes."""
 
 from __future__ import annotations
 
+import logging
 import signal
 import threading
 import time
@@ -14,8 +15,10 @@ import torch.distributed as dist
 from lightning.pytorch.callbacks import Callback, ModelCheckpoint
 
 from graf.geometry.grid import SPECTRUM_SHAPE
+from graf.machine import available_cores, threads_beside_load
 from graf.metrics.names import METRIC_NAMES
 
+log = logging.getLogger("graf")
 PER_SPECTRUM = METRIC_NAMES  # the test metrics kept per spectrum (arrays ``metric_<name>``): every registered one
 
 
@@ -196,3 +199,44 @@ class TargetCount(Callback):
     def on_train_end(self, trainer, pl_module) -> None:
         total = trainer.strategy.reduce(torch.tensor(float(self.local), device=pl_module.device), reduce_op="sum")
         self.targets, self.world_size = int(round(float(total))), int(trainer.world_size)
+
+
+class ThreadsBesideLoad(Callback):
+    """On a CPU, each training, validation and test batch runs on :func:`graf.machine.threads_beside_load` of the
+    threads set: all of them on a quiet machine (a seeded run keeps its prediction hash), the cores left beside busy
+    processes (measured from CPU time, never guessed from the load average), the threads set again once they stop.
+    Every change is logged with what was measured; :attr:`fewer_batches` counts the batches run on fewer threads."""
+
+    def __init__(self):
+        self.threads: int | None = None
+        self.fewer_batches = 0
+
+    def _adjust(self, pl_module) -> None:
+        if pl_module.device.type != "cpu":
+            return
+        if self.threads is None:
+            self.threads = torch.get_num_threads()
+        want, other = threads_beside_load(self.threads)
+        if want != torch.get_num_threads():
+            log.info(
+                "measured: other processes use %s of %d cores: this run goes on %d of the %d torch threads set",
+                "-" if other is None else f"{other:.2f}", available_cores(), want, self.threads,
+            )  # fmt: skip
+            torch.set_num_threads(want)
+        self.fewer_batches += want < self.threads
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        self._adjust(pl_module)
+
+    def on_validation_batch_start(self, trainer, pl_module, batch, batch_idx, dataloader_idx=0) -> None:
+        self._adjust(pl_module)
+
+    def on_test_batch_start(self, trainer, pl_module, batch, batch_idx, dataloader_idx=0) -> None:
+        self._adjust(pl_module)
+
+    def _restore(self, *args) -> None:
+        if self.threads is not None:
+            torch.set_num_threads(self.threads)
+            self.threads = None
+
+    on_train_end = on_validation_end = on_test_end = _restore

@@ -128,3 +128,17 @@ def available_cores() -> int:
         return len(os.sched_getaffinity(0))
     except (AttributeError, OSError):
         return os.cpu_count() or 1
+
+
+BUSY_CORES = 0.5  # other processes' load (cores) from which a run leaves cores to them
+
+
+def threads_beside_load(threads: int) -> tuple[int, float | None]:
+    """``(threads to run on, other processes' cores)``: ``threads`` on a quiet machine (other processes below
+    :data:`BUSY_CORES`, measured by :func:`monitor`), else ``threads`` less the cores they use (rounded), at least 1.
+    Beside a busy process, torch's intra-op threads wait at every operation for the one that shares its core: the
+    main job ran 3.4x faster on 1 thread than on 2 beside one busy process (0.53 against 1.86 steps/s, 2026-12-05)."""
+    other = monitor().other()
+    if other is None or other < BUSY_CORES:
+        return threads, other
+    return max(1, min(threads, round(available_cores() - other))), other

@@ -88,13 +88,14 @@ def test_one_config_and_seed_give_the_same_predictions_in_a_fresh_process_state_
     compose_cfg, tmp_path
 ):
     """The first run of a process built the LPIPS network (drawing from the global generator) and so got other
-    initial weights than a later run of the same config and seed (a study's multirun)."""
+    initial weights than a later run of the same config and seed (a study's multirun).  Same threads: the threads
+    are held (no ThreadsBesideLoad), since a busy test worker beside this one would lower them."""
 
     def run(name: str) -> str:
         cfg = compose_cfg(
             "train",
             ("trainer.max_steps=3", "seed=7", "validate=false", "data.test_subset=4",
-             f"paths.output_dir={tmp_path / name}", *TINY_GRAF),
+             f"paths.output_dir={tmp_path / name}", "callbacks.threads_beside_load=null", *TINY_GRAF),
         )  # fmt: skip
         train(cfg)
         r = json.loads((tmp_path / name / "results.json").read_text())

@@ -260,10 +260,47 @@ def test_serial_phases_take_the_cores_other_processes_leave(monkeypatch):
         def window_s(self):
             return 1.0
 
-    monkeypatch.setattr(inference, "available_cores", lambda: 2)
+    import graf.machine as machine
+
+    monkeypatch.setattr(machine, "available_cores", lambda: 2)
     for other, threads, expect in ((None, 2, 2), (0.4, 2, 2), (1.0, 2, 1), (1.9, 2, 1), (0.0, 1, 1), (3.5, 2, 1)):
-        monkeypatch.setattr(inference, "monitor", lambda o=other: Load(o))
+        monkeypatch.setattr(machine, "monitor", lambda o=other: Load(o))
         assert inference.serial_threads(threads) == expect
+
+
+def test_a_run_goes_on_the_cores_busy_processes_leave_and_back_on_all_once_they_stop(monkeypatch):
+    """graf.callbacks.ThreadsBesideLoad: every batch of a CPU run on the threads the measured load leaves (a quiet
+    machine: the threads set, untouched), all of them again once the load ends and after the loop."""
+    import graf.machine as machine
+    from graf.callbacks import ThreadsBesideLoad
+
+    load = {"cores": 0.1}
+
+    class Load:
+        def other(self):
+            return load["cores"]
+
+    class Module:
+        device = torch.device("cpu")
+
+    monkeypatch.setattr(machine, "monitor", lambda: Load())
+    monkeypatch.setattr(machine, "available_cores", lambda: 2)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        cb, seen = ThreadsBesideLoad(), []
+        for cores in (0.1, 1.0, 1.0, 0.2):
+            load["cores"] = cores
+            cb.on_train_batch_start(None, Module(), None, 0)
+            seen.append(torch.get_num_threads())
+        assert seen == [2, 1, 1, 2] and cb.fewer_batches == 2
+        load["cores"] = 1.2
+        cb.on_test_batch_start(None, Module(), None, 0)
+        assert torch.get_num_threads() == 1
+        cb.on_test_end(None, Module())
+        assert torch.get_num_threads() == 2  # the threads set, after the loop
+    finally:
+        torch.set_num_threads(before)
 
 
 def test_load_is_measured_from_cpu_time_and_a_burst_that_ended_reads_as_quiet():

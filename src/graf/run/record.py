@@ -109,6 +109,7 @@ class Training(Record):
     stopped_early: bool
     world_size: int
     targets_seen: int | None = optional()
+    batches_on_fewer_threads: int | None = optional()  # beside busy processes (graf.callbacks.ThreadsBesideLoad)
     stop_reason: str | None = optional()
     own_limit: bool | None = optional()
 

@@ -25,7 +25,7 @@ from omegaconf import DictConfig
 
 from graf.app.config import output_dir, task_wrapper
 from graf.app.spec import RunSpec, family
-from graf.callbacks import Preemption, TargetCount, TrainingInterrupted
+from graf.callbacks import Preemption, TargetCount, ThreadsBesideLoad, TrainingInterrupted
 from graf.data.splits import mixed_seed
 from graf.errors import ConfigError
 from graf.interrupts import stage
@@ -211,6 +211,9 @@ def training_record(trainer, step0: int) -> Training:
     counted = next((cb for cb in trainer.callbacks if isinstance(cb, TargetCount) and cb.targets is not None), None)
     if counted is not None:  # measured, over every rank: batch_size x world_size per step
         rec.targets_seen = counted.targets
+    fewer = sum(cb.fewer_batches for cb in trainer.callbacks if isinstance(cb, ThreadsBesideLoad))
+    if fewer:  # the run's last bits may differ from a quiet run's of the same seed and threads
+        rec.batches_on_fewer_threads = fewer
     if asked > 0 and reached < asked:
         if epochs > 0 and trainer.current_epoch >= epochs:
             reason, own = (

@@ -25,11 +25,10 @@ from concurrent.futures import ThreadPoolExecutor
 import torch
 from torch import nn
 
-from graf.machine import available_cores, monitor
+from graf.machine import available_cores, monitor, threads_beside_load
 from graf.models.graf.kernels import native
 from graf.models.graf.kernels.blocks import fusable, mlp_fusable, ray_pass_weights, run_blocks
 
-BUSY_CORES = 0.5  # other processes' load (cores) from which the serial phases leave cores to them
 FAST_PIECE_VOXELS = 4096  # voxels per piece through the ray transformer on the fast path (stays in cache)
 log = logging.getLogger("graf")
 _told: list = []  # the thread reduction is logged once per process
@@ -140,15 +139,11 @@ def fused_ray_pass(model: nn.Module, x: torch.Tensor, tokens: torch.Tensor, key_
 
 def serial_threads(threads: int | None = None) -> int:
     """torch threads for a spectrum's serial phases: ``threads`` (default ``torch.get_num_threads()``) less the
-    cores other processes are using (measured from CPU time: :meth:`graf.machine.LoadMonitor.other`; rounded), at
-    least 1; ``threads`` while they use less than
-    :data:`BUSY_CORES` (a different thread count can change a result's last bits: a quiet machine keeps one)."""
+    cores other processes are using (:func:`graf.machine.threads_beside_load`: measured from CPU time; rounded), at
+    least 1; ``threads`` while they use less than :data:`graf.machine.BUSY_CORES` (a different thread count can
+    change a result's last bits: a quiet machine keeps one)."""
     threads = torch.get_num_threads() if threads is None else int(threads)
-    m = monitor()
-    other = m.other()
-    if other is None or other < BUSY_CORES:  # a quiet machine: the threads set (the same rounding every call)
-        return threads
-    fewer = max(1, min(threads, round(available_cores() - other)))
+    fewer, other = threads_beside_load(threads)
     if fewer < threads and not _told:
         _told.append(True)
         log.info(
@@ -157,7 +152,7 @@ def serial_threads(threads: int | None = None) -> int:
             "threads set (once told)",
             other,
             available_cores(),
-            m.window_s(),
+            monitor().window_s(),
             fewer,
             threads,
         )
