@@ -136,18 +136,7 @@ def test_a_studys_matrices_share_one_scale_across_methods(tmp_path, monkeypatch)
     from graf.reports import figures as report_figures
 
     figs = []
-    real_plt = report_figures.plt
-
-    class Capture:
-        def __getattr__(self, name):
-            return getattr(real_plt, name)
-
-        @staticmethod
-        def close(fig):
-            figs.append(fig)
-            real_plt.close(fig)
-
-    monkeypatch.setattr(report_figures, "plt", Capture())
+    monkeypatch.setattr(report_figures, "save_figure", lambda fig, path, dpi=80: figs.append(fig) or Path(path))
     rows = [
         {"method": "graf", "steps": "300", "trained_on": "a", "eval_scene": e, "test/psnr": p, "test/ssim": 0.5}
         for e, p in (("a", 20.0), ("b", 18.0))

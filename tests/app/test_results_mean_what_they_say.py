@@ -182,14 +182,13 @@ def test_an_undeclared_metric_is_refused_and_every_computed_figure_is_recorded(m
 
 
 def test_a_fifth_registered_metric_reaches_the_curve_figures(monkeypatch, tmp_path):
-    import matplotlib.pyplot as plt
-
     from graf.reports import figures as report_figures
 
     metrics = (*report_figures.TEST_FIGURES, ("test/fid", "FID", "{:.1f}"))
     monkeypatch.setattr(report_figures, "TEST_FIGURES", metrics)
     seen = []
-    monkeypatch.setattr(plt.Figure, "savefig", lambda fig, *a, **k: seen.append([ax.get_title() for ax in fig.axes]))
+    titles = lambda fig, *a, **k: seen.append([ax.get_title() for ax in fig.axes])  # noqa: E731
+    monkeypatch.setattr(report_figures, "save_figure", titles)
     data = {"knn": {2: {"PSNR": 20.0, "SSIM": 0.7, "MSE": 0.01, "LPIPS": 0.2, "FID": 3.0}}}
     report_figures.curve_figure(data, "L", tmp_path / "c.png", "t")
     assert "FID" in seen[0] and len([t for t in seen[0] if t]) == 5
