@@ -205,11 +205,18 @@ class ThreadsBesideLoad(Callback):
     """On a CPU, each training, validation and test batch runs on :func:`graf.machine.threads_beside_load` of the
     threads set: all of them on a quiet machine (a seeded run keeps its prediction hash), the cores left beside busy
     processes (measured from CPU time, never guessed from the load average), the threads set again once they stop.
-    Every change is logged with what was measured; :attr:`fewer_batches` counts the batches run on fewer threads."""
+    A change holds for at least ``hold_s`` seconds (a load that comes and goes does not flip the threads every
+    batch); the first :data:`LOGGED_CHANGES` changes are logged with what was measured, the rest at debug level;
+    :attr:`fewer_batches` counts the batches run on fewer threads."""
 
-    def __init__(self):
+    LOGGED_CHANGES = 5
+
+    def __init__(self, hold_s: float = 5.0):
+        self.hold_s = float(hold_s)
         self.threads: int | None = None
         self.fewer_batches = 0
+        self.changes = 0
+        self._changed_at = -float("inf")
 
     def _adjust(self, pl_module) -> None:
         if pl_module.device.type != "cpu":
@@ -217,13 +224,18 @@ class ThreadsBesideLoad(Callback):
         if self.threads is None:
             self.threads = torch.get_num_threads()
         want, other = threads_beside_load(self.threads)
-        if want != torch.get_num_threads():
-            log.info(
-                "measured: other processes use %s of %d cores: this run goes on %d of the %d torch threads set",
+        now = time.monotonic()
+        if want != torch.get_num_threads() and now - self._changed_at >= self.hold_s:
+            self.changes += 1
+            log.log(
+                logging.INFO if self.changes <= self.LOGGED_CHANGES else logging.DEBUG,
+                "measured: other processes use %s of %d cores: this run goes on %d of the %d torch threads set%s",
                 "-" if other is None else f"{other:.2f}", available_cores(), want, self.threads,
+                " (further changes at debug level)" if self.changes == self.LOGGED_CHANGES else "",
             )  # fmt: skip
             torch.set_num_threads(want)
-        self.fewer_batches += want < self.threads
+            self._changed_at = now
+        self.fewer_batches += torch.get_num_threads() < self.threads
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
         self._adjust(pl_module)

@@ -288,7 +288,7 @@ def test_a_run_goes_on_the_cores_busy_processes_leave_and_back_on_all_once_they_
     before = torch.get_num_threads()
     torch.set_num_threads(2)
     try:
-        cb, seen = ThreadsBesideLoad(), []
+        cb, seen = ThreadsBesideLoad(hold_s=0.0), []
         for cores in (0.1, 1.0, 1.0, 0.2):
             load["cores"] = cores
             cb.on_train_batch_start(None, Module(), None, 0)
@@ -299,6 +299,12 @@ def test_a_run_goes_on_the_cores_busy_processes_leave_and_back_on_all_once_they_
         assert torch.get_num_threads() == 1
         cb.on_test_end(None, Module())
         assert torch.get_num_threads() == 2  # the threads set, after the loop
+        held, seen = ThreadsBesideLoad(hold_s=3600.0), []
+        for cores in (1.0, 0.1, 0.1):  # a load that just ended: the change made a moment ago holds
+            load["cores"] = cores
+            held.on_train_batch_start(None, Module(), None, 0)
+            seen.append(torch.get_num_threads())
+        assert seen == [1, 1, 1] and held.fewer_batches == 3
     finally:
         torch.set_num_threads(before)
 
