@@ -75,11 +75,7 @@ from graf.reports import table as headline_table
 ROOT = Path(__file__).resolve().parents[1]
 SWEEPS = ROOT / "sweeps"
 API_NAV = "API reference"
-DIRECTIVE = re.compile(
-    r"^<!-- gen: (study|search|include|code|page|choose|leads_knn|curve_facts|layout|headline|records|choosing|"
-    r"distance) (\S+(?: \S+)*) -->$",
-    re.M,
-)
+DIRECTIVE = re.compile(r"^<!-- gen: (\w+) (\S+(?: \S+)*) -->$", re.M)  # a generator of GENERATORS and its argument
 RESULTS_NAV = "Results"  # the navigation's section whose pages hide the table of contents (WIDE_PAGES)
 WIDE_PAGES: set[str] = set()  # filled by on_config
 NAV_TITLES: dict[str, str] = {}
@@ -329,6 +325,12 @@ def records_page(folder: str) -> str:
     return records.page(SWEEPS, ROOT, NAV_TITLES)
 
 
+GENERATORS = {"study": study, "search": search, "include": include, "code": code, "page": page_file,
+              "choose": choose, "leads_knn": leads_knn, "curve_facts": curve_facts.block, "layout": layout,
+              "headline": headline, "records": records_page, "choosing": choosing.table,
+              "distance": distance.block}  # fmt: skip  # <!-- gen: NAME ARG --> on a line of its own
+
+
 def on_page_markdown(markdown: str, page, config, files) -> str:
     boost = search_boost(page.file.src_uri)
     if boost is not None:
@@ -340,17 +342,15 @@ def on_page_markdown(markdown: str, page, config, files) -> str:
 
     def expand(m: re.Match) -> str:
         kind, arg = m.group(1), m.group(2)
-        makers = {"study": study, "search": search, "include": include, "code": code, "page": page_file,
-                  "choose": choose, "leads_knn": leads_knn, "curve_facts": curve_facts.block, "layout": layout,
-                  "headline": headline, "records": records_page, "choosing": choosing.table,
-                  "distance": distance.block}  # fmt: skip
-        text = makers[kind](arg)
+        if kind not in GENERATORS:
+            return m.group(0)  # left as it is: reported below
+        text = GENERATORS[kind](arg)
         return text if kind == "code" else site_checks.fit_tables(text, width)
 
     markdown = reference.expand(markdown, page.file.src_uri, fit=lambda text: site_checks.fit_tables(text, width))
     markdown = DIRECTIVE.sub(expand, markdown)
     PAGE_PROBLEMS.extend(
-        f"{page.file.src_uri}: {line.strip()} is not a generator this site knows (docs_hooks/hooks.py DIRECTIVE)"
+        f"{page.file.src_uri}: {line.strip()} names no generator this site knows (docs_hooks/hooks.py GENERATORS)"
         for line in markdown.splitlines()
         if line.startswith("<!-- gen:")
     )

@@ -12,6 +12,8 @@ import json
 import sys
 from pathlib import Path
 
+from omegaconf import OmegaConf
+
 from graf.errors import UserError
 from graf.reports.table import ACCURATE, HEADLINE, markers, with_headline
 
@@ -71,58 +73,62 @@ def with_block(text: str, markers: tuple[str, str], words: str) -> str:
 
 
 SEEDS = "sweeps/main_job_accurate_seeds"  # the accurate variant's further seeds (seed 0: sweeps/main_job_accurate)
-SEED_RUNS = ("sweeps/main_job_accurate", f"{SEEDS}/seed_1", f"{SEEDS}/seed_2")
+CLAIM = "target_rfid_paper_figure"  # the ledger's claim whose ``seeds`` (conf/claims.yaml) are the variant's runs
+PLANNED_SEEDS = 3  # the runs the headline is to be reported over (seeds 0, 1 and 2)
 SEEDS_MARKERS = (
-    f"<!-- seeds: generated from {', '.join(SEED_RUNS)} and sweeps/claims; do not edit -->",
+    f"<!-- seeds: generated from the runs conf/claims.yaml names for {CLAIM} and sweeps/claims; do not edit -->",
     "<!-- /seeds -->",
 )
+README_SEEDS_MARKERS = ("<!-- seeds-sentence: generated from sweeps/claims and the seed runs; do not edit -->",
+                        "<!-- /seeds-sentence -->")  # fmt: skip
+
+
+def seed_runs() -> list[dict]:
+    """The runs (results.json, read) that the ledger's :data:`CLAIM` averages, in its config's order."""
+    claims = OmegaConf.load(ROOT / "src" / "graf" / "conf" / "claims.yaml").claims
+    seeds = next(c for c in claims if c.id == CLAIM).seeds
+    return [{"path": str(Path(f).parent), **json.loads((ROOT / f).read_text())} for f in seeds]
+
+
+def ledger_row() -> dict:
+    return next(r for r in json.loads((ROOT / "sweeps/claims/results.json").read_text())["rows"] if r["id"] == CLAIM)
 
 
 def seeds_table() -> str:
-    """The accurate variant's runs side by side (a seed not run yet: "not run yet"), and the ledger's interval over
-    their test spectra (``sweeps/claims/results.json``, claim ``target_rfid_paper_figure``)."""
+    """The accurate variant's runs side by side (each planned seed not run yet: "not run yet"), and the ledger's
+    interval over their test spectra (``sweeps/claims/results.json``, :data:`CLAIM`)."""
     lines = ["| seed | test PSNR (dB) | SSIM | LPIPS | val PSNR (dB) | KNN test PSNR (dB) | torch threads | training |",
              "|---|---|---|---|---|---|---|---|"]  # fmt: skip
-    for run in SEED_RUNS:
-        f = ROOT / run / "results.json"
-        if not f.is_file():
-            lines.append(f"| `{run}` | not run yet | | | | | | |")
-            continue
-        r = json.loads(f.read_text())
+    runs = seed_runs()
+    for r in runs:
         m, knn = r["metrics"], (r.get("baselines") or {}).get("knn", {}).get("metrics", {})
         threads = (r.get("config") or {}).get("torch_threads") or "torch's default (the cores)"
         resumed = (r.get("resumed") or {}).get("global_step")
         trained = f"{r['global_step']:,} steps" + (f" (resumed at step {resumed})" if resumed else "")
         lines.append(
-            f"| {r['config']['seed']} (`{run}`) | {m['test/psnr']:.2f} | {m['test/ssim']:.3f} | {m['test/lpips']:.3f} "
-            f"| {m['val/psnr']:.2f} | {knn.get('test/psnr', float('nan')):.2f} | {threads} "
+            f"| {r['config']['seed']} (`{r['path']}`) | {m['test/psnr']:.2f} | {m['test/ssim']:.3f} "
+            f"| {m['test/lpips']:.3f} | {m['val/psnr']:.2f} | {knn.get('test/psnr', float('nan')):.2f} | {threads} "
             f"| {trained}, {r['timing']['fit_s'] / 60:.0f} min in its last attempt |"
         )
-    ledger = json.loads((ROOT / "sweeps/claims/results.json").read_text())["rows"]
-    row = next(r for r in ledger if r["id"] == "target_rfid_paper_figure")
+    ran = {int(r["config"]["seed"]) for r in runs}
+    lines += [f"| {s} | not run yet | | | | | | |" for s in range(PLANNED_SEEDS) if s not in ran]
+    row = ledger_row()
     return "\n".join(lines) + (
-        f"\n\nThe ledger's reading (`target_rfid_paper_figure`): {row['platform']} {row['interval']}, "
+        f"\n\nThe ledger's reading (`{CLAIM}`): {row['platform']} {row['interval']}, "
         f"**{row['verdict']}** against the paper's 21.94 dB."
     )
 
 
-README_SEEDS_MARKERS = ("<!-- seeds-sentence: generated from sweeps/claims and the seed runs; do not edit -->",
-                        "<!-- /seeds-sentence -->")  # fmt: skip
-
-
 def seeds_sentence() -> str:
     """The README's words on the accurate variant's seeds: which have run, and the ledger's reading of them."""
-    ran = [r for r in SEED_RUNS if (ROOT / r / "results.json").is_file()]
-    seeds = [str(json.loads((ROOT / r / "results.json").read_text())["config"]["seed"]) for r in ran]
-    row = next(r for r in json.loads((ROOT / "sweeps/claims/results.json").read_text())["rows"]
-               if r["id"] == "target_rfid_paper_figure")  # fmt: skip
-    missing = len(SEED_RUNS) - len(ran)
+    seeds = [str(r["config"]["seed"]) for r in seed_runs()]
+    row, missing = ledger_row(), PLANNED_SEEDS - len(seeds)
     told = " and ".join([", ".join(seeds[:-1]), seeds[-1]]) if len(seeds) > 1 else seeds[0]
     return (
         f"Over seeds {told} (`{SEEDS}/`), each test spectrum averaged over the runs, the mean is "
         f"{row['platform']} dB with the 95% interval {row['interval']}: the ledger reads **{row['verdict']}** against "
-        "the paper's 21.94 dB, judged on the interval's lower end ([Claims ledger](docs/claims.md), "
-        "`target_rfid_paper_figure`)" + (f"; {missing} seed{'s' * (missing > 1)} still to run." if missing else ".")
+        f"the paper's 21.94 dB, judged on the interval's lower end ([Claims ledger](docs/claims.md), `{CLAIM}`)"
+        + (f"; {missing} seed{'s' * (missing > 1)} still to run." if missing else ".")
     )
 
 

@@ -43,11 +43,16 @@ budget() {  # a model's study budget: its one home, conf/study_size/paper.yaml (
 }
 declare -A STEPS=([graf_cpu_scenes_ray_weights]=${GRAF_STEPS:-$(budget graf_cpu_scenes_ray_weights)}
     [knn_dl]=${GRAF_KNN_DL_STEPS:-$(budget knn_dl)})
-declare -A THREADS=([graf_cpu_scenes_ray_weights]=2 [knn_dl]=1)
+declare -A THREADS=([graf_cpu_scenes_ray_weights]=2 [graf_cpu_scenes_ray_knn]=2 [knn_dl]=1)
 BANDS=${GRAF_BANDS:-915mhz,1.8ghz,2.4ghz,3ghz}  # the bands the bands study trains at and tests at
 UNSEEN_FT=${GRAF_UNSEEN_FINETUNE:-none,f05,f10,f20,f50,f100}  # the fine-tuning fractions unseen tests
 DISTANCE=${GRAF_DISTANCE:-sweeps/neighbor_distance_paper}  # the neighbour-distance record
-DISTANCES=${GRAF_DISTANCES:-0.0,4.0,1.0}  # its distances (wavelengths), in the order run: the ends, then the middle
+ends_first() {  # the study's distances (conf/experiment/neighbor_distance.yaml), the two ends first, then the rest
+    "${PYTHON:-.venv/bin/python}" -c "from omegaconf import OmegaConf as O
+d = sorted(str(O.load('conf/experiment/neighbor_distance.yaml').hydra.sweeper.params['neighbors.exclude_within']).split(','), key=float)
+print(','.join(d[:1] + d[-1:] + d[1:-1]))"
+}
+DISTANCES=${GRAF_DISTANCES:-$(ends_first)}  # its distances (wavelengths), in the order run: the ends, then the middle
 UNSEEN_BAND=${GRAF_UNSEEN_BASE_BAND:-2.4ghz,scene}  # the base models unseen starts from
 STUDIES=("$@")
 [ ${#STUDIES[@]} -gt 0 ] || STUDIES=(matrix nc bands unseen)
@@ -101,16 +106,16 @@ for study in "${STUDIES[@]}"; do
                 say "distance: validation, $model exclude_within=$d"
                 "$TRAIN" experiment=neighbor_distance "model=$model" scene=conference_v1 seed=0 \
                     "neighbors.exclude_within=$d" 'eval_scene=[conference_v4,office_v4]' test=false validate=true \
-                    torch_threads=2 "${COMMON[@]}" hydra.sweep.dir="$DISTANCE/validation"
+                    "torch_threads=${THREADS[$model]}" "${COMMON[@]}" hydra.sweep.dir="$DISTANCE/validation"
             done
         done
         for seed in 0 1 2; do
             for d in ${DISTANCES//,/ }; do
                 for model in knn_dl graf_cpu_scenes_ray_weights graf_cpu_scenes_ray_knn; do
-                    threads=$([ "$model" = knn_dl ] && echo 1 || echo 2)
                     say "distance: $model exclude_within=$d seed=$seed"
                     "$TRAIN" experiment=neighbor_distance "model=$model" 'scene=conference_v1,office_v1' "seed=$seed" \
-                        "neighbors.exclude_within=$d" "torch_threads=$threads" "${COMMON[@]}" hydra.sweep.dir="$DISTANCE"
+                        "neighbors.exclude_within=$d" "torch_threads=${THREADS[$model]}" "${COMMON[@]}" \
+                        hydra.sweep.dir="$DISTANCE"
                 done
             done
         done

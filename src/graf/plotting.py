@@ -7,6 +7,7 @@ that compare methods (a study's matrices) on one scale per figure across the met
 
 from __future__ import annotations
 
+import io
 import os
 from pathlib import Path
 
@@ -77,11 +78,12 @@ def save_figure(fig, path, dpi: int = 80) -> Path:
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.png")
-    fig.savefig(tmp, dpi=dpi, format="png")
+    drawn = io.BytesIO()  # matplotlib's RGBA, in memory: only the palette image is written
+    fig.savefig(drawn, dpi=dpi, format="png")
     plt.close(fig)
-    with Image.open(tmp) as im:
-        rgb = im.convert("RGB")
-    rgb.quantize(256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE).save(tmp, format="PNG", optimize=True)
+    with Image.open(drawn) as im:
+        palette = im.convert("RGB").quantize(256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.png")
+    palette.save(tmp, format="PNG", optimize=True)
     tmp.replace(path)
     return path

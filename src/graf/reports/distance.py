@@ -25,16 +25,15 @@ from pathlib import Path
 
 import numpy as np
 
+from graf.bands import SPEED_OF_LIGHT
 from graf.io import atomic_write_json
 from graf.reports.intervals import CELL, collect_spectra
-from graf.reports.rows import LEFT_OUT, evaluations
+from graf.reports.rows import VALIDATION_DIR, evaluations, result_files
 from graf.reports.statistics import paired_difference
 from graf.reports.table import read_run_result
 
 AXIS = "exclude_within"
-VALIDATION_DIR = "validation"  # the study's validation jobs: <record>/validation/ (graf-report's tables leave it out)
 GRAF = "graf"  # the chosen GRaF mode's label in the figures and tables
-C = 299_792_458.0
 NAMES = {GRAF: "GRaF (the mode chosen at each distance)", "knn": "KNN", "knn-dl": "KNN-DL"}
 
 
@@ -75,9 +74,7 @@ def geometry(runs: Path) -> dict[tuple[str, str, str], dict]:
     layout's targets) from the study's jobs: the test neighbours depend on the layout and the distance alone, so any
     job of the cell gives them."""
     out = {}
-    for f in sorted(Path(runs).rglob("results.json")):
-        if LEFT_OUT & set(f.relative_to(runs).parts[:-1]):
-            continue
+    for f in result_files(Path(runs)):
         result = read_run_result(f)
         if result is None:
             continue
@@ -86,7 +83,7 @@ def geometry(runs: Path) -> dict[tuple[str, str, str], dict]:
         for ev in evaluations(result):
             used = (ev.get("splits") or {}).get("nearest_neighbor_used")
             if used and ev.get("band_hz"):
-                wavelength = C / float(ev["band_hz"])
+                wavelength = SPEED_OF_LIGHT / float(ev["band_hz"])
                 out.setdefault((trained, distance, ev["eval_scene"]), {**used, "wavelength_m": wavelength})
     return out
 

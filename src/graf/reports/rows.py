@@ -45,7 +45,8 @@ def ft_fraction(label: str) -> float | None:
     return None
 
 
-LEFT_OUT = {"base", "validation"}  # folders of a study record that hold no study job
+VALIDATION_DIR = "validation"  # a study's validation jobs (graf.reports.distance reads them)
+LEFT_OUT = {"base", VALIDATION_DIR}  # folders of a study record that hold no study job
 
 
 def result_files(runs: Path) -> list[Path]:
