@@ -1,7 +1,9 @@
-"""``<!-- gen: distance sweeps/<record> [brief] -->``: where GRaF pays as the neighbours thin out, from the
-neighbour-distance study's record (:mod:`graf.reports.distance`): its advice sentence, its figure and (not ``brief``:
-the front page) its table; while the record is being made, how many of its jobs have finished and the command that
-goes on with it.
+"""``<!-- gen: distance sweeps/<record> [brief] [experiment=NAME] -->``: where GRaF pays as the neighbours thin out,
+from a neighbour-distance study's record (:mod:`graf.reports.distance`): its advice sentence, its figure and (not
+``brief``: the front page) its table; while the record is being made, how many of its jobs have finished and the
+command that goes on with it.  ``experiment``: the study's experiment (default ``neighbor_distance``, the rooms;
+``neighbor_distance_rfid``: the measured scene), whose grid gives the planned jobs and whose stage of
+``scripts/paper_studies_cpu.sh`` goes on with it.
 """
 
 from __future__ import annotations
@@ -15,37 +17,44 @@ from graf.reports.distance import markdown
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "src" / "graf" / "conf"
-SCRIPT = "bash scripts/paper_studies_cpu.sh distance"
+EXPERIMENT = "neighbor_distance"
 
 
-def grid() -> dict[str, list[str]]:
-    """The study's default grid: the sweep of ``experiment=neighbor_distance`` and the seeds of ``study_size=paper``."""
-    params = dict(OmegaConf.load(CONF / "experiment" / "neighbor_distance.yaml").hydra.sweeper.params)
-    params["seed"] = OmegaConf.load(CONF / "study_size" / "paper.yaml").hydra.sweeper.params.seed
+def script(experiment: str = EXPERIMENT) -> str:
+    """The command that runs (and goes on with) the study: its stage of scripts/paper_studies_cpu.sh."""
+    return f"bash scripts/paper_studies_cpu.sh {experiment.removeprefix('neighbor_')}"
+
+
+def grid(experiment: str = EXPERIMENT) -> dict[str, list[str]]:
+    """The study's default grid: the experiment's sweep, and the seeds of ``study_size=paper`` where it sweeps none."""
+    params = dict(OmegaConf.load(CONF / "experiment" / f"{experiment}.yaml").hydra.sweeper.params)
+    params.setdefault("seed", OmegaConf.load(CONF / "study_size" / "paper.yaml").hydra.sweeper.params.seed)
     return {k: str(v).split(",") for k, v in params.items()}
 
 
-def planned_jobs() -> int:
-    """The jobs of the default grid: every method and family at every distance and seed, and one validation job per
-    GRaF mode and distance (scripts/paper_studies_cpu.sh distance)."""
-    g = grid()
+def planned_jobs(experiment: str = EXPERIMENT) -> int:
+    """The jobs of the default grid: every method and training scene at every distance and seed, and where the study
+    compares GRaF modes, one validation job per mode and distance (scripts/paper_studies_cpu.sh)."""
+    g = grid(experiment)
     modes = [m for m in g["model"] if m.startswith("graf")]
-    per_distance = len(g["model"]) * len(g["scene"]) * len(g["seed"]) + len(modes)
+    validation = len(modes) if len(modes) > 1 else 0  # one mode: fixed before the runs, nothing to choose
+    per_distance = len(g["model"]) * len(g.get("scene", [""])) * len(g["seed"]) + validation
     return per_distance * len(g["neighbors.exclude_within"])
 
 
 def block(arg: str) -> str:
     path, *flags = arg.split()
+    experiment = next((f.split("=", 1)[1] for f in flags if f.startswith("experiment=")), EXPERIMENT)
     folder = ROOT / path
     record = folder / "distance.json"
     done = len(list(folder.rglob("results.json"))) if folder.is_dir() else 0
     if not record.is_file():
-        g = grid()
-        distances = [f"{float(d):g}" for d in g["neighbors.exclude_within"]]
+        g = grid(experiment)
+        distances = [f"{d:g}" for d in sorted(float(x) for x in g["neighbors.exclude_within"])]
         return (
-            f"*The neighbour-distance study is under way: {done} of its {planned_jobs()} jobs have finished (the "
+            f"*The neighbour-distance study is under way: {done} of its {planned_jobs(experiment)} jobs have finished (the "
             f"distances {', '.join(distances[:-1])} and {distances[-1]} wavelengths, {len(g['seed'])} seeds). "
-            f"`{SCRIPT}` goes on with it, skipping what has finished; this section then shows its answer, generated "
+            f"`{script(experiment)}` goes on with it, skipping what has finished; this section then shows its answer, generated "
             "from its record.*"
         )
     data = json.loads(record.read_text())
@@ -53,7 +62,8 @@ def block(arg: str) -> str:
         {c["n_seeds"] for fam in data["differences"].values() for row in fam.values() for m in row.values()
          for c in m.values() if isinstance(c, dict) and "n_seeds" in c}
     )  # fmt: skip
-    partial = "" if done >= planned_jobs() else f" ({done} of {planned_jobs()} jobs so far; `{SCRIPT}` goes on)"
+    planned = planned_jobs(experiment)
+    partial = "" if done >= planned else f" ({done} of {planned} jobs so far; `{script(experiment)}` goes on)"
     return "\n\n".join(
         [
             f"**{data['advice']}**",

@@ -3,7 +3,7 @@
 # run it again after an interruption and every finished job is skipped (the studies' skip_finished); a job stopped
 # mid-way starts over.  From the repository's root, with the project installed (bash scripts/setup.sh):
 #
-#   bash scripts/paper_studies_cpu.sh [matrix] [nc] [bands] [unseen] [distance]   (no argument: the first four)
+#   bash scripts/paper_studies_cpu.sh [matrix] [nc] [bands] [unseen] [distance] [distance_rfid]   (no argument: the first four)
 #
 # Each trained model runs its budget from the paper-density learning curves (regime cross_family_val, validated on
 # layouts no study tests on: GRaF graf_cpu_scenes_ray_weights 1,000 steps, KNN-DL 3,000; study_budgets in
@@ -30,6 +30,10 @@
 #           GRAF_DISTANCES (0.0,4.0,1.0: the ends and the middle first; the full axis adds 0.5,2.0), tested on the
 #           family's other layouts, seeds 0-2, into sweeps/neighbor_distance_paper (GRAF_DISTANCE: another record);
 #           first each GRaF mode's validation job per distance (<record>/validation/), which choose the mode.
+#   distance_rfid  the same axis within the measured scene rfid_s23 (experiment=neighbor_distance_rfid): KNN-DL and the
+#           main job's accurate GRaF (ray_knn, 10,000 steps each), distances GRAF_RFID_DISTANCES (the experiment's:
+#           0.0,1.0,0.5), seeds 0-2, into sweeps/neighbor_distance_rfid (GRAF_DISTANCE_RFID: another record); each
+#           job a run of its own that resumes from its last.ckpt (then graf-report runs=sweeps/neighbor_distance_rfid).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 TRAIN=${GRAF_TRAIN:-.venv/bin/graf-train}
@@ -43,10 +47,13 @@ budget() {  # a model's study budget: its one home, conf/study_size/paper.yaml (
 }
 declare -A STEPS=([graf_cpu_scenes_ray_weights]=${GRAF_STEPS:-$(budget graf_cpu_scenes_ray_weights)}
     [knn_dl]=${GRAF_KNN_DL_STEPS:-$(budget knn_dl)})
-declare -A THREADS=([graf_cpu_scenes_ray_weights]=2 [graf_cpu_scenes_ray_knn]=2 [knn_dl]=1)
+declare -A THREADS=([graf_cpu_scenes_ray_weights]=2 [graf_cpu_scenes_ray_knn]=2 [graf_cpu_ray_knn]=2 [knn_dl]=1)
 BANDS=${GRAF_BANDS:-915mhz,1.8ghz,2.4ghz,3ghz}  # the bands the bands study trains at and tests at
 UNSEEN_FT=${GRAF_UNSEEN_FINETUNE:-none,f05,f10,f20,f50,f100}  # the fine-tuning fractions unseen tests
 DISTANCE=${GRAF_DISTANCE:-sweeps/neighbor_distance_paper}  # the neighbour-distance record
+DISTANCE_RFID=${GRAF_DISTANCE_RFID:-sweeps/neighbor_distance_rfid}  # the measured scene's neighbour-distance record
+RFID_DISTANCES=${GRAF_RFID_DISTANCES:-$("${PYTHON:-.venv/bin/python}" -c "from omegaconf import OmegaConf as O
+print(O.load('conf/experiment/neighbor_distance_rfid.yaml').hydra.sweeper.params['neighbors.exclude_within'])")}
 ends_first() {  # the study's distances (conf/experiment/neighbor_distance.yaml), the two ends first, then the rest
     "${PYTHON:-.venv/bin/python}" -c "from omegaconf import OmegaConf as O
 d = sorted(str(O.load('conf/experiment/neighbor_distance.yaml').hydra.sweeper.params['neighbors.exclude_within']).split(','), key=float)
@@ -120,8 +127,24 @@ for study in "${STUDIES[@]}"; do
             done
         done
         ;;
+    distance_rfid)  # the measured scene within itself, seed-major, the distances in the experiment's order
+        for seed in 0 1 2; do
+            for d in ${RFID_DISTANCES//,/ }; do
+                for model in knn_dl graf_cpu_ray_knn; do
+                    # one run per job (10,000 steps: about 40 min for GRaF), resumed from its last.ckpt after a stop
+                    dir="$DISTANCE_RFID/model=$model,neighbors.exclude_within=$d,seed=$seed"
+                    [ -f "$dir/results.json" ] && { say "done already: $dir"; continue; }
+                    ckpt=()
+                    [ -f "$dir/checkpoints/last.ckpt" ] && ckpt=("ckpt_path='$dir/checkpoints/last.ckpt'")
+                    say "distance_rfid: $model exclude_within=$d seed=$seed ${ckpt[*]}"
+                    "$TRAIN" experiment=neighbor_distance_rfid "model=$model" "seed=$seed" "neighbors.exclude_within=$d" \
+                        "torch_threads=${THREADS[$model]}" hydra.mode=RUN "hydra.run.dir='$dir'" "${ckpt[@]}"
+                done
+            done
+        done
+        ;;
     *)
-        echo "unknown study '$study': one of matrix, nc, bands, unseen, distance" >&2
+        echo "unknown study '$study': one of matrix, nc, bands, unseen, distance, distance_rfid" >&2
         exit 2
         ;;
     esac

@@ -451,6 +451,10 @@ def test_the_distance_block_shows_the_record_or_how_far_its_run_has_got(tmp_path
     (tmp_path / "job").mkdir(parents=True)
     (tmp_path / "job" / "results.json").write_text("{}")
     assert "1 of its 60 jobs have finished" in distance.block(str(tmp_path))
+    # the measured scene's study: 2 methods x 3 distances x 3 seeds, one GRaF mode (nothing to validate), its own stage
+    assert distance.planned_jobs("neighbor_distance_rfid") == 18
+    rfid = distance.block(f"{tmp_path} experiment=neighbor_distance_rfid")
+    assert "1 of its 18 jobs" in rfid and "paper_studies_cpu.sh distance_rfid" in rfid
     c = {"diff": 0.5, "low": 0.2, "high": 0.8, "verdict": "ahead", "n_seeds": 3}
     record = {
         "distances": ["0.0", "4.0"], "choice": {}, "wavelength_m": 0.125, "advice": "Use GRaF beyond 4 wavelengths.",

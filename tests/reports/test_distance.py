@@ -133,3 +133,37 @@ def test_leads_from_needs_every_larger_distance_and_the_advice_says_when_nothing
     assert "nearest-neighbour mean" in advice(none)
     everywhere = {**none, "thresholds": {"knn-dl": {"vs_knn": {"all": 0.0}}}}
     assert advice(everywhere) == ("KNN-DL leads KNN at every distance tested (0 to 4 wavelengths).")
+
+
+def test_a_study_of_one_fixed_mode_within_its_scene_shows_that_mode_and_the_geometry_of_single_runs(tmp_path):
+    """experiment=neighbor_distance_rfid: one GRaF mode, no validation jobs, each job a single run tested within its
+    training scene (no ``evaluations`` list: the geometry is read from the run's own ``splits``)."""
+    rng = np.random.default_rng(7)
+    root = tmp_path / "neighbor_distance_rfid"
+    for distance in (0.0, 1.0):
+        knn = rng.normal(16.0, 2.0, len(IDS))
+        for method, lift in (("graf-ray-knn", 2.0 * distance), ("knn-dl", 0.0)):
+            for seed in (0, 1, 2):
+                mine = knn + lift + rng.normal(0.0, 0.2, len(IDS))
+                rows = [{"eval_scene": "rfid_s23", "method": m, "id": i, "mse": 10 ** (-v / 10), "psnr": v,
+                         "ssim": 0.5, "lpips": 0.3} for m, vs in ((method, mine), ("knn", knn))
+                        for i, v in zip(IDS, vs)]  # fmt: skip
+                job = root / f"model={method},exclude_within={distance},seed={seed}"
+                job.mkdir(parents=True)
+                write_per_spectrum(job / "per_spectrum.csv.gz", rows)
+                used = {"median_m": 0.33 * distance + 0.01, "median_wavelengths": distance + 0.02, "n_targets": 120}
+                result = {**_result(method, seed, "rfid_s23", distance, None), "eval_scene": "rfid_s23",
+                          "band_hz": 915e6, "splits": {"nearest_neighbor_used": used}}  # fmt: skip
+                del result["evaluations"]
+                (job / "results.json").write_text(json.dumps(result))
+    out = tmp_path / "report"
+    make_report(root, out, {"L": 10, "finetune": "f20", "exclude_within": 1.0})
+    record = json.loads((out / "distance.json").read_text())
+    points = record["differences"]["rfid_s23"]
+    assert points["1.0"][GRAF]["mode"] == "graf-ray-knn" and points["1.0"][GRAF]["chosen_on"] == "fixed"
+    assert points["1.0"][GRAF]["vs_knn"]["verdict"] == "ahead" and points["0.0"][GRAF]["vs_knn"]["verdict"] != "ahead"
+    assert record["within_scene"] and record["thresholds"][GRAF]["vs_knn"]["all"] == 1.0
+    geo = {(g["exclude_within"], g["eval_scene"]): g for g in record["geometry"]}
+    assert geo[("1.0", "rfid_s23")]["median_wavelengths"] == pytest.approx(1.02)
+    readme = (out / "README.md").read_text()
+    assert "graf-ray-knn (fixed before the runs)" in readme and "rfid_s23: 1.02 λ, 34.0 cm" in readme

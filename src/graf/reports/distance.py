@@ -8,7 +8,8 @@ training scene's, its test layouts pooled: 240 paired spectra for two layouts of
 - each trained method minus KNN and minus KNN-DL, with the paired interval of :mod:`graf.reports.statistics`;
 - GRaF's mode chosen on validation at that distance (:func:`validation_choice`, from the study's ``validation/``
   jobs: each GRaF mode validated zero-shot on its family's validation layout), and the chosen mode's figures as
-  "GRaF";
+  "GRaF"; a study of one GRaF mode and no validation jobs (``experiment=neighbor_distance_rfid``: the mode fixed
+  before the runs) shows that mode;
 - the geometry each cell's methods saw: the median over its targets of the distance to the nearest neighbour
   actually used, in wavelengths and centimetres (``splits.nearest_neighbor_used`` of each evaluation);
 - the distance from which a learned method leads KNN with an interval above 0 at that distance and every larger one
@@ -34,7 +35,7 @@ from graf.reports.table import read_run_result
 
 AXIS = "exclude_within"
 GRAF = "graf"  # the chosen GRaF mode's label in the figures and tables
-NAMES = {GRAF: "GRaF (the mode chosen at each distance)", "knn": "KNN", "knn-dl": "KNN-DL"}
+NAMES = {GRAF: "GRaF (the mode of each distance)", "knn": "KNN", "knn-dl": "KNN-DL"}
 
 
 def is_graf(method: str) -> bool:
@@ -124,9 +125,12 @@ def differences(cells: dict, choice: dict[str, dict]) -> dict[str, dict[str, dic
                 for r, ref in refs.items()
                 if ref is not None and r != method
             }
-        chosen = (choice.get(distance) or {}).get("mode")
+        chosen, how = (choice.get(distance) or {}).get("mode"), "validation"
+        grafs = [m for m in row if is_graf(m)]
+        if chosen is None and len(grafs) == 1:  # one GRaF mode, no validation jobs: the mode fixed before the runs
+            chosen, how = grafs[0], "fixed"
         if chosen in row:
-            row[GRAF] = {**row[chosen], "mode": chosen}
+            row[GRAF] = {**row[chosen], "mode": chosen, "chosen_on": how}
         out[family][distance] = row
     return dict(out)
 
@@ -183,7 +187,7 @@ def advice(record: dict) -> str:
     if graf is None and dl is None:
         return (
             f"Up to {_wl(tested[-1])}{_cm(tested[-1], wl)} between a target and its nearest measured neighbour, "
-            "neither learned method leads KNN in every family with an interval above 0: in these rooms a "
+            "neither learned method leads KNN in every family with an interval above 0: in these scenes a "
             "nearest-neighbour mean of the survey is the choice."
         )
     parts = []
@@ -224,6 +228,7 @@ def write_distance(runs: Path, out: Path) -> dict | None:
             {"trained_on": k[0], AXIS: k[1], "eval_scene": k[2], **v} for k, v in sorted(geo.items())
         ],  # fmt: skip
         "wavelength_m": wavelengths[0] if len(wavelengths) == 1 else None,
+        "within_scene": bool(geo) and all(k[0] == k[2] for k in geo),  # tested on the training scene itself
     }
     record["advice"] = advice(record)
     atomic_write_json(out / "distance.json", record)
@@ -258,7 +263,8 @@ def figure(record: dict, path: Path) -> None:
         ax.axhline(0.0, color="k", lw=0.8)
         ax.set_xlabel("neighbours left out within (wavelengths): neighbors.exclude_within")
         ax.set_ylabel(f"test PSNR {title} (dB)")
-        ax.set_title(f"{title}, same-family test layouts pooled, 95% intervals", fontsize=10)
+        where = "within the scene" if record.get("within_scene") else "same-family test layouts pooled"
+        ax.set_title(f"{title}, {where}, 95% intervals", fontsize=10)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="best")
     save_figure(fig, path, dpi=100)
@@ -279,7 +285,7 @@ def markdown(record: dict) -> str:
         geo[(g["trained_on"], g[AXIS])].append(
             f"{g['eval_scene']}: {g['median_wavelengths']:.2f} λ, {100 * g['median_m']:.1f} cm"
         )
-    head = ["trained on", "left out within (λ)", "GRaF mode (validation)", "nearest used (median)",
+    head = ["trained on", "left out within (λ)", "GRaF mode", "nearest used (median)",
             "GRaF - KNN", "GRaF - KNN-DL", "KNN-DL - KNN"]  # fmt: skip
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for family, points in sorted(record["differences"].items()):
@@ -287,7 +293,9 @@ def markdown(record: dict) -> str:
             row = points[d]
             g, dl = row.get(GRAF) or {}, row.get("knn-dl") or {}
             used = "; ".join(geo.get((family, d), [])) or "-"
-            cells = [family, f"{float(d):g}", g.get("mode", "-"), used,
+            how = {"fixed": " (fixed before the runs)", "validation": " (chosen on validation)"}.get(g.get("chosen_on"), "")
+            mode = g.get("mode", "-") + how
+            cells = [family, f"{float(d):g}", mode, used,
                      _fmt(g.get("vs_knn")), _fmt(g.get("vs_knn-dl")), _fmt(dl.get("vs_knn"))]  # fmt: skip
             lines.append("| " + " | ".join(cells) + " |")
     said = []

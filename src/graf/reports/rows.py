@@ -87,6 +87,7 @@ def evaluations(result: dict) -> list[dict]:
             "n_test": result.get("n_test"),
             "band_hz": result.get("band_hz"),
             "baselines": result.get("baselines"),
+            "splits": result.get("splits"),
         }
     ]
 
