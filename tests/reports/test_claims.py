@@ -15,6 +15,7 @@ from omegaconf import OmegaConf
 
 from graf.app.config import CONF_DIR
 from graf.reports.claims import ledger, write_ledger
+from graf.reports.claims.findings import VERDICTS as FINDING_VERDICTS
 from graf.reports.intervals import write_intervals
 from graf.run.per_spectrum import write_per_spectrum
 
@@ -245,8 +246,14 @@ def test_the_published_ledger_page_is_a_summary_then_a_section_per_claim_with_it
     out = root / "sweeps" / "claims"
     with open(out / "claims.csv", newline="") as f:
         rows = list(csv.DictReader(f))
-    text = (out / "claims.md").read_text()
+    whole = (out / "claims.md").read_text()
     claims = _claims()
+    found = {c["id"] for c in claims if c["kind"] == "distance"}  # findings beyond the paper: their own part
+    text, _, findings = whole.partition("## Findings beyond the paper {#findings}")
+    assert findings and [i for _, i in SECTION.findall(findings)] == [r["id"] for r in rows if r["id"] in found]
+    said = {v: int(n) for v, n in re.findall(r"^- \*\*([a-z ]+)\*\* \((\d+)\):", findings, re.M)}
+    assert said == {v: sum(r["verdict"] == v for r in rows if r["id"] in found) for v in FINDING_VERDICTS}
+    rows = [r for r in rows if r["id"] not in found]
     rerun = {c["id"]: c["of"] for c in claims if c.get("of")}  # a re-run of a claim: a part of its section
     counts, bases = Counter(), [r for r in rows if r["id"] not in rerun]
     for verdict, n, named in SUMMARY.findall(text):
@@ -264,10 +271,12 @@ def test_the_published_ledger_page_is_a_summary_then_a_section_per_claim_with_it
         if r["interval"]:  # a comparison: its cells' table and its forest plot, drawn and shown
             assert (out / f"{r['id']}.png").is_file() and f"](sweeps/claims/{r['id']}.png)" in part
             assert "| 95% interval |" in part
-    for line in (x for x in text.splitlines() if x.startswith("|")):
+    for line in (x for x in whole.splitlines() if x.startswith("|")):
         cells = [c.strip() for c in line.strip("|").split(" | ")]
         assert len(cells) <= MAX_COLUMNS and max(map(len, cells)) <= MAX_CELL, line
-    assert text == page(claims, rows, {c["id"]: claim_cells(c, root) for c in claims}, root, out)
+    with open(out / "claims.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert whole == page(claims, rows, {c["id"]: claim_cells(c, root) for c in claims}, root, out)
 
 
 def test_the_claims_page_cites_the_paper_and_shows_the_ledger():

@@ -21,6 +21,9 @@ how (``kind``):
   Holds when every pair's interval says so, refuted when one says the other way, not reproduced when one includes 0.
 - ``note``: a claim the platform cannot check on its own terms (another GPU, another unit): not comparable, with
   the platform's figure where it has one.
+- ``distance``: not a claim of the paper but a finding of the platform's own (:mod:`.findings`): a
+  neighbour-distance record's ``method`` minus ``reference`` at every family and distance; its verdict says where
+  the method leads, trails or is level, in a part of the page of its own, counted apart from the claims.
 
 Every claim may require the paper's density (``paper_density: true``): a record made on scenes cut below it (its
 ``sim_num_tx``, or ``config.sim_num_tx``, set; or the embedded slice of a real scene) makes the verdict "not

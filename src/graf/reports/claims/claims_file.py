@@ -23,6 +23,7 @@ NEEDS = {
     "change": ("record", "method", "L_from", "L_to", "metric"),
     "transfer": ("record", "method", "metric"),
     "note": ("reason",),
+    "distance": ("record", "method", "reference", "metric"),  # a finding beyond the paper
 }
 
 

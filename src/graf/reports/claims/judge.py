@@ -14,6 +14,8 @@ from graf.app.config import task_wrapper
 from graf.errors import ConfigError
 from graf.io import atomic_write_bytes, atomic_write_json
 from graf.reports.claims.claims_file import check_claim, check_claims, check_records, read_claims
+from graf.reports.claims.findings import NO_RECORD, distance_cells, is_finding, judge_distance
+from graf.reports.claims.findings import VERDICTS as FINDING_VERDICTS
 from graf.reports.claims.ledger import VERDICTS, value_interval, write_page
 from graf.reports.claims.records import density_reason, load_record, lookup, untrusted_timings
 from graf.reports.rows import short_scenes
@@ -217,6 +219,7 @@ JUDGES = {
     "difference": judge_value,
     "change": judge_change,
     "transfer": judge_transfer,
+    "distance": judge_distance,  # a finding beyond the paper (graf.reports.claims.findings)
 }
 
 
@@ -236,7 +239,9 @@ def judge(claim: dict, root: Path) -> dict:
         return row
     data = load_record(root, claim["record"])
     if data is None:
-        row.update(verdict="not reproduced", reason=f"no record yet: {claim['record']}")
+        row.update(
+            verdict=NO_RECORD if is_finding(claim) else "not reproduced", reason=f"no record yet: {claim['record']}"
+        )
         return row
     if claim.get("paper_density"):
         why = density_reason(data)
@@ -260,7 +265,7 @@ def ledger(claims: list[dict], root: Path, where: str = "claims") -> list[dict]:
     return [judge(c, root) for c in claims]
 
 
-CELLS = {"paired": paired_cells, "change": change_cells, "transfer": transfer_cells}
+CELLS = {"paired": paired_cells, "change": change_cells, "transfer": transfer_cells, "distance": distance_cells}
 
 
 def claim_cells(claim: dict, root: Path) -> list[dict]:
@@ -286,8 +291,16 @@ def write_ledger(claims: list[dict], rows: list[dict], root: Path, out: Path) ->
     w.writerows(rows)
     atomic_write_bytes(out / "claims.csv", text.getvalue().encode())
     write_page(claims, rows, {c["id"]: claim_cells(c, root) for c in claims}, root, out)
-    counts = {v: sum(r["verdict"] == v for r in rows) for v in VERDICTS}
-    atomic_write_json(out / "results.json", {"task": "claims", "counts": counts, "rows": rows})
+    atomic_write_json(out / "results.json", {"task": "claims", **counts(claims, rows), "rows": rows})
+
+
+def counts(claims: list[dict], rows: list[dict]) -> dict:
+    """``{"counts": the paper's claims (and their re-runs) per verdict, "findings": the findings per verdict}``."""
+    finding = {c["id"]: is_finding(c) for c in claims}
+    return {
+        "counts": {v: sum(r["verdict"] == v for r in rows if not finding[r["id"]]) for v in VERDICTS},
+        "findings": {v: sum(r["verdict"] == v for r in rows if finding[r["id"]]) for v in FINDING_VERDICTS},
+    }
 
 
 @task_wrapper
@@ -302,4 +315,4 @@ def claims(cfg: DictConfig) -> dict:
     for r in rows:
         log.info("%-28s %-15s %s", r["id"], r["verdict"], r["platform"])
     log.info("ledger: %s (the page: %s)", out / "claims.csv", out / "claims.md")
-    return {"counts": {v: sum(r["verdict"] == v for r in rows) for v in VERDICTS}}
+    return counts(claims, rows)

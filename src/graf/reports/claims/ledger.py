@@ -47,16 +47,20 @@ def write_page(claims: list[dict], rows: list[dict], cells: dict[str, list[dict]
 
 def page(claims: list[dict], rows: list[dict], cells: dict[str, list[dict]], root: Path, out: Path) -> str:
     """The ledger's page: the summary, then a section per claim of the paper (in the config's order), a re-run of
-    it (``of``: the same claim on another record, at other budgets) a part of that section with its own verdict."""
+    it (``of``: the same claim on another record, at other budgets) a part of that section with its own verdict;
+    then the findings beyond the paper, counted apart (:mod:`graf.reports.claims.findings`)."""
+    from graf.reports.claims.findings import is_finding, part  # findings build on this module's parts
+
     by_id = {c["id"]: c for c in claims}
     parts = [summary(claims, rows)]
+    figures = {r["id"]: _link(out / f"{r['id']}.png", root) for r in rows if cells.get(r["id"])}
     for row in rows:
-        if by_id[row["id"]].get("of"):
+        if by_id[row["id"]].get("of") or is_finding(by_id[row["id"]]):
             continue
         for r in [row, *(r for r in rows if by_id[r["id"]].get("of") == row["id"])]:
-            figure = _link(out / f"{r['id']}.png", root) if cells.get(r["id"]) else None
-            parts.append(section(by_id[r["id"]], r, cells.get(r["id"]) or [], figure, root))
-    return "\n\n".join(parts) + "\n"
+            parts.append(section(by_id[r["id"]], r, cells.get(r["id"]) or [], figures.get(r["id"]), root))
+    parts.append(part(claims, rows, cells, root, figures))  # the findings beyond the paper, counted apart
+    return "\n\n".join(p for p in parts if p) + "\n"
 
 
 def _link(path: Path, root: Path) -> str:
@@ -76,10 +80,12 @@ def summary(claims: list[dict], rows: list[dict]) -> str:
     """The claims counted per verdict, one line each naming its claims (linked to their sections), a claim's
     re-runs (``of``) named beside it with their own verdicts, not counted again; the paper's claims first, then
     each group judged against another figure (``against``)."""
+    from graf.reports.claims.findings import is_finding
+
     by_id = {c["id"]: c for c in claims}
     groups: dict[str | None, list[dict]] = {}
     for row in rows:
-        if not by_id[row["id"]].get("of"):
+        if not by_id[row["id"]].get("of") and not is_finding(by_id[row["id"]]):
             groups.setdefault(by_id[row["id"]].get("against"), []).append(row)
     out = []
     for against, group in sorted(groups.items(), key=lambda g: g[0] is not None):

@@ -1,0 +1,108 @@
+"""The ledger's findings beyond the paper: results of the platform's own studies that no claim of the paper states,
+judged from their records with the same intervals, in a section of their own and counted apart from the claims.
+
+One kind so far, ``distance``: a neighbour-distance study's record (``distance.json``,
+:mod:`graf.reports.distance`), ``method`` (``graf``: GRaF in the mode of each distance, or a method of the record)
+minus ``reference`` (``knn`` or ``knn-dl``) at every (family, distance) of the record, each with its paired 95%
+interval.  The finding's verdict says where the method stands (:data:`VERDICTS`): ``leads`` (ahead somewhere,
+behind nowhere), ``trails`` (behind somewhere, ahead nowhere), ``level`` (neither anywhere), ``mixed`` (both), or
+``not run yet`` (no record); the reason lists the distances of each.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from graf.reports.claims.ledger import platform, record, shell_lines, title, wrap
+
+KINDS = ("distance",)
+VERDICTS = ("leads", "trails", "level", "mixed", "not run yet")
+NO_RECORD = "not run yet"
+
+
+def is_finding(claim: dict) -> bool:
+    return claim.get("kind") in KINDS
+
+
+def distance_cells(claim: dict, data: dict) -> list[dict]:
+    """The cells of a distance finding: per family (training scene) and distance, ``method`` minus ``reference``."""
+    out = []
+    for family, points in sorted((data.get("differences") or {}).items()):
+        for distance in sorted(points, key=float):
+            c = (points[distance].get(claim["method"]) or {}).get(f"vs_{claim['reference']}")
+            if c is not None:
+                name = f"{family}, {float(distance):g} λ"
+                out.append(
+                    {"cell": name, "diff": c["diff"], "low": c["low"], "high": c["high"], "verdict": c["verdict"]}
+                )
+    return out
+
+
+def _where(cells: list[dict], verdict: str) -> str:
+    """The cells of one interval verdict, per family: ``conference_v1 at 1, 4 λ``."""
+    per: dict[str, list[str]] = {}
+    for c in cells:
+        if c["verdict"] == verdict or (verdict == "level" and c["verdict"] not in ("ahead", "behind")):
+            family, distance = c["cell"].rsplit(", ", 1)
+            per.setdefault(family, []).append(distance.removesuffix(" λ"))
+    return "; ".join(f"{family} at {', '.join(ds)} λ" for family, ds in per.items())
+
+
+def judge_distance(claim: dict, data: dict) -> dict:
+    """The finding's row: the cells as the platform and interval columns, its verdict, and where it leads, trails
+    and is level."""
+    cells = distance_cells(claim, data)
+    if not cells:
+        return {"verdict": NO_RECORD, "reason": f"the record has no {claim['method']} - {claim['reference']} yet"}
+    ahead, behind = (any(c["verdict"] == v for c in cells) for v in ("ahead", "behind"))
+    verdict = {(True, False): "leads", (False, True): "trails", (False, False): "level"}.get((ahead, behind), "mixed")
+    where = {"ahead": "above", "behind": "below", "level": "around"}  # the 95% interval against 0
+    said = [(w, _where(cells, w)) for w in where]
+    return {
+        "platform": "; ".join(f"{c['cell']}: {c['diff']:+.2f}" for c in cells),
+        "interval": "; ".join(f"{c['cell']}: [{c['low']:+.2f}, {c['high']:+.2f}]" for c in cells),
+        "verdict": verdict,
+        "reason": ". ".join(f"{w.capitalize()} (95% interval {where[w]} 0): {s}" for w, s in said if s),
+    }
+
+
+def summary(claims: list[dict], rows: list[dict]) -> str:
+    """The findings counted per verdict, one line each naming its findings (linked to their sections)."""
+    by_id = {c["id"]: c for c in claims}
+    found = [r for r in rows if is_finding(by_id[r["id"]])]
+    lines = [f"**Findings beyond the paper** ({len(found)}):", ""]
+    for verdict in VERDICTS:
+        named = [f"[{title(by_id[r['id']])}](#{r['id']})" for r in found if r["verdict"] == verdict]
+        lines.append(f"- **{verdict}** ({len(named)}): {', '.join(named) or 'none'}")
+    return "\n".join(lines)
+
+
+def section(claim: dict, row: dict, cells: list[dict], figure: str | None, root: Path) -> str:
+    """One finding's section: heading, what it asks, the platform's cells and forest plot, verdict, record,
+    command."""
+    parts = [
+        f"### {title(claim)} {{#{row['id']}}}",
+        f"*Not a claim of the paper.* {row['claim']}",
+        platform(claim, row, cells, figure),
+        f"Verdict: **{row['verdict']}**. {row['reason']}.",
+        record(row["record"], root) if (root / row["record"]).is_file() else f"Its record, once made: {row['record']}.",
+    ]
+    if row["command"]:
+        lines, _ = shell_lines(row["command"])
+        parts.append("Command:\n\n```bash\n" + "\n".join(wrap(line) for line in lines) + "\n```")
+    return "\n\n".join(p for p in parts if p)
+
+
+def part(claims: list[dict], rows: list[dict], cells: dict[str, list[dict]], root: Path, figures: dict) -> str:
+    """The ledger page's findings part (empty without findings): its heading, summary and one section each."""
+    by_id = {c["id"]: c for c in claims}
+    found = [r for r in rows if is_finding(by_id[r["id"]])]
+    if not found:
+        return ""
+    head = (
+        "## Findings beyond the paper {#findings}\n\n"
+        "Results of the platform's own studies that no claim of the paper states, judged from their records with "
+        "the same paired 95% intervals: where a method leads (interval above 0), trails (below) or is level."
+    )
+    sections = [section(by_id[r["id"]], r, cells.get(r["id"]) or [], figures.get(r["id"]), root) for r in found]
+    return "\n\n".join([head, summary(claims, rows), *sections])
