@@ -1,6 +1,7 @@
 """Write the main job's headline tables into the README (between their headline markers) from the published records
 ``sweeps/main_job/results.json`` and, where the README has its block, the accurate variant's
-``sweeps/main_job_accurate/results.json``, the default tests' timed run (``sweeps/test_timing/results.json``,
+``sweeps/main_job_accurate/results.json``, the neighbour-distance study's advice
+(``sweeps/neighbor_distance_paper/distance.json``), the default tests' timed run (``sweeps/test_timing/results.json``,
 ``scripts/time_tests.py``) and the set-up and main job timed as a newcomer runs them
 (``sweeps/newcomer_timing/results.json``, ``scripts/time_newcomer.sh``): ``python scripts/headline.py``
 (``--check``: exit 1 if the README differs). The site's pages include the same table through ``<!-- gen: headline
@@ -132,6 +133,28 @@ def seeds_sentence() -> str:
     )
 
 
+DISTANCE = "sweeps/neighbor_distance_paper"  # the rooms' neighbour-distance study (experiment=neighbor_distance)
+DISTANCE_MARKERS = (f"<!-- distance-sentence: generated from {DISTANCE}/distance.json; do not edit -->",
+                    "<!-- /distance-sentence -->")  # fmt: skip
+
+
+def distance_sentence() -> str:
+    """The README's words on how sparse a survey may be: the rooms' neighbour-distance record's advice, or how far
+    its run has got (the jobs finished of those planned: docs_hooks/distance.py)."""
+    sys.path.insert(0, str(ROOT))
+    from docs_hooks.distance import planned_jobs, script
+
+    record = ROOT / DISTANCE / "distance.json"
+    if record.is_file():
+        advice = json.loads(record.read_text())["advice"]
+        return f"From the neighbour-distance study (`{DISTANCE}/`, 3 seeds, paired 95% intervals): **{advice}**"
+    done = len(list((ROOT / DISTANCE).rglob("results.json"))) if (ROOT / DISTANCE).is_dir() else 0
+    return (
+        f"The neighbour-distance study, which answers this with intervals across the rooms, is under way: {done} of "
+        f"its {planned_jobs()} jobs have finished (`{script()}` goes on with it)."
+    )
+
+
 def main(argv: list[str]) -> int:
     readme = ROOT / "README.md"
     text = readme.read_text()
@@ -144,6 +167,8 @@ def main(argv: list[str]) -> int:
         new = with_block(new, NEWCOMER_MARKERS, newcomer_timing(json.loads((ROOT / NEWCOMER).read_text())))
     if README_SEEDS_MARKERS[0] in new:
         new = with_block(new, README_SEEDS_MARKERS, seeds_sentence())
+    if DISTANCE_MARKERS[0] in new:  # how sparse a survey may be (the rooms' neighbour-distance study)
+        new = with_block(new, DISTANCE_MARKERS, distance_sentence())
     seeds = ROOT / SEEDS / "README.md"
     seeds_text = seeds.read_text() if seeds.is_file() else ""
     seeds_new = with_block(seeds_text, SEEDS_MARKERS, "\n" + seeds_table() + "\n") if seeds_text else ""
