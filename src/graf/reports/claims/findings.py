@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from graf.reports.claims.ledger import platform, record, shell_lines, title, wrap
+from graf.reports.claims.ledger import _sentence, platform, record, shell_lines, title, wrap
 
 KINDS = ("distance",)
 VERDICTS = ("leads", "trails", "level", "mixed", "not run yet")
@@ -84,8 +84,8 @@ def section(claim: dict, row: dict, cells: list[dict], figure: str | None, root:
         f"### {title(claim)} {{#{row['id']}}}",
         f"*Not a claim of the paper.* {row['claim']}",
         platform(claim, row, cells, figure),
-        f"Verdict: **{row['verdict']}**. {row['reason']}.",
-        record(row["record"], root) if (root / row["record"]).is_file() else f"Its record, once made: {row['record']}.",
+        f"Verdict: **{row['verdict']}**. {_sentence(row['reason'])}",
+        record(row["record"], root) if (root / row["record"]).is_file() else "",  # not run yet: the reason names it
     ]
     if row["command"]:
         lines, _ = shell_lines(row["command"])
