@@ -433,6 +433,18 @@ def test_the_readme_headline_is_the_published_main_job_record():
     assert readme.count(HEADLINE_MARKERS[0]) == 1
 
 
+def test_the_kernel_width_record_readme_is_generated_from_its_runs():
+    """sweeps/kernel_width/README.md: its timings and paired intervals are written by scripts/records/kernel_width.py
+    from the runs' files, never typed."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("kernel_width", ROOT / "scripts" / "records" / "kernel_width.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    assert module.main(["--check"]) == 0, "sweeps/kernel_width/README.md is stale: run scripts/records/kernel_width.py"
+    assert "8 lanes minus 16" in (ROOT / "sweeps" / "kernel_width" / "README.md").read_text()
+
+
 def test_the_choosing_tables_own_data_steps_are_graf_trains_default():
     """The choosing table's "your data" column times graf-train's default length, read from the trainer config."""
     text = (ROOT / "docs_hooks" / "choosing.py").read_text()

@@ -11,7 +11,9 @@
 #      (sweeps/cross_scene_matrix_paper_recipe/), and its report;
 #   3. the neighbour-count re-run from those checkpoints (sweeps/neighbor_count_paper_recipe/), and its report;
 #   4. RF-GS within each room at its 10,000-step budget (sweeps/rf_gs_paper_10000/), beside the matrix;
-#   5. the neighbour-distance study (sweeps/neighbor_distance_paper/), and its report.
+#   5. the neighbour-distance study (sweeps/neighbor_distance_paper/), and its report;
+#   6. the same axis on the measured scene (sweeps/neighbor_distance_rfid/), and its report.
+# Between 3 and 4: the kernel's vector width on a 1,000-step paper-density cell (sweeps/kernel_width/paper_cell/).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 TRAIN=.venv/bin/graf-train
@@ -40,6 +42,16 @@ GRAF_NC=sweeps/neighbor_count_paper_recipe GRAF_MATRIX_MODELS="graf_cpu_scenes_r
     bash scripts/paper_studies_cpu.sh nc
 .venv/bin/graf-report runs=sweeps/neighbor_count_paper_recipe hydra.run.dir=sweeps/neighbor_count_paper_recipe/report_logs
 
+for w in 64 32; do  # the kernel's vector width at the paper's density (sweeps/kernel_width/, scripts/records/kernel_width.py)
+    dir=sweeps/kernel_width/paper_cell/bytes_$w
+    [ -f "$dir/results.json" ] && { say "done already: $dir"; continue; }
+    say "kernel width $w bytes: paper cell"
+    GRAF_KERNEL_VECTOR_BYTES=$w "$TRAIN" experiment=cross_scene_matrix model=graf_cpu_scenes_ray_weights \
+        scene=conference_v1 seed=0 study_steps=1000 'eval_scene=[conference_v2]' torch_threads=2 reliance=false \
+        data_root=data hydra.mode=RUN "hydra.run.dir=$dir"
+done
+.venv/bin/python scripts/records/kernel_width.py
+
 say "rf_gs at its study budget"
 "$TRAIN" -m experiment=cross_scene_matrix model=rf_gs eval_scene=same scene=conference_v1,office_v1 seed=0,1,2 \
     torch_threads=1 reliance=false data_root=data hydra.sweep.dir=sweeps/rf_gs_paper_10000
@@ -48,4 +60,7 @@ say "rf_gs at its study budget"
 
 bash scripts/paper_studies_cpu.sh distance
 .venv/bin/graf-report runs=sweeps/neighbor_distance_paper hydra.run.dir=sweeps/neighbor_distance_paper/report_logs
+
+bash scripts/paper_studies_cpu.sh distance_rfid
+.venv/bin/graf-report runs=sweeps/neighbor_distance_rfid hydra.run.dir=sweeps/neighbor_distance_rfid/report_logs
 say "queue done"

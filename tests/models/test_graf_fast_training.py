@@ -193,3 +193,32 @@ def test_a_checkpoint_trained_on_the_fast_path_predicts_the_same_on_the_plain_pa
         with torch.no_grad():
             preds.append(model.eval().predict_spectra(batch))
     assert torch.isfinite(preds[0]).all() and torch.equal(preds[0], preds[1])
+
+
+@needs_kernel
+def test_the_kernel_gives_the_same_figures_at_either_vector_width(monkeypatch):
+    """GRAF_KERNEL_VECTOR_BYTES: the 16-lane (64-byte) kernel and the 8-lane (32-byte) one, which an AVX2 CPU builds by
+    default, give the same attention and gradients up to float rounding (their multiply-adds fuse differently); any
+    other width is refused by name."""
+    g = torch.Generator().manual_seed(3)
+    G, S, H, Dh = 6, 21, 10, 8
+    q = torch.randn(G, S, 3 * H * Dh, generator=g, requires_grad=True)
+    mask = torch.rand(G, S, generator=g) > 0.3
+    mask[:, 0] = True
+    runs = []
+    saved = dict(native._state)
+    try:
+        for width in ("64", "32"):
+            monkeypatch.setenv("GRAF_KERNEL_VECTOR_BYTES", width)
+            native._state.clear()
+            assert f"-DGRAF_VECTOR_BYTES={width}" in native.flags() and native.library() is not None
+            out = train_kernel.attention(q, None, H, Dh, mask, Dh**-0.5)
+            runs.append((out, torch.autograd.grad(out.square().sum(), [q])[0]))
+        (y0, d0), (y1, d1) = runs
+        assert torch.allclose(y1, y0, rtol=1e-5, atol=1e-6) and torch.allclose(d1, d0, rtol=1e-4, atol=1e-5)
+        monkeypatch.setenv("GRAF_KERNEL_VECTOR_BYTES", "48")
+        with pytest.raises(RuntimeError, match="GRAF_KERNEL_VECTOR_BYTES='48': must be 32 or 64"):
+            native.flags()
+    finally:
+        native._state.clear()
+        native._state.update(saved)

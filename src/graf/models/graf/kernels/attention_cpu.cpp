@@ -8,9 +8,22 @@
 #include <utility>
 #include <vector>
 
-typedef float vf __attribute__((vector_size(64)));  // 16 lanes: 16 queries at once
-typedef int32_t vi __attribute__((vector_size(64)));
-static const int LANES = 16;
+// A vector is one register of the widest kind the CPU has for floats: 16 lanes with AVX-512, 8 with AVX2, where a
+// 16-lane vector is split in two and the kernels' register arrays spill to memory (GRaF's training step 2.1x and its
+// inference 2.2x slower on a 2-core AVX2 EPYC).  Every lane is a query, key or ray of its own and nothing is summed
+// across lanes; the width changes which multiply-adds the compiler fuses, so the last bits of a result (not its
+// figures: docs/reproducibility.md).  GRAF_KERNEL_VECTOR_BYTES=64 (graf.models.graf.kernels.native) builds the
+// 16-lane kernel anywhere, as before.
+#ifndef GRAF_VECTOR_BYTES
+#if defined(__AVX2__) && !defined(__AVX512F__)
+#define GRAF_VECTOR_BYTES 32
+#else
+#define GRAF_VECTOR_BYTES 64
+#endif
+#endif
+typedef float vf __attribute__((vector_size(GRAF_VECTOR_BYTES)));
+typedef int32_t vi __attribute__((vector_size(GRAF_VECTOR_BYTES)));
+static const int LANES = GRAF_VECTOR_BYTES / 4;
 static const int MAX_DIM = 64;
 static const int MAX_KEYS = 4096;
 

@@ -2,7 +2,8 @@
 ctypes.
 
 The source is compiled once per machine with the system's C++ compiler (``$CXX``, else ``c++``/``g++``:
-``-O3 -march=native -fno-math-errno -shared -fPIC``) into ``$GRAF_KERNEL_DIR`` (default
+``-O3 -march=native -fno-math-errno -shared -fPIC``; ``GRAF_KERNEL_VECTOR_BYTES`` 32 or 64 fixes the vector width,
+else the CPU's widest) into ``$GRAF_KERNEL_DIR`` (default
 ``~/.cache/graf/kernels``), named by a hash of the source, the flags and the CPU, written atomically (two
 processes building at once both succeed).  Where there is no compiler, or the build or the load fails, or
 ``GRAF_NATIVE_KERNELS=0``, :func:`library` returns None once with a warning and callers use their torch path
@@ -54,16 +55,25 @@ def _cpu_id() -> str:
         return platform.machine() + platform.processor()
 
 
+def flags() -> tuple[str, ...]:
+    """The compiler's flags: :data:`FLAGS`, and the vector width ``GRAF_KERNEL_VECTOR_BYTES`` (32 or 64) where it is
+    set; unset, the source picks the CPU's widest (16 lanes with AVX-512, 8 with AVX2)."""
+    width = os.environ.get("GRAF_KERNEL_VECTOR_BYTES", "")
+    if width not in ("", "32", "64"):
+        raise RuntimeError(f"GRAF_KERNEL_VECTOR_BYTES={width!r}: must be 32 or 64 (bytes per vector)")
+    return FLAGS + ((f"-DGRAF_VECTOR_BYTES={width}",) if width else ())
+
+
 def _build(cxx: str) -> Path:
     src = SOURCE.read_bytes()
-    key = hashlib.sha256(src + " ".join((cxx,) + FLAGS).encode() + _cpu_id().encode()).hexdigest()[:16]
+    key = hashlib.sha256(src + " ".join((cxx,) + flags()).encode() + _cpu_id().encode()).hexdigest()[:16]
     out = kernel_dir() / f"graf_attention_{key}.so"
     if out.exists():
         return out
     out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=out.parent) as tmp:
         tmp_so = Path(tmp) / out.name
-        proc = subprocess.run([cxx, *FLAGS, str(SOURCE), "-o", str(tmp_so)], capture_output=True, text=True)
+        proc = subprocess.run([cxx, *flags(), str(SOURCE), "-o", str(tmp_so)], capture_output=True, text=True)
         if proc.returncode != 0:
             raise RuntimeError(f"{cxx} failed on {SOURCE}: {proc.stderr.strip()[-2000:]}")
         os.replace(tmp_so, out)  # atomic: a concurrent build of the same key writes the same bytes
