@@ -6,14 +6,11 @@ One kind so far, ``distance``: a neighbour-distance study's record (``distance.j
 minus ``reference`` (``knn`` or ``knn-dl``) at every (family, distance) of the record, each with its paired 95%
 interval.  The finding's verdict says where the method stands (:data:`VERDICTS`): ``leads`` (ahead somewhere,
 behind nowhere), ``trails`` (behind somewhere, ahead nowhere), ``level`` (neither anywhere), ``mixed`` (both), or
-``not run yet`` (no record); the reason lists the distances of each.
+``not run yet`` (no record); the reason lists the distances of each.  The ledger's page shows them after the
+paper's claims, in a part of their own (:func:`graf.reports.claims.ledger.findings_part`).
 """
 
 from __future__ import annotations
-
-from pathlib import Path
-
-from graf.reports.claims.ledger import _sentence, platform, record, shell_lines, title, wrap
 
 KINDS = ("distance",)
 VERDICTS = ("leads", "trails", "level", "mixed", "not run yet")
@@ -64,45 +61,3 @@ def judge_distance(claim: dict, data: dict) -> dict:
         "verdict": verdict,
         "reason": ". ".join(f"{w.capitalize()} (95% interval {where[w]} 0): {s}" for w, s in said if s),
     }
-
-
-def summary(claims: list[dict], rows: list[dict]) -> str:
-    """The findings counted per verdict, one line each naming its findings (linked to their sections)."""
-    by_id = {c["id"]: c for c in claims}
-    found = [r for r in rows if is_finding(by_id[r["id"]])]
-    lines = [f"**Findings beyond the paper** ({len(found)}):", ""]
-    for verdict in VERDICTS:
-        named = [f"[{title(by_id[r['id']])}](#{r['id']})" for r in found if r["verdict"] == verdict]
-        lines.append(f"- **{verdict}** ({len(named)}): {', '.join(named) or 'none'}")
-    return "\n".join(lines)
-
-
-def section(claim: dict, row: dict, cells: list[dict], figure: str | None, root: Path) -> str:
-    """One finding's section: heading, what it asks, the platform's cells and forest plot, verdict, record,
-    command."""
-    parts = [
-        f"### {title(claim)} {{#{row['id']}}}",
-        f"*Not a claim of the paper.* {row['claim']}",
-        platform(claim, row, cells, figure),
-        f"Verdict: **{row['verdict']}**. {_sentence(row['reason'])}",
-        record(row["record"], root) if (root / row["record"]).is_file() else "",  # not run yet: the reason names it
-    ]
-    if row["command"]:
-        lines, _ = shell_lines(row["command"])
-        parts.append("Command:\n\n```bash\n" + "\n".join(wrap(line) for line in lines) + "\n```")
-    return "\n\n".join(p for p in parts if p)
-
-
-def part(claims: list[dict], rows: list[dict], cells: dict[str, list[dict]], root: Path, figures: dict) -> str:
-    """The ledger page's findings part (empty without findings): its heading, summary and one section each."""
-    by_id = {c["id"]: c for c in claims}
-    found = [r for r in rows if is_finding(by_id[r["id"]])]
-    if not found:
-        return ""
-    head = (
-        "## Findings beyond the paper {#findings}\n\n"
-        "Results of the platform's own studies that no claim of the paper states, judged from their records with "
-        "the same paired 95% intervals: where a method leads (interval above 0), trails (below) or is level."
-    )
-    sections = [section(by_id[r["id"]], r, cells.get(r["id"]) or [], figures.get(r["id"]), root) for r in found]
-    return "\n\n".join([head, summary(claims, rows), *sections])

@@ -21,6 +21,8 @@ import numpy as np
 from graf.io import atomic_write_bytes
 from graf.metrics.names import REGISTRY
 from graf.plotting import save_figure
+from graf.reports.claims.findings import VERDICTS as FINDING_VERDICTS
+from graf.reports.claims.findings import is_finding
 from graf.reports.statistics import HIGHER_IS_BETTER, paired_difference
 from graf.run.per_spectrum import PER_SPECTRUM_FILE, read_per_spectrum
 
@@ -49,8 +51,6 @@ def page(claims: list[dict], rows: list[dict], cells: dict[str, list[dict]], roo
     """The ledger's page: the summary, then a section per claim of the paper (in the config's order), a re-run of
     it (``of``: the same claim on another record, at other budgets) a part of that section with its own verdict;
     then the findings beyond the paper, counted apart (:mod:`graf.reports.claims.findings`)."""
-    from graf.reports.claims.findings import is_finding, part  # findings build on this module's parts
-
     by_id = {c["id"]: c for c in claims}
     parts = [summary(claims, rows)]
     figures = {r["id"]: _link(out / f"{r['id']}.png", root) for r in rows if cells.get(r["id"])}
@@ -59,7 +59,7 @@ def page(claims: list[dict], rows: list[dict], cells: dict[str, list[dict]], roo
             continue
         for r in [row, *(r for r in rows if by_id[r["id"]].get("of") == row["id"])]:
             parts.append(section(by_id[r["id"]], r, cells.get(r["id"]) or [], figures.get(r["id"]), root))
-    parts.append(part(claims, rows, cells, root, figures))  # the findings beyond the paper, counted apart
+    parts.append(findings_part(claims, rows, cells, root, figures))  # the findings beyond the paper, counted apart
     return "\n\n".join(p for p in parts if p) + "\n"
 
 
@@ -80,8 +80,6 @@ def summary(claims: list[dict], rows: list[dict]) -> str:
     """The claims counted per verdict, one line each naming its claims (linked to their sections), a claim's
     re-runs (``of``) named beside it with their own verdicts, not counted again; the paper's claims first, then
     each group judged against another figure (``against``)."""
-    from graf.reports.claims.findings import is_finding
-
     by_id = {c["id"]: c for c in claims}
     groups: dict[str | None, list[dict]] = {}
     for row in rows:
@@ -296,3 +294,45 @@ def value_interval(claim: dict, root: Path) -> dict | None:
             f"clears the paper's {format(paper, fmt)}" if clears else f"does not clear the paper's {format(paper, fmt)}"
         ),
     }
+
+
+def findings_summary(claims: list[dict], rows: list[dict]) -> str:
+    """The findings counted per verdict, one line each naming its findings (linked to their sections)."""
+    by_id = {c["id"]: c for c in claims}
+    found = [r for r in rows if is_finding(by_id[r["id"]])]
+    lines = [f"**Findings beyond the paper** ({len(found)}):", ""]
+    for verdict in FINDING_VERDICTS:
+        named = [f"[{title(by_id[r['id']])}](#{r['id']})" for r in found if r["verdict"] == verdict]
+        lines.append(f"- **{verdict}** ({len(named)}): {', '.join(named) or 'none'}")
+    return "\n".join(lines)
+
+
+def finding_section(claim: dict, row: dict, cells: list[dict], figure: str | None, root: Path) -> str:
+    """One finding's section: heading, what it asks, the platform's cells and forest plot, verdict, record,
+    command."""
+    parts = [
+        f"### {title(claim)} {{#{row['id']}}}",
+        f"*Not a claim of the paper.* {row['claim']}",
+        platform(claim, row, cells, figure),
+        f"Verdict: **{row['verdict']}**. {_sentence(row['reason'])}",
+        record(row["record"], root) if (root / row["record"]).is_file() else "",  # not run yet: the reason names it
+    ]
+    if row["command"]:
+        lines, _ = shell_lines(row["command"])
+        parts.append("Command:\n\n```bash\n" + "\n".join(wrap(line) for line in lines) + "\n```")
+    return "\n\n".join(p for p in parts if p)
+
+
+def findings_part(claims: list[dict], rows: list[dict], cells: dict[str, list[dict]], root: Path, figures: dict) -> str:
+    """The ledger page's findings part (empty without findings): its heading, summary and one section each."""
+    by_id = {c["id"]: c for c in claims}
+    found = [r for r in rows if is_finding(by_id[r["id"]])]
+    if not found:
+        return ""
+    head = (
+        "## Findings beyond the paper {#findings}\n\n"
+        "Results of the platform's own studies that no claim of the paper states, judged from their records with "
+        "the same paired 95% intervals: where a method leads (interval above 0), trails (below) or is level."
+    )
+    sections = [finding_section(by_id[r["id"]], r, cells.get(r["id"]) or [], figures.get(r["id"]), root) for r in found]
+    return "\n\n".join([head, findings_summary(claims, rows), *sections])
