@@ -52,10 +52,10 @@ def block(arg: str) -> str:
         g = grid(experiment)
         distances = [f"{d:g}" for d in sorted(float(x) for x in g["neighbors.exclude_within"])]
         return (
-            f"*The neighbour-distance study is under way: {done} of its {planned_jobs(experiment)} jobs have finished (the "
-            f"distances {', '.join(distances[:-1])} and {distances[-1]} wavelengths, {len(g['seed'])} seeds). "
-            f"`{script(experiment)}` goes on with it, skipping what has finished; this section then shows its answer, generated "
-            "from its record.*"
+            f"*The neighbour-distance study is under way: {done} of its {planned_jobs(experiment)} jobs have "
+            f"finished (the distances {', '.join(distances[:-1])} and {distances[-1]} wavelengths, {len(g['seed'])} "
+            f"seeds). `{script(experiment)}` goes on with it, skipping what has finished; this section then shows its "
+            "answer, generated from its record.*"
         )
     data = json.loads(record.read_text())
     seeds = sorted(

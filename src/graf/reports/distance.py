@@ -36,6 +36,7 @@ from graf.reports.table import read_run_result
 AXIS = "exclude_within"
 GRAF = "graf"  # the chosen GRaF mode's label in the figures and tables
 NAMES = {GRAF: "GRaF (the mode of each distance)", "knn": "KNN", "knn-dl": "KNN-DL"}
+CHOSEN = {"fixed": " (fixed before the runs)", "validation": " (chosen on validation)"}  # how the GRaF mode was chosen
 
 
 def is_graf(method: str) -> bool:
@@ -293,7 +294,7 @@ def markdown(record: dict) -> str:
             row = points[d]
             g, dl = row.get(GRAF) or {}, row.get("knn-dl") or {}
             used = "; ".join(geo.get((family, d), [])) or "-"
-            how = {"fixed": " (fixed before the runs)", "validation": " (chosen on validation)"}.get(g.get("chosen_on"), "")
+            how = CHOSEN.get(g.get("chosen_on"), "")
             mode = g.get("mode", "-") + how
             cells = [family, f"{float(d):g}", mode, used,
                      _fmt(g.get("vs_knn")), _fmt(g.get("vs_knn-dl")), _fmt(dl.get("vs_knn"))]  # fmt: skip
