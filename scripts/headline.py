@@ -1,7 +1,7 @@
 """Write the main job's headline tables into the README (between their headline markers) from the published records
 ``sweeps/main_job/results.json`` and, where the README has its block, the accurate variant's
 ``sweeps/main_job_accurate/results.json``, the neighbour-distance study's advice
-(``sweeps/neighbor_distance_paper/distance.json``), the default tests' timed run (``sweeps/test_timing/results.json``,
+(the ``distance.json`` of ``DISTANCE``, once made), the default tests' timed run (``sweeps/test_timing/results.json``,
 ``scripts/time_tests.py``) and the set-up and main job timed as a newcomer runs them
 (``sweeps/newcomer_timing/results.json``, ``scripts/time_newcomer.sh``): ``python scripts/headline.py``
 (``--check``: exit 1 if the README differs). The site's pages include the same table through ``<!-- gen: headline
