@@ -42,12 +42,17 @@ def planned_jobs(experiment: str = EXPERIMENT) -> int:
     return per_distance * len(g["neighbors.exclude_within"])
 
 
+def finished_jobs(folder: Path) -> int:
+    """The jobs of a neighbour-distance record that have finished so far (each writes its results.json last)."""
+    return len(list(folder.rglob("results.json"))) if folder.is_dir() else 0
+
+
 def block(arg: str) -> str:
     path, *flags = arg.split()
     experiment = next((f.split("=", 1)[1] for f in flags if f.startswith("experiment=")), EXPERIMENT)
     folder = ROOT / path
     record = folder / "distance.json"
-    done = len(list(folder.rglob("results.json"))) if folder.is_dir() else 0
+    done = finished_jobs(folder)
     if not record.is_file():
         g = grid(experiment)
         distances = [f"{d:g}" for d in sorted(float(x) for x in g["neighbors.exclude_within"])]

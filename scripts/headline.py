@@ -142,13 +142,13 @@ def distance_sentence() -> str:
     """The README's words on how sparse a survey may be: the rooms' neighbour-distance record's advice, or how far
     its run has got (the jobs finished of those planned: docs_hooks/distance.py)."""
     sys.path.insert(0, str(ROOT))
-    from docs_hooks.distance import planned_jobs, script
+    from docs_hooks.distance import finished_jobs, planned_jobs, script
 
     record = ROOT / DISTANCE / "distance.json"
     if record.is_file():
         advice = json.loads(record.read_text())["advice"]
         return f"From the neighbour-distance study (`{DISTANCE}/`, 3 seeds, paired 95% intervals): **{advice}**"
-    done = len(list((ROOT / DISTANCE).rglob("results.json"))) if (ROOT / DISTANCE).is_dir() else 0
+    done = finished_jobs(ROOT / DISTANCE)
     return (
         f"The neighbour-distance study, which answers this with intervals across the rooms, is under way: {done} of "
         f"its {planned_jobs()} jobs have finished (`{script()}` goes on with it)."

@@ -64,3 +64,19 @@ def test_a_distance_finding_says_where_a_method_leads_trails_or_is_level_and_sta
     assert "- **mixed** (1): [graf against knn](#graf_vs_knn)" in findings
     assert "### graf against knn {#graf_vs_knn}" in findings and "*Not a claim of the paper.*" in findings
     assert (out / "graf_vs_knn.png").is_file() and "| conference_v1, 4 λ | +1.20 | [+1.10, +1.30] |" in findings
+
+
+def test_findings_and_paired_claims_share_one_cell_shape_and_one_pair_of_columns():
+    from graf.reports.claims.cells import cell, columns
+
+    plain = cell("conference_v1, 4 λ", _c(1.2, "ahead"))
+    shared = cell("a -> b", {**_c(-0.25, "behind"), "share_ahead": 0.4})
+    assert plain == {
+        "cell": "conference_v1, 4 λ",
+        **{k: _c(1.2, "ahead")[k] for k in ("diff", "low", "high", "verdict")},
+    }
+    assert shared["share_ahead"] == 0.4 and "n_seeds" not in shared  # the record's other keys stay out
+    assert columns([plain, shared]) == {
+        "platform": "conference_v1, 4 λ: +1.20; a -> b: -0.25",
+        "interval": "conference_v1, 4 λ: [+1.10, +1.30]; a -> b: [-0.35, -0.15]",
+    }

@@ -12,6 +12,8 @@ paper's claims, in a part of their own (:func:`graf.reports.claims.ledger.findin
 
 from __future__ import annotations
 
+from graf.reports.claims.cells import cell, columns
+
 KINDS = ("distance",)
 VERDICTS = ("leads", "trails", "level", "mixed", "not run yet")
 NO_RECORD = "not run yet"
@@ -28,10 +30,7 @@ def distance_cells(claim: dict, data: dict) -> list[dict]:
         for distance in sorted(points, key=float):
             c = (points[distance].get(claim["method"]) or {}).get(f"vs_{claim['reference']}")
             if c is not None:
-                name = f"{family}, {float(distance):g} λ"
-                out.append(
-                    {"cell": name, "diff": c["diff"], "low": c["low"], "high": c["high"], "verdict": c["verdict"]}
-                )
+                out.append(cell(f"{family}, {float(distance):g} λ", c))
     return out
 
 
@@ -56,8 +55,7 @@ def judge_distance(claim: dict, data: dict) -> dict:
     where = {"ahead": "above", "behind": "below", "level": "around"}  # the 95% interval against 0
     said = [(w, _where(cells, w)) for w in where]
     return {
-        "platform": "; ".join(f"{c['cell']}: {c['diff']:+.2f}" for c in cells),
-        "interval": "; ".join(f"{c['cell']}: [{c['low']:+.2f}, {c['high']:+.2f}]" for c in cells),
+        **columns(cells),
         "verdict": verdict,
         "reason": ". ".join(f"{w.capitalize()} (95% interval {where[w]} 0): {s}" for w, s in said if s),
     }

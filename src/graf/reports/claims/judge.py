@@ -13,6 +13,7 @@ from omegaconf import DictConfig
 from graf.app.config import task_wrapper
 from graf.errors import ConfigError
 from graf.io import atomic_write_bytes, atomic_write_json
+from graf.reports.claims.cells import cell, columns
 from graf.reports.claims.claims_file import check_claim, check_claims, check_records, read_claims
 from graf.reports.claims.findings import NO_RECORD, distance_cells, is_finding, judge_distance
 from graf.reports.claims.findings import VERDICTS as FINDING_VERDICTS
@@ -46,11 +47,6 @@ def _pair(r: dict) -> str:
     return f"{short_scenes(r['trained_on'])} -> {r['eval_scene']}" if r.get("trained_on") else r["eval_scene"]
 
 
-def _cell(name: str, c: dict) -> dict:
-    out = {"cell": name, "diff": c["diff"], "low": c["low"], "high": c["high"], "verdict": c["verdict"]}
-    return out if c.get("share_ahead") is None else {**out, "share_ahead": c["share_ahead"]}
-
-
 def paired_cells(claim: dict, data: dict) -> list[dict]:
     """The cells of a paired claim: per selected row, ``method`` minus ``reference`` (``cell``, ``diff``, ``low``,
     ``high``, the interval's ``verdict``)."""
@@ -58,15 +54,7 @@ def paired_cells(claim: dict, data: dict) -> list[dict]:
         r for r in data.get("rows", []) if r.get("method") == claim["method"] and r.get("metric") == claim["metric"]
     ]
     rows = [r for r in rows if _match(r, claim.get("cell") or {})]
-    return [_cell(_pair(r), r[f"vs_{claim['reference']}"]) for r in rows if r.get(f"vs_{claim['reference']}")]
-
-
-def _joined(cells: list[dict]) -> dict:
-    """The ledger's platform and interval columns of ``cells``."""
-    return {
-        "platform": "; ".join(f"{c['cell']}: {c['diff']:+.2f}" for c in cells),
-        "interval": "; ".join(f"{c['cell']}: [{c['low']:+.2f}, {c['high']:+.2f}]" for c in cells),
-    }
+    return [cell(_pair(r), r[f"vs_{claim['reference']}"]) for r in rows if r.get(f"vs_{claim['reference']}")]
 
 
 def judge_paired(claim: dict, data: dict) -> dict:
@@ -76,7 +64,7 @@ def judge_paired(claim: dict, data: dict) -> dict:
     if claim.get("margin") is not None or claim.get("share") is not None:
         return _judge_target(claim, cells)
     verdict, reason = _direction([c["verdict"] for c in cells], "ahead")
-    return {**_joined(cells), "verdict": verdict, "reason": reason}
+    return {**columns(cells), "verdict": verdict, "reason": reason}
 
 
 def _percent(x: float) -> str:
@@ -104,7 +92,7 @@ def _judge_target(claim: dict, cells: list[dict]) -> dict:
         up = HIGHER_IS_BETTER[str(claim["metric"])]
         got = {c["cell"]: (c["diff"] if up else -c["diff"]) for c in cells}
         fmt = _signed
-        out = _joined(cells)
+        out = columns(cells)
         ok = {c["cell"]: got[c["cell"]] >= want and c["verdict"] == "ahead" for c in cells}
     if all(ok.values()):
         return {**out, "verdict": "holds", "reason": f"every cell reaches the target's {fmt(want)}"}
@@ -134,7 +122,7 @@ def transfer_cells(claim: dict, data: dict) -> list[dict]:
     """The cells of a transfer claim: per band pair of the record, ``train band -> test band``."""
     want = {"method": claim["method"], "metric": claim["metric"], **(claim.get("cell") or {})}
     found = [c for c in data.get("band_transfers", []) if _match(c, want)]
-    return [_cell(f"{c['train_band']} -> {c['eval_band']}", c) for c in found]
+    return [cell(f"{c['train_band']} -> {c['eval_band']}", c) for c in found]
 
 
 def judge_transfer(claim: dict, data: dict) -> dict:
@@ -145,7 +133,7 @@ def judge_transfer(claim: dict, data: dict) -> dict:
     if not cells:
         return {"verdict": "not reproduced", "reason": "no band transfer in the record"}
     verdict, reason = _direction([c["verdict"] for c in cells], expect)
-    return {**_joined(cells), "verdict": verdict, "reason": reason}
+    return {**columns(cells), "verdict": verdict, "reason": reason}
 
 
 def change_cells(claim: dict, data: dict) -> list[dict]:
@@ -153,7 +141,7 @@ def change_cells(claim: dict, data: dict) -> list[dict]:
     ``L_to``, or none."""
     want = {k: claim[k] for k in ("method", "L_from", "L_to", "metric")}
     found = [c for c in data.get("L_changes", []) if all(str(c.get(k)) == str(v) for k, v in want.items())]
-    return [_cell(f"L = {claim['L_from']} -> {claim['L_to']}", c) for c in found[:1]]
+    return [cell(f"L = {claim['L_from']} -> {claim['L_to']}", c) for c in found[:1]]
 
 
 def judge_change(claim: dict, data: dict) -> dict:
