@@ -60,6 +60,9 @@ d = sorted(str(O.load('conf/experiment/neighbor_distance.yaml').hydra.sweeper.pa
 print(','.join(d[:1] + d[-1:] + d[1:-1]))"
 }
 DISTANCES=${GRAF_DISTANCES:-$(ends_first)}  # its distances (wavelengths), in the order run: the ends, then the middle
+# the methods its study jobs train (GRAF_DISTANCE_MODELS="knn_dl graf_cpu_scenes_ray_weights": the mode validation
+# chose first, the other one on a later run)
+DISTANCE_MODELS=${GRAF_DISTANCE_MODELS:-knn_dl graf_cpu_scenes_ray_weights graf_cpu_scenes_ray_knn}
 UNSEEN_BAND=${GRAF_UNSEEN_BASE_BAND:-2.4ghz,scene}  # the base models unseen starts from
 STUDIES=("$@")
 [ ${#STUDIES[@]} -gt 0 ] || STUDIES=(matrix nc bands unseen)
@@ -118,7 +121,7 @@ for study in "${STUDIES[@]}"; do
         done
         for seed in 0 1 2; do
             for d in ${DISTANCES//,/ }; do
-                for model in knn_dl graf_cpu_scenes_ray_weights graf_cpu_scenes_ray_knn; do
+                for model in $DISTANCE_MODELS; do
                     say "distance: $model exclude_within=$d seed=$seed"
                     "$TRAIN" experiment=neighbor_distance "model=$model" 'scene=conference_v1,office_v1' "seed=$seed" \
                         "neighbors.exclude_within=$d" "torch_threads=${THREADS[$model]}" "${COMMON[@]}" \

@@ -62,10 +62,11 @@ def _result(
     atomic_write_json(folder / "results.json", r)
 
 
-def _samples(folder: Path, scene: str, method: str, value: int) -> None:
+def _samples(folder: Path, scene: str, method: str, value: int, n: int = 2) -> None:
     (folder / "samples").mkdir(parents=True, exist_ok=True)
-    t = np.full((2, 90, 360), 100, np.uint8)
-    np.savez(folder / "samples" / f"{scene}__{method}.npz", pred=np.full_like(t, value), target=t, ids=np.array([3, 5]))
+    t = np.full((n, 90, 360), 100, np.uint8)
+    ids = np.arange(3, 3 + 2 * n, 2)
+    np.savez(folder / "samples" / f"{scene}__{method}.npz", pred=np.full_like(t, value), target=t, ids=ids)
 
 
 def test_cross_scene_matrix_tables_heatmaps_and_spectra(tmp_path):
@@ -165,6 +166,17 @@ def test_the_spectra_grids_show_the_reference_setting_of_conf_report(tmp_path):
 
     assert REFERENCE["L"] == 10 and "spectra_conference_v2.png" not in run()
     assert "spectra_conference_v2.png" in run("reference.L=2")
+
+
+def test_a_record_of_validation_only_jobs_reports_without_spectra_grids(tmp_path):
+    """A job run with test=false (a study's validation jobs) saves samples files without test spectra: the
+    report is made, and draws no spectra grid for them (it used to fail on a grid of zero columns)."""
+    _result(tmp_path / "v0", "graf", ["conference_v1"], [("conference_v4", 20.0, GHZ24)])
+    _samples(tmp_path / "v0", "conference_v4", "graf", 110, n=0)
+    _samples(tmp_path / "v0", "conference_v4", "knn", 150, n=0)
+    s = make_report(tmp_path, tmp_path / "out", REFERENCE)
+    assert s["n_results"] == 1 and not [f for f in s["figures"] if f.startswith("spectra_")]
+    assert not list((tmp_path / "out").glob("spectra_*.png"))
 
 
 def test_finetune_fraction_curves_and_band_matrix(tmp_path):

@@ -146,6 +146,8 @@ def spectra_grids(rows: list[dict], runs: Path, out: Path, axes: list[str], refe
         data = {m: np.load(f) for m, f in sorted(files.items())}
         first = next(iter(data.values()))
         n = len(first["ids"])
+        if n == 0:  # a validation-only job (test=false) saves no test spectra: nothing to show
+            continue
         fig, axs = plt.subplots(
             len(data) + 1, n, figsize=(3.6 * n, 1.25 * (len(data) + 1) + 0.6), squeeze=False, constrained_layout=True
         )
