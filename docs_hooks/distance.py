@@ -47,6 +47,14 @@ def finished_jobs(folder: Path) -> int:
     return len(list(folder.rglob("results.json"))) if folder.is_dir() else 0
 
 
+def seeds(data: dict) -> list[int]:
+    """The seed counts of a distance record's points (distance.json): one number when every point has as many."""
+    return sorted(
+        {c["n_seeds"] for fam in data["differences"].values() for row in fam.values() for m in row.values()
+         for c in m.values() if isinstance(c, dict) and "n_seeds" in c}
+    )  # fmt: skip
+
+
 def block(arg: str) -> str:
     path, *flags = arg.split()
     experiment = next((f.split("=", 1)[1] for f in flags if f.startswith("experiment=")), EXPERIMENT)
@@ -63,10 +71,6 @@ def block(arg: str) -> str:
             "answer, generated from its record.*"
         )
     data = json.loads(record.read_text())
-    seeds = sorted(
-        {c["n_seeds"] for fam in data["differences"].values() for row in fam.values() for m in row.values()
-         for c in m.values() if isinstance(c, dict) and "n_seeds" in c}
-    )  # fmt: skip
     planned = planned_jobs(experiment)
     partial = "" if done >= planned else f" ({done} of {planned} jobs so far; `{script(experiment)}` goes on)"
     return "\n\n".join(
@@ -74,6 +78,6 @@ def block(arg: str) -> str:
             f"**{data['advice']}**",
             f"![GRaF and KNN-DL against KNN as the nearest neighbour moves away]({path}/vs_distance.png)",
             *([] if "brief" in flags else [markdown(data)]),
-            f"*Generated from `{path}/distance.json`: {', '.join(map(str, seeds))} seed(s) per point{partial}.*",
+            f"*Generated from `{path}/distance.json`: {', '.join(map(str, seeds(data)))} seed(s) per point{partial}.*",
         ]
     )

@@ -142,16 +142,21 @@ def distance_sentence() -> str:
     """The README's words on how sparse a survey may be: the rooms' neighbour-distance record's advice, or how far
     its run has got (the jobs finished of those planned: docs_hooks/distance.py)."""
     sys.path.insert(0, str(ROOT))
-    from docs_hooks.distance import finished_jobs, planned_jobs, script
+    from docs_hooks.distance import finished_jobs, planned_jobs, script, seeds
 
     record = ROOT / DISTANCE / "distance.json"
+    done, planned = finished_jobs(ROOT / DISTANCE), planned_jobs()
     if record.is_file():
-        advice = json.loads(record.read_text())["advice"]
-        return f"From the neighbour-distance study (`{DISTANCE}/`, 3 seeds, paired 95% intervals): **{advice}**"
-    done = finished_jobs(ROOT / DISTANCE)
+        data = json.loads(record.read_text())
+        n = " to ".join(str(k) for k in sorted({min(seeds(data)), max(seeds(data))}))
+        so_far = "" if done >= planned else f"; {done} of its {planned} jobs so far, `{script()}` goes on"
+        return (
+            f"From the neighbour-distance study (`{DISTANCE}/`, {n} seed{'s' if n != '1' else ''} a point, paired 95% "
+            f"intervals{so_far}): **{data['advice']}**"
+        )
     return (
         f"The neighbour-distance study, which answers this with intervals across the rooms, is under way: {done} of "
-        f"its {planned_jobs()} jobs have finished (`{script()}` goes on with it)."
+        f"its {planned} jobs have finished (`{script()}` goes on with it)."
     )
 
 

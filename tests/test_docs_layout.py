@@ -478,3 +478,28 @@ def test_the_distance_block_shows_the_record_or_how_far_its_run_has_got(tmp_path
     assert full.startswith("**Use GRaF beyond 4 wavelengths.**") and "vs_distance.png" in full
     assert "| conference_v1 | 4 | graf-ray-knn |" in full and "| conference_v1 |" not in brief
     assert "3 seed(s) per point (1 of 60 jobs so far" in brief
+
+
+def test_the_readme_distance_sentence_counts_seeds_and_jobs_from_the_record(tmp_path, monkeypatch):
+    """scripts/headline.py: the README's sentence gives the record's advice with the seeds its points have, and while
+    the grid is not finished, how many of its jobs have (never a typed "3 seeds")."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("headline", ROOT / "scripts" / "headline.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    monkeypatch.setattr(module, "ROOT", tmp_path)
+    folder = tmp_path / module.DISTANCE
+    (folder / "job").mkdir(parents=True)
+    (folder / "job" / "results.json").write_text("{}")
+    assert "under way: 1 of its 60 jobs have finished" in module.distance_sentence()
+    c = {"verdict": "ahead", "n_seeds": 1}
+    points = {"0.0": {"graf": {"vs_knn": c}}, "4.0": {"graf": {"vs_knn": {**c, "n_seeds": 3}}}}
+    record = {"advice": "Use GRaF.", "differences": {"office_v1": points}}
+    (folder / "distance.json").write_text(json.dumps(record))
+    said = module.distance_sentence()
+    assert "1 to 3 seeds a point" in said and "1 of its 60 jobs so far" in said and said.endswith("**Use GRaF.**")
+    for i in range(59):
+        (folder / f"j{i}").mkdir()
+        (folder / f"j{i}" / "results.json").write_text("{}")
+    assert "jobs so far" not in module.distance_sentence()

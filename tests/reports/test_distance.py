@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 
-from graf.reports.distance import GRAF, advice, leads_from, validation_choice
+from graf.reports.distance import GRAF, advice, between_learned, leads_from, validation_choice
 from graf.reports.study import make_report
 from graf.run.per_spectrum import write_per_spectrum
 
@@ -167,3 +167,37 @@ def test_a_study_of_one_fixed_mode_within_its_scene_shows_that_mode_and_the_geom
     assert geo[("1.0", "rfid_s23")]["median_wavelengths"] == pytest.approx(1.02)
     readme = (out / "README.md").read_text()
     assert "graf-ray-knn (fixed before the runs)" in readme and "rfid_s23: 1.02 λ, 34.0 cm" in readme
+
+
+def test_where_both_learned_methods_lead_knn_the_advice_says_which_of_them_to_take():
+    def cell(verdict):
+        return {GRAF: {"vs_knn-dl": {"verdict": verdict}}}
+
+    record = {
+        "thresholds": {GRAF: {"vs_knn": {"all": 0.0}, "vs_knn-dl": {"all": None}}, "knn-dl": {"vs_knn": {"all": 0.0}}},
+        "distances": ["0.0", "1.0", "4.0"],
+        "wavelength_m": 0.125,
+        "differences": {
+            "conference_v1": {d: cell("ahead") for d in ("0.0", "1.0", "4.0")},
+            "office_v1": {
+                "0.0": cell("ahead"),
+                "1.0": cell("level (interval includes 0)"),
+                "4.0": cell("level (interval includes 0)"),
+            },
+        },  # fmt: skip
+    }
+    assert advice(record) == (
+        "GRaF leads KNN in every family at every distance tested (0 to 4 wavelengths); KNN-DL leads KNN at every "
+        "distance tested (0 to 4 wavelengths); against KNN-DL, GRaF is ahead at every distance tested in "
+        "conference_v1's family and ahead at 0, level at 1 and 4 wavelengths in office_v1's family (4 of 6 cells "
+        "ahead, 0 behind), so where both lead KNN, GRaF is the choice."
+    )
+    record["differences"]["office_v1"]["4.0"] = cell("behind")
+    assert between_learned(record).endswith(
+        "(4 of 6 cells ahead, 1 behind), so which of the two pays depends on the room"
+    )
+    level = {f: {d: cell("level (interval includes 0)") for d in p} for f, p in record["differences"].items()}
+    assert between_learned({**record, "differences": level}).endswith("so either does")
+    assert between_learned({**record, "differences": {}}) == ""
+    record["thresholds"][GRAF]["vs_knn-dl"]["all"] = 0.0  # GRaF leads KNN-DL in every family: said as before
+    assert "against KNN-DL" not in advice(record) and "GRaF leads KNN-DL at every distance tested" in advice(record)

@@ -173,9 +173,42 @@ def _cm(distance: float, wavelength_m: float | None) -> str:
     return "" if wavelength_m is None else f" ({100 * distance * wavelength_m:.0f} cm at these layouts' band)"
 
 
+def between_learned(record: dict) -> str:
+    """Where GRaF and KNN-DL both lead KNN but GRaF does not lead KNN-DL in every family: which of the two to take,
+    from GRaF - KNN-DL in each (family, distance) cell of the record ("" when no cell compares them)."""
+    verdicts: dict = defaultdict(dict)
+    for family, points in record["differences"].items():
+        for distance, row in points.items():
+            c = (row.get(GRAF) or {}).get("vs_knn-dl")
+            if c is not None:
+                verdicts[family][float(distance)] = c["verdict"].split(" ")[0]
+    cells = [v for per in verdicts.values() for v in per.values()]
+    if not cells:
+        return ""
+    families = []
+    for family, per in sorted(verdicts.items()):
+        kinds = sorted(set(per.values()), key=lambda v: min(d for d in per if per[d] == v))
+        if len(kinds) == 1:
+            families.append(f"{kinds[0]} at every distance tested in {family}'s family")
+            continue
+        at = [(v, [f"{d:g}" for d in sorted(x for x in per if per[x] == v)]) for v in kinds]
+        said = ", ".join(f"{v} at {' and '.join(ds)}" for v, ds in at)
+        families.append(f"{said} wavelengths in {family}'s family")
+    ahead, behind = cells.count("ahead"), cells.count("behind")
+    then = (
+        "so where both lead KNN, GRaF is the choice" if ahead and not behind
+        else "so where both lead KNN, KNN-DL is the choice" if behind and not ahead
+        else "so either does" if not ahead and not behind
+        else "so which of the two pays depends on the room"
+    )  # fmt: skip
+    counts = f"{ahead} of {len(cells)} cells ahead, {behind} behind"
+    return f"against KNN-DL, GRaF is {' and '.join(families)} ({counts}), {then}"
+
+
 def advice(record: dict) -> str:
     """The sentence that turns a survey's spacing into a choice, from the record's thresholds alone (a method that
-    leads from the smallest distance tested leads "at every distance tested")."""
+    leads from the smallest distance tested leads "at every distance tested"), and, where both learned methods lead
+    KNN, which of them to take (:func:`between_learned`)."""
     t, wl = record["thresholds"], record.get("wavelength_m")
     tested = sorted(float(d) for d in record["distances"]) or [0.0]
     span = f"{tested[0]:g} to {_wl(tested[-1])}"
@@ -203,6 +236,8 @@ def advice(record: dict) -> str:
         parts.append(f"GRaF leads KNN-DL {since(over_dl)}")
     if dl is not None:
         parts.append(f"KNN-DL leads KNN {since(dl)}")
+    if graf is not None and dl is not None and over_dl is None and (which := between_learned(record)):
+        parts.append(which)
     closer = min(v for v in (graf, dl) if v is not None)
     if closer <= tested[0]:
         return "; ".join(parts) + "."
