@@ -30,6 +30,7 @@
 #           GRAF_DISTANCES (0.0,4.0,1.0: the ends and the middle first; the full axis adds 0.5,2.0), tested on the
 #           family's other layouts, seeds 0-2, into sweeps/neighbor_distance_paper (GRAF_DISTANCE: another record);
 #           first each GRaF mode's validation job per distance (<record>/validation/), which choose the mode.
+#           GRAF_DISTANCE_MODELS: the methods of its study jobs (default: all three; e.g. the chosen mode first).
 #   distance_rfid  the same axis within the measured scene rfid_s23 (experiment=neighbor_distance_rfid): KNN-DL and the
 #           main job's accurate GRaF (ray_knn, 10,000 steps each), distances GRAF_RFID_DISTANCES (the experiment's:
 #           0.0,1.0,0.5), seeds 0-2, into sweeps/neighbor_distance_rfid (GRAF_DISTANCE_RFID: another record); each
