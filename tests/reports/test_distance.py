@@ -167,6 +167,13 @@ def test_a_study_of_one_fixed_mode_within_its_scene_shows_that_mode_and_the_geom
     assert geo[("1.0", "rfid_s23")]["median_wavelengths"] == pytest.approx(1.02)
     readme = (out / "README.md").read_text()
     assert "graf-ray-knn (fixed before the runs)" in readme and "rfid_s23: 1.02 λ, 34.0 cm" in readme
+    # one scene tested within itself: the advice speaks of the scene and its band, not of families and layouts
+    assert record["advice"].startswith(
+        "If your nearest measurements are 1 wavelength (33 cm at this scene's band) or farther from where you "
+        "predict (tested up to 1 wavelength), GRaF leads KNN within the scene"
+    )
+    assert "family" not in record["advice"] and "layouts" not in record["advice"]
+    assert "leads from 1 wavelength within the scene" in readme
 
 
 def test_where_both_learned_methods_lead_knn_the_advice_says_which_of_them_to_take():

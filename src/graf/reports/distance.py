@@ -169,8 +169,9 @@ def _wl(distance: float) -> str:
     return f"{distance:g} wavelength{'' if distance == 1 else 's'}"
 
 
-def _cm(distance: float, wavelength_m: float | None) -> str:
-    return "" if wavelength_m is None else f" ({100 * distance * wavelength_m:.0f} cm at these layouts' band)"
+def _cm(distance: float, wavelength_m: float | None, within: bool = False) -> str:
+    band = "this scene's band" if within else "these layouts' band"
+    return "" if wavelength_m is None else f" ({100 * distance * wavelength_m:.0f} cm at {band})"
 
 
 def between_learned(record: dict) -> str:
@@ -210,28 +211,33 @@ def advice(record: dict) -> str:
     leads from the smallest distance tested leads "at every distance tested"), and, where both learned methods lead
     KNN, which of them to take (:func:`between_learned`)."""
     t, wl = record["thresholds"], record.get("wavelength_m")
+    within = bool(record.get("within_scene"))  # one scene tested within itself: no families to speak of
+    everywhere, scenes = ("within the scene", "in this scene") if within else ("in every family", "in these scenes")
     tested = sorted(float(d) for d in record["distances"]) or [0.0]
     span = f"{tested[0]:g} to {_wl(tested[-1])}"
 
+    def cm(x: float) -> str:
+        return _cm(x, wl, within)
+
     def since(x: float) -> str:
-        return f"at every distance tested ({span})" if x <= tested[0] else f"from {_wl(x)}{_cm(x, wl)}"
+        return f"at every distance tested ({span})" if x <= tested[0] else f"from {_wl(x)}{cm(x)}"
 
     graf, dl = (t.get(GRAF) or {}).get("vs_knn", {}).get("all"), (t.get("knn-dl") or {}).get("vs_knn", {}).get("all")
     over_dl = (t.get(GRAF) or {}).get("vs_knn-dl", {}).get("all")
     if graf is None and dl is None:
         return (
-            f"Up to {_wl(tested[-1])}{_cm(tested[-1], wl)} between a target and its nearest measured neighbour, "
-            "neither learned method leads KNN in every family with an interval above 0: in these scenes a "
+            f"Up to {_wl(tested[-1])}{cm(tested[-1])} between a target and its nearest measured neighbour, "
+            f"neither learned method leads KNN {everywhere} with an interval above 0: {scenes} a "
             "nearest-neighbour mean of the survey is the choice."
         )
     parts = []
     if graf is not None and graf > tested[0]:
         parts.append(
-            f"If your nearest measurements are {_wl(graf)}{_cm(graf, wl)} or farther from where you predict (tested "
-            f"up to {_wl(tested[-1])}), GRaF leads KNN in every family"
+            f"If your nearest measurements are {_wl(graf)}{cm(graf)} or farther from where you predict (tested "
+            f"up to {_wl(tested[-1])}), GRaF leads KNN {everywhere}"
         )
     elif graf is not None:
-        parts.append(f"GRaF leads KNN in every family {since(graf)}")
+        parts.append(f"GRaF leads KNN {everywhere} {since(graf)}")
     if over_dl is not None:
         parts.append(f"GRaF leads KNN-DL {since(over_dl)}")
     if dl is not None:
@@ -241,7 +247,7 @@ def advice(record: dict) -> str:
     closer = min(v for v in (graf, dl) if v is not None)
     if closer <= tested[0]:
         return "; ".join(parts) + "."
-    return "; ".join(parts) + f". Closer than {_wl(closer)}, no learned method leads KNN in every family: use KNN."
+    return "; ".join(parts) + f". Closer than {_wl(closer)}, no learned method leads KNN {everywhere}: use KNN."
 
 
 def write_distance(runs: Path, out: Path) -> dict | None:
@@ -334,13 +340,13 @@ def markdown(record: dict) -> str:
             cells = [family, f"{float(d):g}", mode, used,
                      _fmt(g.get("vs_knn")), _fmt(g.get("vs_knn-dl")), _fmt(dl.get("vs_knn"))]  # fmt: skip
             lines.append("| " + " | ".join(cells) + " |")
-    said = []
+    said, everywhere = [], "within the scene" if record.get("within_scene") else "in every family"
     for m, refs in sorted(record["thresholds"].items()):
         for ref, per in refs.items():
             v = per.get("all")
             said.append(
                 f"- {NAMES.get(m, m)} over {NAMES[ref.removeprefix('vs_')]}: "
-                + (f"leads from {_wl(v)} in every family" if v is not None else "no distance in every family")
+                + (f"leads from {_wl(v)} {everywhere}" if v is not None else f"no distance {everywhere}")
                 + " ("
                 + ", ".join(f"{f}: {'-' if x is None else f'{x:g}'}" for f, x in per.items() if f != "all")
                 + ")"
