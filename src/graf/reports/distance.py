@@ -169,6 +169,11 @@ def _wl(distance: float) -> str:
     return f"{distance:g} wavelength{'' if distance == 1 else 's'}"
 
 
+def _everywhere(record: dict) -> str:
+    """Where a threshold holds: in every family of the rooms, or within the one scene a record tests itself on."""
+    return "within the scene" if record.get("within_scene") else "in every family"
+
+
 def _cm(distance: float, wavelength_m: float | None, within: bool = False) -> str:
     band = "this scene's band" if within else "these layouts' band"
     return "" if wavelength_m is None else f" ({100 * distance * wavelength_m:.0f} cm at {band})"
@@ -212,7 +217,7 @@ def advice(record: dict) -> str:
     KNN, which of them to take (:func:`between_learned`)."""
     t, wl = record["thresholds"], record.get("wavelength_m")
     within = bool(record.get("within_scene"))  # one scene tested within itself: no families to speak of
-    everywhere, scenes = ("within the scene", "in this scene") if within else ("in every family", "in these scenes")
+    everywhere, scenes = _everywhere(record), "in this scene" if within else "in these scenes"
     tested = sorted(float(d) for d in record["distances"]) or [0.0]
     span = f"{tested[0]:g} to {_wl(tested[-1])}"
 
@@ -340,7 +345,7 @@ def markdown(record: dict) -> str:
             cells = [family, f"{float(d):g}", mode, used,
                      _fmt(g.get("vs_knn")), _fmt(g.get("vs_knn-dl")), _fmt(dl.get("vs_knn"))]  # fmt: skip
             lines.append("| " + " | ".join(cells) + " |")
-    said, everywhere = [], "within the scene" if record.get("within_scene") else "in every family"
+    said, everywhere = [], _everywhere(record)
     for m, refs in sorted(record["thresholds"].items()):
         for ref, per in refs.items():
             v = per.get("all")
