@@ -174,6 +174,18 @@ def _everywhere(record: dict) -> str:
     return "within the scene" if record.get("within_scene") else "in every family"
 
 
+def method_label(record: dict, method: str) -> str:
+    """A method's name in the figure and the thresholds; GRaF's names its one mode when a mode fixed before the runs
+    stands at every point, else says "the mode of each distance" (chosen on validation)."""
+    if method != GRAF:
+        return NAMES.get(method, method)
+    rows = [p.get(GRAF) or {} for points in record["differences"].values() for p in points.values()]
+    ways = {(r.get("mode"), r.get("chosen_on")) for r in rows if r}
+    if len(ways) == 1 and (way := next(iter(ways)))[1] == "fixed":
+        return f"GRaF ({way[0]}, fixed before the runs)"
+    return NAMES[GRAF]
+
+
 def _cm(distance: float, wavelength_m: float | None, within: bool = False) -> str:
     band = "this scene's band" if within else "these layouts' band"
     return "" if wavelength_m is None else f" ({100 * distance * wavelength_m:.0f} cm at {band})"
@@ -304,7 +316,7 @@ def figure(record: dict, path: Path) -> None:
                         lo.append(c["diff"] - c["low"])
                         hi.append(c["high"] - c["diff"])
                 if xs:
-                    label = f"{NAMES.get(m, m)}, trained on {family}"
+                    label = f"{method_label(record, m)}, trained on {family}"
                     ax.errorbar(xs, ys, yerr=[lo, hi], marker="os"[j], ls="-" if m == GRAF else "--", capsize=3,
                                 color=f"C{i}", label=label)  # fmt: skip
         ax.axhline(0.0, color="k", lw=0.8)
@@ -350,7 +362,7 @@ def markdown(record: dict) -> str:
         for ref, per in refs.items():
             v = per.get("all")
             said.append(
-                f"- {NAMES.get(m, m)} over {NAMES[ref.removeprefix('vs_')]}: "
+                f"- {method_label(record, m)} over {NAMES[ref.removeprefix('vs_')]}: "
                 + (f"leads from {_wl(v)} {everywhere}" if v is not None else f"no distance {everywhere}")
                 + " ("
                 + ", ".join(f"{f}: {'-' if x is None else f'{x:g}'}" for f, x in per.items() if f != "all")
