@@ -117,6 +117,7 @@ def test_the_distance_record_pools_each_family_and_states_where_each_method_lead
     assert "## Neighbour distance" in readme and record["advice"] in readme
     assert "conference_v2: 1.40 λ, 17.5 cm" in readme
     assert "- GRaF (the mode of each distance) over KNN: leads from 1 wavelength" in readme  # modes differ
+    assert "- graf-ray-knn over KNN:" in readme  # and each mode on its own
     assert (out / "vs_distance.png").stat().st_size > 0
 
 
@@ -177,7 +178,7 @@ def test_a_study_of_one_fixed_mode_within_its_scene_shows_that_mode_and_the_geom
     assert "leads from 1 wavelength within the scene" in readme
     # the mode fixed before the runs is named wherever GRaF is, not "the mode of each distance"
     assert "- GRaF (graf-ray-knn, fixed before the runs) over KNN: leads from 1 wavelength" in readme
-    assert "the mode of each distance" not in readme
+    assert "the mode of each distance" not in readme and "- graf-ray-knn over" not in readme  # said once
 
 
 def test_where_both_learned_methods_lead_knn_the_advice_says_which_of_them_to_take():

@@ -174,16 +174,21 @@ def _everywhere(record: dict) -> str:
     return "within the scene" if record.get("within_scene") else "in every family"
 
 
-def method_label(record: dict, method: str) -> str:
-    """A method's name in the figure and the thresholds; GRaF's names its one mode when a mode fixed before the runs
-    stands at every point, else says "the mode of each distance" (chosen on validation)."""
-    if method != GRAF:
-        return NAMES.get(method, method)
+def fixed_mode(record: dict) -> str | None:
+    """The GRaF mode fixed before the runs when that one mode stands at every point of the record, else None (the
+    mode of each distance is chosen on validation)."""
     rows = [p.get(GRAF) or {} for points in record["differences"].values() for p in points.values()]
     ways = {(r.get("mode"), r.get("chosen_on")) for r in rows if r}
-    if len(ways) == 1 and (way := next(iter(ways)))[1] == "fixed":
-        return f"GRaF ({way[0]}, fixed before the runs)"
-    return NAMES[GRAF]
+    mode, how = next(iter(ways)) if len(ways) == 1 else (None, None)
+    return mode if how == "fixed" else None
+
+
+def method_label(record: dict, method: str) -> str:
+    """A method's name in the figure and the thresholds; GRaF's names its mode where :func:`fixed_mode` has one."""
+    if method != GRAF:
+        return NAMES.get(method, method)
+    mode = fixed_mode(record)
+    return NAMES[GRAF] if mode is None else f"GRaF ({mode}, fixed before the runs)"
 
 
 def _cm(distance: float, wavelength_m: float | None, within: bool = False) -> str:
@@ -359,6 +364,8 @@ def markdown(record: dict) -> str:
             lines.append("| " + " | ".join(cells) + " |")
     said, everywhere = [], _everywhere(record)
     for m, refs in sorted(record["thresholds"].items()):
+        if m == fixed_mode(record):
+            continue  # GRaF's line, which names the mode, says the same
         for ref, per in refs.items():
             v = per.get("all")
             said.append(
