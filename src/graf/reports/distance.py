@@ -362,9 +362,9 @@ def markdown(record: dict) -> str:
             cells = [family, f"{float(d):g}", mode, used,
                      _fmt(g.get("vs_knn")), _fmt(g.get("vs_knn-dl")), _fmt(dl.get("vs_knn"))]  # fmt: skip
             lines.append("| " + " | ".join(cells) + " |")
-    said, everywhere = [], _everywhere(record)
+    said, everywhere, fixed = [], _everywhere(record), fixed_mode(record)
     for m, refs in sorted(record["thresholds"].items()):
-        if m == fixed_mode(record):
+        if m == fixed:
             continue  # GRaF's line, which names the mode, says the same
         for ref, per in refs.items():
             v = per.get("all")
