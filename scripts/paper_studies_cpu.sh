@@ -27,9 +27,10 @@
 #           rfid_s23, one more GRaF training).
 #   distance the neighbour-distance study (experiment=neighbor_distance): KNN-DL and GRaF's ray_weights and ray_knn
 #           trained on conference_v1 and office_v1 with every neighbour within d wavelengths left out, d in
-#           GRAF_DISTANCES (0.0,4.0,1.0: the ends and the middle first; the full axis adds 0.5,2.0), tested on the
-#           family's other layouts, seeds 0-2, into sweeps/neighbor_distance_paper (GRAF_DISTANCE: another record);
-#           first each GRaF mode's validation job per distance (<record>/validation/), which choose the mode.
+#           GRAF_DISTANCES (default: the experiment's 0,0.5,1,2,4, run as 0.0,4.0,1.0,0.5,2.0: the ends and the middle
+#           first), tested on the family's other layouts, seeds 0-2, into sweeps/neighbor_distance_paper
+#           (GRAF_DISTANCE: another record); first each GRaF mode's validation job per distance
+#           (<record>/validation/), which choose the mode.
 #           GRAF_DISTANCE_MODELS: the methods of its study jobs (default: all three; e.g. the chosen mode first).
 #   distance_rfid  the same axis within the measured scene rfid_s23 (experiment=neighbor_distance_rfid): KNN-DL and the
 #           main job's accurate GRaF (ray_knn, 10,000 steps each), distances GRAF_RFID_DISTANCES (the experiment's:
@@ -58,7 +59,8 @@ print(O.load('conf/experiment/neighbor_distance_rfid.yaml').hydra.sweeper.params
 ends_first() {  # the study's distances (conf/experiment/neighbor_distance.yaml), the two ends first, then the rest
     "${PYTHON:-.venv/bin/python}" -c "from omegaconf import OmegaConf as O
 d = sorted(str(O.load('conf/experiment/neighbor_distance.yaml').hydra.sweeper.params['neighbors.exclude_within']).split(','), key=float)
-print(','.join(d[:1] + d[-1:] + d[1:-1]))"
+m = d[len(d) // 2]
+print(','.join(dict.fromkeys(d[:1] + d[-1:] + [m] + d[1:-1])))"
 }
 DISTANCES=${GRAF_DISTANCES:-$(ends_first)}  # its distances (wavelengths), in the order run: the ends, then the middle
 # the methods its study jobs train (GRAF_DISTANCE_MODELS="knn_dl graf_cpu_scenes_ray_weights": the mode validation

@@ -459,10 +459,10 @@ def test_the_distance_block_shows_the_record_or_how_far_its_run_has_got(tmp_path
     distance); with it, its advice, figure and table (the front page's ``brief``: no table)."""
     from docs_hooks import distance
 
-    assert distance.planned_jobs() == 60  # 3 methods x 2 scenes x 3 distances x 3 seeds, and 2 modes x 3 distances
+    assert distance.planned_jobs() == 100  # 3 methods x 2 scenes x 5 distances x 3 seeds, and 2 modes x 5 distances
     (tmp_path / "job").mkdir(parents=True)
     (tmp_path / "job" / "results.json").write_text("{}")
-    assert "1 of its 60 jobs have finished" in distance.block(str(tmp_path))
+    assert "1 of its 100 jobs have finished" in distance.block(str(tmp_path))
     # the measured scene's study: 2 methods x 3 distances x 3 seeds, one GRaF mode (nothing to validate), its own stage
     assert distance.planned_jobs("neighbor_distance_rfid") == 18
     rfid = distance.block(f"{tmp_path} experiment=neighbor_distance_rfid")
@@ -477,7 +477,7 @@ def test_the_distance_block_shows_the_record_or_how_far_its_run_has_got(tmp_path
     full, brief = distance.block(str(tmp_path)), distance.block(f"{tmp_path} brief")
     assert full.startswith("**Use GRaF beyond 4 wavelengths.**") and "vs_distance.png" in full
     assert "| conference_v1 | 4 | graf-ray-knn |" in full and "| conference_v1 |" not in brief
-    assert "3 seed(s) per point (1 of 60 jobs so far" in brief
+    assert "3 seed(s) per point (1 of 100 jobs so far" in brief
 
 
 def test_the_readme_distance_sentence_counts_seeds_and_jobs_from_the_record(tmp_path, monkeypatch):
@@ -492,14 +492,14 @@ def test_the_readme_distance_sentence_counts_seeds_and_jobs_from_the_record(tmp_
     folder = tmp_path / module.DISTANCE
     (folder / "job").mkdir(parents=True)
     (folder / "job" / "results.json").write_text("{}")
-    assert "under way: 1 of its 60 jobs have finished" in module.distance_sentence()
+    assert "under way: 1 of its 100 jobs have finished" in module.distance_sentence()
     c = {"verdict": "ahead", "n_seeds": 1}
     points = {"0.0": {"graf": {"vs_knn": c}}, "4.0": {"graf": {"vs_knn": {**c, "n_seeds": 3}}}}
     record = {"advice": "Use GRaF.", "differences": {"office_v1": points}}
     (folder / "distance.json").write_text(json.dumps(record))
     said = module.distance_sentence()
-    assert "1 to 3 seeds a point" in said and "1 of its 60 jobs so far" in said and said.endswith("**Use GRaF.**")
-    for i in range(59):
+    assert "1 to 3 seeds a point" in said and "1 of its 100 jobs so far" in said and said.endswith("**Use GRaF.**")
+    for i in range(99):
         (folder / f"j{i}").mkdir()
         (folder / f"j{i}" / "results.json").write_text("{}")
     assert "jobs so far" not in module.distance_sentence()
