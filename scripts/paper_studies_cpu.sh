@@ -56,7 +56,7 @@ DISTANCE=${GRAF_DISTANCE:-sweeps/neighbor_distance_paper}  # the neighbour-dista
 DISTANCE_RFID=${GRAF_DISTANCE_RFID:-sweeps/neighbor_distance_rfid}  # the measured scene's neighbour-distance record
 RFID_DISTANCES=${GRAF_RFID_DISTANCES:-$("${PYTHON:-.venv/bin/python}" -c "from omegaconf import OmegaConf as O
 print(O.load('conf/experiment/neighbor_distance_rfid.yaml').hydra.sweeper.params['neighbors.exclude_within'])")}
-ends_first() {  # the study's distances (conf/experiment/neighbor_distance.yaml), the two ends first, then the rest
+ends_first() {  # the study's distances (conf/experiment/neighbor_distance.yaml): the two ends, the middle, then the rest
     "${PYTHON:-.venv/bin/python}" -c "from omegaconf import OmegaConf as O
 d = sorted(str(O.load('conf/experiment/neighbor_distance.yaml').hydra.sweeper.params['neighbors.exclude_within']).split(','), key=float)
 m = d[len(d) // 2]
